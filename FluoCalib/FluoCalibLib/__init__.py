@@ -1,0 +1,1 @@
+"""Calibration: camera geometry, radiometry, illumination, laser."""

@@ -1,0 +1,1 @@
+"""Navigation: ray casting, illumination model, surface flux, live devices."""

@@ -1,0 +1,1 @@
+"""Tomography: analytic diffusion, FEM, meshing, reconstruction."""

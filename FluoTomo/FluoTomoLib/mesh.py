@@ -1,0 +1,207 @@
+"""The simplex mesh shared by meshing, FEM and reconstruction.
+
+One container for 2D triangle and 3D tetrahedral meshes: node coordinates in
+mm, element connectivity, a region label per element (the CBCT label), and
+derived quantities computed once on demand (element measures, boundary facets
+with outward normals, node regions).  Meshing writes it, FEM reads it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+
+
+@dataclass(eq=False)
+class Mesh:
+    """Linear simplex mesh.
+
+    Attributes
+    ----------
+    nodes_mm : (N, d) float array, d = 2 or 3
+    elements : (M, d+1) int array of node indices
+    element_region : (M,) int array, region label of each element (0 is never
+        used for tissue; label values follow the CBCT label map)
+    name : str
+    """
+
+    nodes_mm: np.ndarray
+    elements: np.ndarray
+    element_region: np.ndarray | None = None
+    name: str = "mesh"
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.nodes_mm = np.ascontiguousarray(self.nodes_mm, dtype=float)
+        self.elements = np.ascontiguousarray(self.elements, dtype=np.int64)
+        if self.nodes_mm.ndim != 2 or self.nodes_mm.shape[1] not in (2, 3):
+            raise FluoInputError("nodes must be an (N, 2) or (N, 3) array", field="nodes_mm",
+                                 value=self.nodes_mm.shape)
+        d = self.nodes_mm.shape[1]
+        if self.elements.ndim != 2 or self.elements.shape[1] != d + 1:
+            raise FluoInputError(f"elements must be (M, {d + 1}) for a {d}D mesh",
+                                 field="elements", value=self.elements.shape)
+        if len(self.elements) == 0:
+            raise FluoInputError("mesh has no elements", field="elements")
+        if self.elements.min() < 0 or self.elements.max() >= len(self.nodes_mm):
+            raise FluoInputError("element refers to a node that does not exist", field="elements",
+                                 value=int(self.elements.max()))
+        if not np.all(np.isfinite(self.nodes_mm)):
+            raise FluoInputError("node coordinates must be finite", field="nodes_mm")
+        if self.element_region is None:
+            self.element_region = np.ones(len(self.elements), dtype=np.int64)
+        self.element_region = np.ascontiguousarray(self.element_region, dtype=np.int64)
+        if self.element_region.shape != (len(self.elements),):
+            raise FluoInputError("one region label per element is required", field="element_region",
+                                 value=self.element_region.shape)
+
+    # ----- sizes -----
+    @property
+    def dim(self) -> int:
+        return self.nodes_mm.shape[1]
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes_mm)
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.elements)
+
+    # ----- geometry -----
+    @cached_property
+    def signed_measures(self) -> np.ndarray:
+        """Signed area (2D, mm^2) or volume (3D, mm^3) of each element."""
+        p = self.nodes_mm[self.elements]
+        e = p[:, 1:, :] - p[:, :1, :]
+        det = np.linalg.det(e)
+        return det / (2.0 if self.dim == 2 else 6.0)
+
+    @cached_property
+    def measures(self) -> np.ndarray:
+        """Unsigned element area/volume [mm^2 or mm^3]."""
+        return np.abs(self.signed_measures)
+
+    def check_elements(self, rel_tol=1e-10):
+        """Raise FluoInputError on degenerate (zero-measure) or inverted elements.
+
+        Inverted means a negative signed measure while most elements are
+        positive; mixed orientation is fixed by :meth:`oriented`, not here.
+        """
+        m = self.signed_measures
+        scale = np.mean(np.abs(m)) if len(m) else 1.0
+        degenerate = np.flatnonzero(np.abs(m) <= rel_tol * scale)
+        if len(degenerate):
+            raise FluoInputError(
+                f"{len(degenerate)} degenerate element(s) with zero {'area' if self.dim == 2 else 'volume'}",
+                field=f"{self.name}.elements[{int(degenerate[0])}]", value=float(m[degenerate[0]]))
+        return self
+
+    def oriented(self) -> "Mesh":
+        """Copy with every element positively oriented (swap two nodes where negative)."""
+        el = self.elements.copy()
+        neg = self.signed_measures < 0
+        el[neg, 0], el[neg, 1] = self.elements[neg, 1], self.elements[neg, 0]
+        return Mesh(self.nodes_mm, el, self.element_region.copy(), self.name, dict(self.meta))
+
+    @cached_property
+    def regions(self) -> np.ndarray:
+        """Sorted unique region labels."""
+        return np.unique(self.element_region)
+
+    def region_measures(self) -> dict:
+        """Total area/volume per region label."""
+        return {int(r): float(self.measures[self.element_region == r].sum()) for r in self.regions}
+
+    @cached_property
+    def node_region(self) -> np.ndarray:
+        """A region per node: the highest label among the elements using it.
+
+        Interface nodes belong to every touching region; taking the highest label
+        lets a small inclusion (higher label) keep its boundary nodes, which is
+        what priors want for thin targets.
+        """
+        out = np.full(self.n_nodes, np.iinfo(np.int64).min, dtype=np.int64)
+        np.maximum.at(out, self.elements.ravel(), np.repeat(self.element_region, self.dim + 1))
+        return out
+
+    # ----- boundary -----
+    @cached_property
+    def _boundary(self):
+        d = self.dim
+        el = self.elements
+        # every facet of every element, with the opposite node to orient it outward
+        facets, opposite = [], []
+        for k in range(d + 1):
+            idx = [j for j in range(d + 1) if j != k]
+            facets.append(el[:, idx])
+            opposite.append(el[:, k])
+        facets = np.concatenate(facets)
+        opposite = np.concatenate(opposite)
+        key = np.sort(facets, axis=1)
+        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.ravel()
+        on_boundary = counts[inverse] == 1
+        bf = facets[on_boundary]
+        opp = opposite[on_boundary]
+        p = self.nodes_mm
+        if d == 2:
+            t = p[bf[:, 1]] - p[bf[:, 0]]
+            nrm = np.stack([t[:, 1], -t[:, 0]], axis=1)
+        else:
+            nrm = np.cross(p[bf[:, 1]] - p[bf[:, 0]], p[bf[:, 2]] - p[bf[:, 0]])
+        size = np.linalg.norm(nrm, axis=1)
+        centroid = p[bf].mean(axis=1)
+        flip = np.einsum("ij,ij->i", nrm, centroid - p[opp]) < 0
+        nrm[flip] *= -1
+        if d == 2:
+            bf[flip] = bf[flip][:, ::-1]
+        else:
+            bf[flip] = bf[flip][:, [0, 2, 1]]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            unit = nrm / size[:, None]
+        measure = size if d == 2 else 0.5 * size
+        return bf, unit, measure
+
+    @property
+    def boundary_facets(self) -> np.ndarray:
+        """(F, d) node indices of boundary edges (2D) or triangles (3D), ordered so
+        the right-hand normal points out of the mesh."""
+        return self._boundary[0]
+
+    @property
+    def boundary_normals(self) -> np.ndarray:
+        """(F, d) outward unit normals of the boundary facets."""
+        return self._boundary[1]
+
+    @property
+    def boundary_facet_measures(self) -> np.ndarray:
+        """(F,) length (2D, mm) or area (3D, mm^2) of each boundary facet."""
+        return self._boundary[2]
+
+    @cached_property
+    def boundary_nodes(self) -> np.ndarray:
+        return np.unique(self.boundary_facets)
+
+    @cached_property
+    def boundary_node_normals(self) -> np.ndarray:
+        """(N, d) area-weighted outward normal at boundary nodes (zero elsewhere)."""
+        acc = np.zeros_like(self.nodes_mm)
+        w = self.boundary_normals * self.boundary_facet_measures[:, None]
+        for k in range(self.dim):
+            np.add.at(acc, self.boundary_facets[:, k], w)
+        nrm = np.linalg.norm(acc, axis=1)
+        ok = nrm > 0
+        acc[ok] /= nrm[ok, None]
+        return acc
+
+    def bounds(self):
+        return self.nodes_mm.min(axis=0), self.nodes_mm.max(axis=0)
+
+    def __repr__(self):
+        return (f"Mesh({self.name!r}, {self.dim}D, {self.n_nodes} nodes, "
+                f"{self.n_elements} elements, regions {self.regions.tolist()})")

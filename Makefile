@@ -1,0 +1,36 @@
+# FluoGuide: the two commands of README.md.
+#   make demo   set up .venv and run the main job (end-to-end demo on the digital phantom)
+#   make test   set up .venv if needed and run the whole test suite
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+DEMO_OUT ?= demo-out
+
+.PHONY: demo demo-quick test test-fast bench venv clean system-deps
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade "pip>=24"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[test]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/fluo demo --out $(DEMO_OUT)
+
+demo-quick: $(STAMP)
+	$(VENV)/bin/fluo demo --quick --out $(DEMO_OUT)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow and not browser"
+
+bench: $(STAMP)
+	$(PY) -m benchmarks
+
+clean:
+	rm -rf $(VENV) build *.egg-info $(DEMO_OUT) test-artifacts

@@ -1,0 +1,1 @@
+"""Benchmarks: speed and accuracy together.  Run ``python -m benchmarks [NAME ...]``."""

@@ -1,0 +1,71 @@
+"""One error type for bad input, so every entry point fails the same way.
+
+A ``FluoInputError`` names the file, the field and the offending value; the
+CLI turns it into a one-line message and exit code 2.
+"""
+
+from __future__ import annotations
+
+
+class FluoError(Exception):
+    """Base class of the project's own errors."""
+
+
+class FluoInputError(FluoError, ValueError):
+    """Bad input: a file, field or value that cannot be used.
+
+    Parameters
+    ----------
+    problem : str
+        What is wrong, in words.
+    file : str or path, optional
+        The file the bad input came from.
+    field : str, optional
+        The field, argument or node name.
+    value : object, optional
+        The offending value (shown with ``repr``).
+    """
+
+    def __init__(self, problem, file=None, field=None, value=None):
+        self.problem = str(problem)
+        self.file = None if file is None else str(file)
+        self.field = field
+        self.value = value
+        parts = []
+        if self.file:
+            parts.append(self.file)
+        if field:
+            parts.append(str(field))
+        where = ": ".join(parts)
+        text = f"{where}: {self.problem}" if where else self.problem
+        if value is not None:
+            text += f" (got {value!r})"
+        super().__init__(text)
+
+
+class FluoCancelled(FluoError):
+    """Raised inside long work when the user cancels it."""
+
+
+def require_finite(name, value, file=None):
+    """Raise FluoInputError unless every element of ``value`` is finite."""
+    import numpy as np
+
+    arr = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        bad = arr[~np.isfinite(arr)].ravel()[0]
+        raise FluoInputError("must be finite", file=file, field=name, value=float(bad))
+    return arr
+
+
+def require_positive(name, value, file=None, allow_zero=False):
+    """Raise FluoInputError unless ``value`` (scalar or array) is > 0 (or >= 0)."""
+    import numpy as np
+
+    arr = require_finite(name, value, file=file)
+    ok = arr >= 0 if allow_zero else arr > 0
+    if not np.all(ok):
+        bad = arr[~ok].ravel()[0]
+        need = "non-negative" if allow_zero else "positive"
+        raise FluoInputError(f"must be {need}", file=file, field=name, value=float(bad))
+    return arr

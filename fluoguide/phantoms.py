@@ -1,0 +1,316 @@
+"""Digital phantoms: synthetic intraoperative CBCT, label map and optical truth.
+
+Three phantoms from the thesis's experiments, each an MRML scene with
+
+- ``CBCT``: scalar volume, HU-like int16, 0.8 mm voxels, partial-volume edges,
+  a CBCT-like blur and noise;
+- ``CBCTLabels``: label map (0 = air, 1.. = materials) whose region volumes
+  match the analytic shapes (volume-preserving voxelisation, see voxelize.py);
+- ground truth as ``truth.json`` beside the scene and as the JSON attribute
+  ``FluoGuide.Truth`` of ``CBCTLabels``: geometry, analytic and label-map
+  volumes, and optical properties per region at excitation and emission.
+
+Frame: RAS mm, the tissue's top surface at z = 0 (camera side, +S up), the
+phantom centred on x = y = 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import FluoInputError
+from .optics_table import icg_liquid_optics, non_fluorescent_optics
+from .voxelize import voxelize
+
+HU = {"air": -1000.0, "water": 0.0, "agar": 20.0, "polyurethane": 110.0,
+      "icg_tube": 150.0, "tongue": 70.0}
+
+
+@dataclass
+class Phantom:
+    """A digital phantom in memory (arrays indexed [k, j, i] = [z, y, x])."""
+
+    name: str
+    cbct_hu: np.ndarray
+    labels: np.ndarray
+    spacing_mm: np.ndarray
+    origin_mm: np.ndarray
+    region_names: dict
+    optics: dict
+    analytic_volumes_mm3: dict
+    geometry: dict
+    params: dict = field(default_factory=dict)
+
+    def labelmap_volumes_mm3(self):
+        vox = float(np.prod(self.spacing_mm))
+        counts = np.bincount(self.labels.ravel(), minlength=max(self.region_names) + 1)
+        return {int(k): float(counts[k] * vox) for k in self.region_names if k != 0}
+
+    def truth(self):
+        lab_vol = self.labelmap_volumes_mm3()
+        regions = {}
+        for k, name in self.region_names.items():
+            if k == 0:
+                continue
+            a = self.analytic_volumes_mm3[k]
+            regions[str(k)] = {
+                "name": name,
+                "analytic_volume_mm3": a,
+                "labelmap_volume_mm3": lab_vol[k],
+                "volume_error_pct": 100.0 * (lab_vol[k] - a) / a,
+                "optics": self.optics[k],
+            }
+        return {
+            "phantom": self.name,
+            "frame": "RAS mm; tissue top surface at z = 0, +z towards the camera",
+            "voxel_mm": self.spacing_mm.tolist(),
+            "shape_kji": list(self.labels.shape),
+            "origin_mm": self.origin_mm.tolist(),
+            "regions": regions,
+            "geometry": self.geometry,
+            "params": self.params,
+        }
+
+
+def _grid(lo, hi, voxel_mm):
+    """Shape (K, J, I) and origin of an axis-aligned grid covering [lo, hi]."""
+    lo = np.asarray(lo, float)
+    hi = np.asarray(hi, float)
+    n = np.ceil((hi - lo) / voxel_mm).astype(int)
+    origin = lo + 0.5 * voxel_mm  # voxel centres
+    return (int(n[2]), int(n[1]), int(n[0])), origin
+
+
+def _render_cbct(labels, fractions, hu_by_label, spacing, rng, noise_hu=15.0, blur_mm=0.4):
+    """HU image from partial-volume fractions, blurred and with noise (int16)."""
+    img = np.zeros(labels.shape, dtype=np.float32)
+    for lab, frac in fractions.items():
+        img += frac * np.float32(hu_by_label[lab])
+    sigma = [blur_mm / s for s in spacing[::-1]]
+    img = ndimage.gaussian_filter(img, sigma)
+    img += rng.normal(0.0, noise_hu, img.shape).astype(np.float32)
+    return np.clip(np.round(img), -1024, 3071).astype(np.int16)
+
+
+def _check_voxel(voxel_mm):
+    v = float(voxel_mm)
+    if not (0.1 <= v <= 5.0):
+        raise FluoInputError("voxel size must be within 0.1..5 mm", field="voxel_mm", value=v)
+    return v
+
+
+def slab(voxel_mm=0.8, seed=0):
+    """The 11 x 11 x 6 cm polyurethane calibration slab (mua 0.005, musp 0.89, n 1.52)."""
+    v = _check_voxel(voxel_mm)
+    a, b, h = 110.0, 110.0, 60.0
+    margin = 4 * v
+    shape, origin = _grid((-a / 2 - margin, -b / 2 - margin, -h - margin),
+                          (a / 2 + margin, b / 2 + margin, margin), v)
+
+    def inside(x, y, z):
+        return (np.abs(x) <= a / 2) & (np.abs(y) <= b / 2) & (z <= 0) & (z >= -h)
+
+    vols = {1: a * b * h}
+    labels, fr = voxelize([(1, inside)], shape, (v, v, v), origin, vols)
+    rng = np.random.default_rng(seed)
+    cbct = _render_cbct(labels, fr, {0: HU["air"], 1: HU["polyurethane"]}, (v, v, v), rng)
+    return Phantom("slab", cbct, labels, np.array([v, v, v]), origin,
+                   {0: "air", 1: "polyurethane"},
+                   {1: non_fluorescent_optics(0.005, 0.89, 1.52)}, vols,
+                   {"size_mm": [a, b, h], "top_z_mm": 0.0}, {"voxel_mm": v, "seed": seed})
+
+
+def _tube_in_cylinder_volume(R, r):
+    """Volume [mm^3] of a radius-r tube along x through a radius-R cylinder's axis,
+    clipped by the cylinder wall: integral over the tube disc of the chord 2 sqrt(R^2 - y^2)."""
+    # Gauss-Legendre in polar coordinates over the tube's cross-section disc.
+    xs, ws = np.polynomial.legendre.leggauss(64)
+    rho = 0.5 * r * (xs + 1)
+    wr = 0.5 * r * ws
+    th = np.pi * (xs + 1)
+    wt = np.pi * ws
+    RHO, TH = np.meshgrid(rho, th, indexing="ij")
+    y = RHO * np.cos(TH)
+    integrand = 2 * np.sqrt(R * R - y * y) * RHO
+    return float(np.einsum("i,j,ij->", wr, wt, integrand))
+
+
+def cylinder_tube(voxel_mm=0.8, seed=0, depth_mm=4.7, tube_diameter_mm=2.4,
+                  tube_icg_ug_per_ml=2.0, background_icg_ug_per_ml=0.0):
+    """9 cm liquid cylinder, 2 cm deep, with an ICG tube at a chosen depth.
+
+    The tube runs along x through the cylinder's axis (y = 0); ``depth_mm`` is
+    the distance from the liquid surface (z = 0) to the tube's axis, as the
+    thesis's phantom experiment varied it from 2.7 to 6.7 mm.
+    """
+    v = _check_voxel(voxel_mm)
+    R, H = 45.0, 20.0
+    r = 0.5 * float(tube_diameter_mm)
+    d = float(depth_mm)
+    if not (r > 0 and r < 10):
+        raise FluoInputError("tube diameter must be within 0..20 mm", field="tube_diameter_mm",
+                             value=tube_diameter_mm)
+    if d - r < 0.5 or d + r > H - 0.5:
+        raise FluoInputError(f"tube must lie inside the {H:g} mm deep liquid "
+                             f"(0.5 mm clearance)", field="depth_mm", value=d)
+    margin = 4 * v
+    shape, origin = _grid((-R - margin, -R - margin, -H - margin), (R + margin, R + margin, margin), v)
+
+    def liquid(x, y, z):
+        return (x * x + y * y <= R * R) & (z <= 0) & (z >= -H)
+
+    def tube(x, y, z):
+        return liquid(x, y, z) & (y * y + (z + d) ** 2 <= r * r)
+
+    v_tube = _tube_in_cylinder_volume(R, r)
+    vols = {1: np.pi * R * R * H - v_tube, 2: v_tube}
+    labels, fr = voxelize([(1, liquid), (2, tube)], shape, (v, v, v), origin, vols)
+    rng = np.random.default_rng(seed)
+    cbct = _render_cbct(labels, fr, {0: HU["air"], 1: HU["water"], 2: HU["icg_tube"]}, (v, v, v), rng)
+    optics = {1: icg_liquid_optics(background_icg_ug_per_ml),
+              2: icg_liquid_optics(tube_icg_ug_per_ml)}
+    geometry = {"cylinder_radius_mm": R, "liquid_depth_mm": H, "tube_axis": [1.0, 0.0, 0.0],
+                "tube_centre_mm": [0.0, 0.0, -d], "tube_radius_mm": r, "tube_depth_mm": d,
+                "top_z_mm": 0.0}
+    return Phantom("cylinder-tube", cbct, labels, np.array([v, v, v]), origin,
+                   {0: "air", 1: "liquid", 2: "icg_tube"}, optics, vols, geometry,
+                   {"voxel_mm": v, "seed": seed, "depth_mm": d, "tube_diameter_mm": 2 * r,
+                    "tube_icg_ug_per_ml": tube_icg_ug_per_ml,
+                    "background_icg_ug_per_ml": background_icg_ug_per_ml})
+
+
+def _half_ellipsoid_overlap(cav, tng, n=801):
+    """Volume [mm^3] of (tongue ellipsoid) intersect (cavity half-ellipsoid, z <= 0),
+    by 2D quadrature over x, y of the overlap of their z-intervals (exact in z)."""
+    (ca, cb, cc), (tc, (ta, tb, tcz)) = cav, tng
+    x = np.linspace(tc[0] - ta, tc[0] + ta, n)
+    y = np.linspace(tc[1] - tb, tc[1] + tb, n)
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    qt = 1 - ((X - tc[0]) / ta) ** 2 - ((Y - tc[1]) / tb) ** 2
+    qc = 1 - (X / ca) ** 2 - (Y / cb) ** 2
+    ok = (qt > 0) & (qc > 0)
+    ht = tcz * np.sqrt(np.where(ok, qt, 0))
+    hc = cc * np.sqrt(np.where(ok, qc, 0))
+    lo = np.maximum(tc[2] - ht, -hc)
+    hi = np.minimum(tc[2] + ht, 0.0)
+    length = np.where(ok, np.clip(hi - lo, 0, None), 0.0)
+    return float(np.trapezoid(np.trapezoid(length, y, axis=1), x))
+
+
+def oral_cavity(voxel_mm=0.8, seed=0, tissue_icg_ug_per_ml=0.4, tongue_icg_ug_per_ml=2.0):
+    """A mouth-like cavity in an agar block with a tongue-like fluorescent inclusion.
+
+    Agar block 70 x 60 x 50 mm (top at z = 0); the cavity is the lower half of
+    an ellipsoid (semi-axes 25, 20, 25 mm) opening at the top face, so its
+    walls curve away from a camera looking down into it; the tongue is an
+    ellipsoid (12, 15, 8 mm) resting on the cavity floor, half of it
+    protruding into the cavity.  The agar holds a low ICG level (homogeneous
+    fluorescence for surface-mapping tests); the tongue a higher one.
+    """
+    v = _check_voxel(voxel_mm)
+    bx, by, bz = 70.0, 60.0, 50.0
+    cav = (25.0, 20.0, 25.0)
+    t_centre = (0.0, 4.0, -24.0)
+    t_axes = (12.0, 15.0, 8.0)
+    margin = 4 * v
+    shape, origin = _grid((-bx / 2 - margin, -by / 2 - margin, -bz - margin),
+                          (bx / 2 + margin, by / 2 + margin, margin), v)
+
+    def block(x, y, z):
+        return (np.abs(x) <= bx / 2) & (np.abs(y) <= by / 2) & (z <= 0) & (z >= -bz)
+
+    def cavity(x, y, z):
+        return (z <= 0) & ((x / cav[0]) ** 2 + (y / cav[1]) ** 2 + (z / cav[2]) ** 2 <= 1)
+
+    def tissue(x, y, z):
+        return block(x, y, z) & ~cavity(x, y, z)
+
+    def tongue(x, y, z):
+        return (((x - t_centre[0]) / t_axes[0]) ** 2 + ((y - t_centre[1]) / t_axes[1]) ** 2
+                + ((z - t_centre[2]) / t_axes[2]) ** 2) <= 1
+
+    v_block = bx * by * bz
+    v_cav = 2.0 / 3.0 * np.pi * cav[0] * cav[1] * cav[2]
+    v_tongue = 4.0 / 3.0 * np.pi * t_axes[0] * t_axes[1] * t_axes[2]
+    v_overlap = _half_ellipsoid_overlap(cav, (t_centre, t_axes))
+    vols = {1: v_block - v_cav - (v_tongue - v_overlap), 2: v_tongue}
+    labels, fr = voxelize([(1, tissue), (2, tongue)], shape, (v, v, v), origin, vols)
+    rng = np.random.default_rng(seed)
+    cbct = _render_cbct(labels, fr, {0: HU["air"], 1: HU["agar"], 2: HU["tongue"]}, (v, v, v), rng)
+    optics = {1: icg_liquid_optics(tissue_icg_ug_per_ml, base_mua_x=0.003, base_mua_m=0.003),
+              2: icg_liquid_optics(tongue_icg_ug_per_ml, base_mua_x=0.003, base_mua_m=0.003)}
+    geometry = {"block_mm": [bx, by, bz], "cavity_semi_axes_mm": list(cav),
+                "cavity_centre_mm": [0.0, 0.0, 0.0], "tongue_centre_mm": list(t_centre),
+                "tongue_semi_axes_mm": list(t_axes), "top_z_mm": 0.0}
+    return Phantom("oral-cavity", cbct, labels, np.array([v, v, v]), origin,
+                   {0: "air", 1: "agar", 2: "tongue"}, optics, vols, geometry,
+                   {"voxel_mm": v, "seed": seed, "tissue_icg_ug_per_ml": tissue_icg_ug_per_ml,
+                    "tongue_icg_ug_per_ml": tongue_icg_ug_per_ml})
+
+
+PHANTOMS = {"slab": slab, "cylinder-tube": cylinder_tube, "oral-cavity": oral_cavity}
+
+
+def make_phantom(name, **params):
+    """Build phantom ``name`` (one of PHANTOMS) with keyword parameters."""
+    if name not in PHANTOMS:
+        raise FluoInputError(f"unknown phantom; choose one of {', '.join(PHANTOMS)}",
+                             field="phantom", value=name)
+    return PHANTOMS[name](**params)
+
+
+def add_phantom_to_scene(scene, phantom):
+    """Add ``CBCT`` and ``CBCTLabels`` nodes (with the truth attribute) to a scene."""
+    from . import mrml_io
+
+    vol = mrml_io.add_volume(scene, "CBCT", phantom.cbct_hu, phantom.spacing_mm, phantom.origin_mm)
+    vol.SetAttribute("FluoGuide.Phantom", phantom.name)
+    lab = mrml_io.add_volume(scene, "CBCTLabels", phantom.labels, phantom.spacing_mm,
+                             phantom.origin_mm, labelmap=True)
+    lab.SetAttribute("FluoGuide.Phantom", phantom.name)
+    mrml_io.set_json_attribute(lab, "FluoGuide.Truth", phantom.truth())
+    return vol, lab
+
+
+def write_phantom(phantom, out_dir):
+    """Write ``out_dir/scene.mrml`` (+ NRRD files) and ``out_dir/truth.json``.
+
+    Everything is written into a temporary sibling folder and renamed into
+    place at the end, so a failure leaves no half-written phantom behind.
+    Returns the scene path.
+    """
+    from . import mrml_io
+
+    out_dir = Path(out_dir).resolve()
+    if out_dir.exists() and not out_dir.is_dir():
+        raise FluoInputError("output exists and is not a folder", file=out_dir)
+    parent = out_dir.parent
+    if not parent.is_dir():
+        raise FluoInputError("parent folder does not exist", file=parent)
+    if not os.access(parent, os.W_OK):
+        raise FluoInputError("output folder is not writable", file=parent)
+    if out_dir.exists() and not os.access(out_dir, os.W_OK):
+        raise FluoInputError("output folder is not writable", file=out_dir)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-", dir=parent))
+    except OSError as exc:
+        raise FluoInputError(f"cannot write here ({exc.strerror})", file=parent) from None
+    try:
+        scene = mrml_io.new_scene()
+        add_phantom_to_scene(scene, phantom)
+        mrml_io.save_scene(scene, tmp / "scene.mrml")
+        (tmp / "truth.json").write_text(json.dumps(phantom.truth(), indent=2))
+        out_dir.mkdir(exist_ok=True)
+        for f in sorted(tmp.iterdir()):
+            os.replace(f, out_dir / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir / "scene.mrml"
