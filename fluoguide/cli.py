@@ -27,6 +27,7 @@ from .errors import FluoCancelled, FluoError, FluoInputError
 CLI_MODULES = [
     "fluoguide.phantom_cli",
     "fluoguide.scene_cli",
+    "fluoguide.demo_cli",
 ]
 
 

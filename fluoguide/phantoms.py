@@ -293,8 +293,10 @@ def write_phantom(phantom, out_dir):
     if out_dir.exists() and not out_dir.is_dir():
         raise FluoInputError("output exists and is not a folder", file=out_dir)
     parent = out_dir.parent
-    if not parent.is_dir():
-        raise FluoInputError("parent folder does not exist", file=parent)
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FluoInputError(f"cannot create the output folder ({exc.strerror})", file=parent) from None
     if not os.access(parent, os.W_OK):
         raise FluoInputError("output folder is not writable", file=parent)
     if out_dir.exists() and not os.access(out_dir, os.W_OK):

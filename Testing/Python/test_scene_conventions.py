@@ -1,0 +1,92 @@
+"""Each module writes only the scene nodes docs/scene.md documents for it."""
+
+import fnmatch
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fluoguide import mrml_io
+
+DOC = Path(__file__).resolve().parents[2] / "docs" / "scene.md"
+
+
+def documented_nodes():
+    """(name pattern, class, module) of every row of the Nodes table."""
+    rows = []
+    in_nodes = False
+    for line in DOC.read_text().splitlines():
+        if line.startswith("## "):
+            in_nodes = line.strip() == "## Nodes"
+            continue
+        m = re.match(r"\|\s*`([^`]+)`\s*\|\s*(vtkMRML\w+)\s*\|\s*(\w+)\s*\|", line)
+        if in_nodes and m:
+            rows.append(m.groups())
+    return rows
+
+
+def _data_nodes(scene):
+    return {(n["name"], n["class"]) for n in mrml_io.node_summary(scene)}
+
+
+def _check(module, before, after):
+    allowed = [(pat, cls) for pat, cls, mod in documented_nodes() if mod == module]
+    for name, cls in sorted(after - before):
+        ok = any(fnmatch.fnmatchcase(name, pat) and cls == c for pat, c in allowed)
+        assert ok, f"{module} wrote {name} ({cls}), which docs/scene.md does not list for it"
+
+
+def test_doc_table_parses():
+    rows = documented_nodes()
+    assert ("CBCT", "vtkMRMLScalarVolumeNode", "FluoGuide") in rows
+    assert {mod for _, _, mod in rows} >= {"FluoGuide", "FluoCalib", "FluoNav"}
+
+
+def _scenario_fluoguide(scene):
+    from fluoguide.phantoms import add_phantom_to_scene, make_phantom
+
+    add_phantom_to_scene(scene, make_phantom("slab", voxel_mm=2.0))
+
+
+def _scenario_fluocalib(scene, tmp_path):
+    import json
+
+    from FluoCalib import FluoCalibLogic
+
+    logic = FluoCalibLogic(scene)
+    logic.setCameraToTracker(np.eye(4))
+    p = tmp_path / "calib.json"
+    p.write_text(json.dumps({"fx": 1000.0}))
+    logic.loadCalibrationJson(p)
+
+
+def _scenario_fluonav(scene):
+    from FluoNav import FluoNavLogic
+
+    FluoNavLogic(scene).buildSurface()
+
+
+def _scenario_fluotomo(scene):
+    from FluoTomo import FluoTomoLogic
+
+    FluoTomoLogic(scene).labelVolumes()
+
+
+@pytest.mark.parametrize("module", ["FluoGuide", "FluoCalib", "FluoNav", "FluoTomo"])
+def test_module_writes_only_documented_nodes(module, tmp_path):
+    scene = mrml_io.new_scene()
+    if module != "FluoGuide":
+        _scenario_fluoguide(scene)
+    before = _data_nodes(scene)
+    if module == "FluoGuide":
+        _scenario_fluoguide(scene)
+    elif module == "FluoCalib":
+        _scenario_fluocalib(scene, tmp_path)
+    elif module == "FluoNav":
+        _scenario_fluonav(scene)
+    else:
+        _scenario_fluotomo(scene)
+    after = _data_nodes(scene)
+    assert after >= before
+    _check(module, before, after)
