@@ -1,0 +1,168 @@
+"""Coupled excitation/emission forward model, adjoint fields and Jacobians.
+
+Excitation: (K_x) Phi_x = q_s            (unit-power buried point sources)
+Emission:   (K_m) Phi_m = M(gamma) Phi_x (gamma = eta mua_f,x, nodal yield)
+Data:       y_sd = P_d Phi_m,s           (boundary fluence at detector d)
+
+With the adjoint g_d = K_m^-1 P_d^T (K symmetric), y_sd = g_d^T M(gamma) Phi_x,s,
+which is linear in gamma:  J[sd, k] = integral g_d Phi_x,s phi_k,
+computed exactly per element from the P1 triple products.  One factorisation
+per wavelength serves all sources and adjoints.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from fluoguide.errors import FluoInputError
+
+from .fem import (DiffusionOperator, detector_operator, geometry, point_source_rhs,
+                  source_positions, weighted_mass)
+
+
+def _props(mesh, props, name):
+    try:
+        return props["mua_per_mm"], props["musp_per_mm"], props["n"]
+    except (KeyError, TypeError):
+        raise FluoInputError("needs keys mua_per_mm, musp_per_mm and n", field=name) from None
+
+
+def triple_product_jacobian(mesh, G, F):
+    """J[(s, d), k] = integral G_d F_s phi_k for nodal fields G (N, D) and F (N, S).
+
+    Returns a dense (S * D, N) array, row index s * D + d.
+    """
+    g = geometry(mesh)
+    el = g.elements
+    nl = mesh.dim + 1
+    w = (g.vol * g.c3)                                   # (M,)
+    Ge = G[el]                                           # (M, nl, D)
+    Gs = Ge.sum(axis=1)                                  # (M, D)
+    scatter = sp.csr_matrix((np.ones(el.size), (np.arange(el.size), el.ravel())),
+                            shape=(el.size, mesh.n_nodes))
+    S, D = F.shape[1], G.shape[1]
+    out = np.empty((S * D, mesh.n_nodes))
+    for s in range(S):
+        Fe = F[el, s]                                    # (M, nl)
+        Fs = Fe.sum(axis=1)                              # (M,)
+        gf = np.einsum("mjd,mj->md", Ge, Fe)             # (M, D): sum_j g_j f_j
+        base = Gs * Fs[:, None] + gf                     # (M, D)
+        # local[k] = base + g_k F + G f_k + 2 g_k f_k, weighted by |e| c3
+        loc = (base[:, None, :] + Ge * Fs[:, None, None] + Gs[:, None, :] * Fe[:, :, None]
+               + 2 * Ge * Fe[:, :, None]) * w[:, None, None]          # (M, nl, D)
+        out[s * D:(s + 1) * D] = (scatter.T @ loc.reshape(el.size, D)).T
+    return out
+
+
+class FluorescenceModel:
+    """Forward model of one tissue: sources, detectors, both wavelengths.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    props_x, props_m : dicts with ``mua_per_mm``, ``musp_per_mm`` (scalar or
+        nodal) and ``n``, at excitation (mua_x includes the fluorophore) and
+        emission
+    sources_mm, detectors_mm : (S, d), (D, d) surface points; sources are
+        buried one MFP' below the nearest surface point
+    solver : see DiffusionOperator
+    """
+
+    def __init__(self, mesh, props_x, props_m, sources_mm, detectors_mm, solver="auto",
+                 max_snap_mm=5.0):
+        t0 = time.perf_counter()
+        mua_x, musp_x, n_x = _props(mesh, props_x, "props_x")
+        mua_m, musp_m, n_m = _props(mesh, props_m, "props_m")
+        self.mesh = mesh
+        self.op_x = DiffusionOperator(mesh, mua_x, musp_x, n_x, solver, name="excitation")
+        self.op_m = DiffusionOperator(mesh, mua_m, musp_m, n_m, solver, name="emission")
+        self.sources_surface_mm = np.atleast_2d(np.asarray(sources_mm, float))
+        self.detectors_mm = np.atleast_2d(np.asarray(detectors_mm, float))
+        self.sources_mm = source_positions(mesh, self.sources_surface_mm, self.op_x.musp,
+                                           self.op_x.mua, max_snap_mm)
+        self.q = point_source_rhs(mesh, self.sources_mm)
+        self.P = detector_operator(mesh, self.detectors_mm, max_snap_mm)
+        self.setup_seconds = time.perf_counter() - t0
+        self._phi_x = None
+        self._adj_m = None
+        self._adj_x = None
+        self.timings = {"assembly": self.op_x.assembly_seconds + self.op_m.assembly_seconds}
+
+    @property
+    def n_sources(self):
+        return len(self.sources_mm)
+
+    @property
+    def n_detectors(self):
+        return self.P.shape[0]
+
+    @property
+    def solver_name(self):
+        return self.op_x.solver_name or self.op_x.factorize().solver_name
+
+    @property
+    def phi_x(self):
+        """(N, S) excitation fluence for unit-power sources [1/mm^2 in 3D, 1/mm in 2D]."""
+        if self._phi_x is None:
+            t0 = time.perf_counter()
+            self._phi_x = self.op_x.solve(self.q)
+            self.timings["forward_x"] = time.perf_counter() - t0
+            self.timings["factor"] = self.op_x.factor_seconds
+        return self._phi_x
+
+    @property
+    def adjoint_m(self):
+        """(N, D) emission-wavelength adjoint fields (Green's function of each detector)."""
+        if self._adj_m is None:
+            t0 = time.perf_counter()
+            self._adj_m = self.op_m.solve(self.P.T.tocsc())
+            self.timings["adjoint_m"] = time.perf_counter() - t0
+            self.timings["factor"] = self.timings.get("factor", 0) + self.op_m.factor_seconds
+        return self._adj_m
+
+    @property
+    def adjoint_x(self):
+        """(N, D) excitation-wavelength adjoint fields."""
+        if self._adj_x is None:
+            self._adj_x = self.op_x.solve(self.P.T.tocsc())
+        return self._adj_x
+
+    def excitation_data(self):
+        """(S, D) excitation boundary fluence per unit source power."""
+        return np.asarray((self.P @ self.phi_x).T)
+
+    def emission_fields(self, yield_per_mm):
+        """(N, S) emission fluence for a nodal yield (forward solves, no adjoint)."""
+        gamma = np.asarray(yield_per_mm, float)
+        rhs = weighted_mass(self.mesh, gamma) @ self.phi_x
+        return self.op_m.solve(rhs)
+
+    def emission_data(self, yield_per_mm):
+        """(S, D) emission boundary fluence per unit excitation power."""
+        gamma = np.asarray(yield_per_mm, float)
+        if gamma.shape != (self.mesh.n_nodes,) or not np.all(np.isfinite(gamma)):
+            raise FluoInputError("needs one finite value per node", field="yield_per_mm",
+                                 value=gamma.shape)
+        return np.asarray(self.P @ self.emission_fields(gamma)).T
+
+    def jacobian_yield(self):
+        """(S*D, N): d(emission data)/d(nodal yield), row s*D + d."""
+        t0 = time.perf_counter()
+        J = triple_product_jacobian(self.mesh, self.adjoint_m, self.phi_x)
+        self.timings["jacobian"] = time.perf_counter() - t0
+        return J
+
+    def jacobian_mua_x(self):
+        """(S*D, N): d(excitation data)/d(nodal mua_x), row s*D + d (negative)."""
+        return -triple_product_jacobian(self.mesh, self.adjoint_x, self.phi_x)
+
+
+def safe_log(data, floor=1e-300):
+    """Natural log of data with non-positive or underflowed values clipped to
+    ``floor``; returns (log_data, valid_mask) so callers can drop them."""
+    d = np.asarray(data, float)
+    valid = np.isfinite(d) & (d > floor)
+    return np.log(np.where(valid, d, floor)), valid

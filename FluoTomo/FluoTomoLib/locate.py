@@ -1,0 +1,183 @@
+"""Point location in simplex meshes and closest points on their boundary.
+
+Shared by FEM (sources, detectors), mesh-to-mesh interpolation and the
+non-contact geometry.  A KD-tree of element centroids proposes candidates;
+barycentric coordinates decide.  Built once per mesh and cached on it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fluoguide.errors import FluoInputError
+
+
+def barycentric(mesh, element_ids, points):
+    """Barycentric coordinates (P, d+1) of points in the given elements."""
+    el = mesh.elements[element_ids]
+    p = mesh.nodes_mm[el]                      # (P, d+1, d)
+    T = (p[:, 1:, :] - p[:, :1, :]).transpose(0, 2, 1)  # (P, d, d)
+    rhs = np.asarray(points, float) - p[:, 0, :]
+    lam = np.linalg.solve(T, rhs[..., None])[..., 0]
+    return np.concatenate([1.0 - lam.sum(axis=1, keepdims=True), lam], axis=1)
+
+
+class PointLocator:
+    """Find the element containing each query point.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    k : candidates checked per point before falling back to a wider search
+    """
+
+    def __init__(self, mesh, k=16):
+        self.mesh = mesh
+        self.k = int(min(k, mesh.n_elements))
+        centroids = mesh.nodes_mm[mesh.elements].mean(axis=1)
+        self.tree = cKDTree(centroids)
+        # the farthest a node is from its element centroid bounds the search radius
+        self.max_radius = float(np.max(np.linalg.norm(
+            mesh.nodes_mm[mesh.elements] - centroids[:, None, :], axis=2)))
+
+    def locate(self, points, tol=1e-9):
+        """Element id (or -1 outside the mesh) and barycentric coordinates per point."""
+        pts = np.atleast_2d(np.asarray(points, float))
+        n = len(pts)
+        elem = np.full(n, -1, dtype=np.int64)
+        bary = np.full((n, self.mesh.dim + 1), np.nan)
+        _, cand = self.tree.query(pts, k=self.k)
+        cand = cand.reshape(n, -1)
+        todo = np.ones(n, bool)
+        for c in range(cand.shape[1]):
+            idx = np.flatnonzero(todo)
+            if len(idx) == 0:
+                break
+            lam = barycentric(self.mesh, cand[idx, c], pts[idx])
+            inside = np.all(lam >= -tol, axis=1)
+            hit = idx[inside]
+            elem[hit] = cand[hit, c]
+            bary[hit] = lam[inside]
+            todo[hit] = False
+        # rare: thin/large elements whose centroid is far away
+        for i in np.flatnonzero(todo):
+            for e in self.tree.query_ball_point(pts[i], self.max_radius + 1e-9):
+                lam = barycentric(self.mesh, np.array([e]), pts[i:i + 1])[0]
+                if np.all(lam >= -tol):
+                    elem[i], bary[i] = e, lam
+                    break
+        return elem, bary
+
+    def interpolation_matrix(self, points, outside="error", what="point"):
+        """Sparse (P, N) matrix of P1 interpolation weights at the points."""
+        import scipy.sparse as sp
+
+        elem, bary = self.locate(points)
+        bad = np.flatnonzero(elem < 0)
+        if len(bad) and outside == "error":
+            raise FluoInputError("lies outside the mesh", field=f"{what}[{bad[0]}]",
+                                 value=np.atleast_2d(points)[bad[0]].tolist())
+        rows = np.repeat(np.arange(len(elem)), self.mesh.dim + 1)
+        cols = self.mesh.elements[np.maximum(elem, 0)].ravel()
+        vals = np.where(elem[:, None] >= 0, bary, 0.0).ravel()
+        return sp.csr_matrix((vals, (rows, cols)), shape=(len(elem), self.mesh.n_nodes))
+
+
+def locator(mesh):
+    """The mesh's cached PointLocator."""
+    loc = mesh.meta.get("_locator")
+    if loc is None:
+        loc = PointLocator(mesh)
+        mesh.meta["_locator"] = loc
+    return loc
+
+
+def _closest_on_segments(p, a, b):
+    ab = b - a
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300),
+                0, 1)
+    q = a + t[:, None] * ab
+    return q, np.stack([1 - t, t], axis=1)
+
+
+def _closest_on_triangles(p, a, b, c):
+    """Closest points on triangles (Ericson, Real-Time Collision Detection 5.1.5), vectorised."""
+    ab, ac = b - a, c - a
+    ap = p - a
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = p - b
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = p - c
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    denom = va + vb + vc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = vb / denom
+        w = vc / denom
+    bary = np.stack([1 - v - w, v, w], axis=1)
+    # region tests, from most to least specific
+    def set_(mask, b0, b1, b2):
+        bary[mask] = np.stack([b0[mask], b1[mask], b2[mask]], axis=1)
+    one, zero = np.ones_like(d1), np.zeros_like(d1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        t = d1 / (d1 - d3)
+        set_(m, 1 - t, t, zero)
+        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        t = d2 / (d2 - d6)
+        set_(m, 1 - t, zero, t)
+        m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        set_(m, zero, 1 - t, t)
+    set_((d1 <= 0) & (d2 <= 0), one, zero, zero)
+    set_((d3 >= 0) & (d4 <= d3), zero, one, zero)
+    set_((d6 >= 0) & (d5 <= d6), zero, zero, one)
+    q = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
+    return q, bary
+
+
+class BoundaryLocator:
+    """Closest point on the mesh boundary (edges in 2D, triangles in 3D)."""
+
+    def __init__(self, mesh, k=12):
+        self.mesh = mesh
+        f = mesh.boundary_facets
+        self.k = int(min(k, len(f)))
+        self.tree = cKDTree(mesh.nodes_mm[f].mean(axis=1))
+
+    def closest(self, points):
+        """Closest boundary points, their facet ids, barycentric weights on the
+        facet and distances [mm]."""
+        pts = np.atleast_2d(np.asarray(points, float))
+        m = self.mesh
+        _, cand = self.tree.query(pts, k=self.k)
+        cand = cand.reshape(len(pts), -1)
+        best_d = np.full(len(pts), np.inf)
+        best_q = np.zeros_like(pts)
+        best_f = np.zeros(len(pts), dtype=np.int64)
+        best_b = np.zeros((len(pts), m.dim))
+        for c in range(cand.shape[1]):
+            fac = m.boundary_facets[cand[:, c]]
+            v = [m.nodes_mm[fac[:, j]] for j in range(m.dim)]
+            if m.dim == 2:
+                q, b = _closest_on_segments(pts, *v)
+            else:
+                q, b = _closest_on_triangles(pts, *v)
+            d = np.linalg.norm(q - pts, axis=1)
+            better = d < best_d
+            best_d[better] = d[better]
+            best_q[better] = q[better]
+            best_f[better] = cand[better, c]
+            best_b[better] = b[better]
+        return best_q, best_f, best_b, best_d
+
+
+def boundary_locator(mesh):
+    loc = mesh.meta.get("_boundary_locator")
+    if loc is None:
+        loc = BoundaryLocator(mesh)
+        mesh.meta["_boundary_locator"] = loc
+    return loc
