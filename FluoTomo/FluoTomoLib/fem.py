@@ -60,7 +60,11 @@ class _Geometry:
         f = mesh.boundary_facets
         fm = mesh.boundary_facet_measures
         k = d  # nodes per facet
-        local = (np.ones((k, k)) + np.eye(k)) * factorial(d - 1) / factorial(d + 1)
+        # Row-sum lumped facet mass: the consistent one has positive off-diagonal
+        # terms that outweigh the (negative) stiffness couplings when D is small
+        # (musp ~ 100/mm), which breaks the M-matrix property and makes boundary
+        # fluence oscillate negative.  Lumping keeps it positive at O(h^2) cost.
+        local = np.eye(k) / k
         self._facet_vals = fm[:, None, None] * local[None]
         self._facet_rows = np.repeat(f, k, axis=1)
         self._facet_cols = np.tile(f, (1, k))
@@ -145,6 +149,23 @@ class _PardisoFactor:
         return X.reshape(B.shape)
 
 
+class MeshResolutionWarning(UserWarning):
+    """Elements are large compared with the light's decay length 1/mueff."""
+
+
+def _check_resolution(mesh, mua, musp, name):
+    import warnings
+
+    from .optics import mueff
+
+    h = float(np.median(mesh.measures)) ** (1.0 / mesh.dim) * (2.0 if mesh.dim == 3 else 1.5)
+    me = float(np.max(mueff(mua, musp)))
+    if h * me > 2.0:
+        warnings.warn(f"{name}: elements (~{h:.2g} mm) are coarse for a decay length 1/mueff = "
+                      f"{1 / me:.2g} mm; far-field values will be inaccurate and may underflow",
+                      MeshResolutionWarning, stacklevel=3)
+
+
 class DiffusionOperator:
     """System matrix of one wavelength and its factorisation.
 
@@ -166,6 +187,7 @@ class DiffusionOperator:
         mua = _nodal(mesh, mua_per_mm, f"{name}.mua_per_mm")
         musp = _nodal(mesh, musp_per_mm, f"{name}.musp_per_mm")
         check_properties(mua, musp, n, where=name)
+        _check_resolution(mesh, mua, musp, name)
         self.mesh = mesh
         self.mua = mua
         self.musp = musp

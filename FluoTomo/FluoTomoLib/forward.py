@@ -57,6 +57,29 @@ def triple_product_jacobian(mesh, G, F):
     return out
 
 
+def gradient_product_jacobian(mesh, G, F):
+    """J[(s, d), k] = sum over elements e containing k of |e|/(d+1) grad G_d . grad F_s.
+
+    The derivative of G^T K F with respect to nodal D when K uses the
+    element-mean D (fem.stiffness).  Dense (S * D, N), row s * D + d.
+    """
+    geo = geometry(mesh)
+    el = geo.elements
+    nl = mesh.dim + 1
+    # grad of a P1 field on each element: GGt already holds |e| grad_i . grad_j
+    scatter = sp.csr_matrix((np.ones(el.size), (np.arange(el.size), el.ravel())),
+                            shape=(el.size, mesh.n_nodes))
+    S, D = F.shape[1], G.shape[1]
+    out = np.empty((S * D, mesh.n_nodes))
+    Ge = G[el]                                            # (M, nl, D)
+    for s in range(S):
+        KF = np.einsum("mij,mj->mi", geo.GGt, F[el, s])   # (M, nl): |e| grad_i . grad F
+        e_val = np.einsum("mid,mi->md", Ge, KF) / nl      # (M, D)
+        loc = np.repeat(e_val[:, None, :], nl, axis=1)    # same for each node of e
+        out[s * D:(s + 1) * D] = (scatter.T @ loc.reshape(el.size, D)).T
+    return out
+
+
 class FluorescenceModel:
     """Forward model of one tissue: sources, detectors, both wavelengths.
 
@@ -156,8 +179,15 @@ class FluorescenceModel:
         return J
 
     def jacobian_mua_x(self):
-        """(S*D, N): d(excitation data)/d(nodal mua_x), row s*D + d (negative)."""
-        return -triple_product_jacobian(self.mesh, self.adjoint_x, self.phi_x)
+        """(S*D, N): d(excitation data)/d(nodal mua_x), row s*D + d.
+
+        Includes both ways absorption acts: the absorption term itself and,
+        through D = 1/(3 (mua + musp)), the diffusion coefficient.
+        """
+        g, f = self.adjoint_x, self.phi_x
+        absorption = triple_product_jacobian(self.mesh, g, f)
+        dD_dmua = -3.0 * self.op_x.D ** 2
+        return -(absorption + gradient_product_jacobian(self.mesh, g, f) * dD_dmua[None, :])
 
 
 def safe_log(data, floor=1e-300):
