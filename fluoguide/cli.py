@@ -28,6 +28,8 @@ CLI_MODULES = [
     "fluoguide.phantom_cli",
     "fluoguide.scene_cli",
     "fluoguide.demo_cli",
+    "FluoTomoLib.fem_cli",
+    "FluoCalibLib.geometry_cli",
 ]
 
 
