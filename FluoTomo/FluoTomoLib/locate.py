@@ -75,6 +75,7 @@ class PointLocator:
 
         elem, bary = self.locate(points)
         bad = np.flatnonzero(elem < 0)
+        # outside="error": raise; "nan"/"zero": the row stays empty (all zero)
         if len(bad) and outside == "error":
             raise FluoInputError("lies outside the mesh", field=f"{what}[{bad[0]}]",
                                  value=np.atleast_2d(points)[bad[0]].tolist())

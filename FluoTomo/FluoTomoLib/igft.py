@@ -1,0 +1,198 @@
+"""Image-guided fluorescence tomography of the cylinder-tube phantom, end to end.
+
+Simulation (what the operating room would give):
+  CBCT label map -> fine forward mesh -> tracked laser raster (true beam) ->
+  FEM excitation and emission fields with the true optical properties (tube
+  absorbs and fluoresces) -> tracked camera frames of the emission exitance,
+  through the camera's radiometric model with shot/read noise.
+Reconstruction (what the software does with it):
+  reported (tracked, noisy) laser poses -> virtual sources on the CBCT surface;
+  virtual detectors at the source positions and between them, excluding
+  those within 3 mm of the active source; ROI counts -> radiance -> exitance
+  -> boundary fluence / laser power; Jacobian on the fine mesh with the
+  background properties, mapped to a coarser reconstruction mesh; NP / SP /
+  HP with the CBCT labels as the prior.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+from fluoguide.progress import check_cancel, report
+
+from .forward import FluorescenceModel
+from .locate import locator
+from .noncontact import (boundary_fluence_to_counts, counts_to_boundary_fluence, detector_mask,
+                         virtual_detectors)
+from .optics import robin_A
+from .profile_metrics import depth_profile, peak_and_centroid
+from .recon import RegionPrior, reconstruct
+from .tracked_scan import TrackingError, raster_scan
+from .voxel_mesh import mesh_labelmap_structured, node_labels_from_labelmap
+
+
+def _nodal_optics(mesh_nodes_region, optics):
+    """Nodal property arrays from per-region optics dicts (labels as keys)."""
+    out = {}
+    for key in ("mua_x_per_mm", "musp_x_per_mm", "mua_m_per_mm", "musp_m_per_mm", "yield_per_mm"):
+        out[key] = np.array([optics[int(r)][key] for r in mesh_nodes_region])
+    return out
+
+
+def _tube_indicator(points_mm, geometry):
+    c = np.asarray(geometry["tube_centre_mm"], float)
+    r = float(geometry["tube_radius_mm"])
+    d = points_mm - c
+    return (d[:, 1] ** 2 + d[:, 2] ** 2) <= r * r
+
+
+def simulate_and_reconstruct(phantom, fine_mm=1.0, coarse_mm=2.0, n_sources=16,
+                             source_spacing_mm=2.5, detector_factor=2, exclude_mm=3.0,
+                             roi_half_mm=(15.0, 25.0), methods=("NP", "SP", "HP"),
+                             lam=10.0, laser_power_w=0.01, camera_gain=None, camera_offset_adu=100.0,
+                             camera_read_noise_adu=2.0, tracking=TrackingError(), seed=0,
+                             progress=None, cancel=None):
+    """Run one tube depth through acquisition simulation and NP/SP/HP reconstruction.
+
+    ``camera_gain`` is G of physics.md section 5 in ADU per (W/mm^2/sr); by
+    default it is chosen so the brightest detector sits at ~60 % of a 14-bit
+    range (what a user does with the exposure time).  Returns a dict of
+    numbers, profiles and the meshes/fields for figures and the scene.
+    """
+    t_all = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    truth = phantom.truth()
+    if phantom.name != "cylinder-tube":
+        raise FluoInputError("this study needs the cylinder-tube phantom", field="phantom",
+                             value=phantom.name)
+    geo = truth["geometry"]
+    optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
+    timings = {}
+
+    # --- meshes from the CBCT label map.  The region of interest spans whole
+    # reconstruction cells so that x = y = 0 (the profile line through the tube)
+    # is a line of reconstruction nodes, as the thesis read its profiles.
+    report(progress, 0.02, "meshing")
+    hx = coarse_mm * round(roi_half_mm[0] / coarse_mm)
+    hy = coarse_mm * round(roi_half_mm[1] / coarse_mm)
+    hz = coarse_mm * np.floor(float(geo["liquid_depth_mm"]) / coarse_mm)
+    roi = (-hx, hx, -hy, hy, -hz, 0.0)
+    t0 = time.perf_counter()
+    fine = mesh_labelmap_structured(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                                    fine_mm, roi=roi, name="forward")
+    coarse = mesh_labelmap_structured(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                                      coarse_mm, roi=roi, name="reconstruction")
+    timings["meshing"] = time.perf_counter() - t0
+    check_cancel(cancel)
+
+    # --- true optical properties on the fine mesh: the analytic tube, not its voxels
+    in_tube = _tube_indicator(fine.nodes_mm, geo)
+    node_label = np.where(in_tube, 2, 1)
+    true_props = _nodal_optics(node_label, optics)
+    n = optics[1]["n"]
+    A = float(robin_A(n))
+
+    # --- tracked laser raster across the tube (along y at x = 0)
+    report(progress, 0.1, "tracked laser scan")
+    ys = (np.arange(n_sources) - 0.5 * (n_sources - 1)) * source_spacing_mm
+    targets = np.stack([np.zeros_like(ys), ys, np.zeros_like(ys)], axis=1)
+    surf_pts = fine.nodes_mm
+    top = fine.boundary_normals[:, 2] > 0.99
+    scan = raster_scan(targets, np.zeros(3), np.array([0.0, 0.0, 1.0]), surf_pts,
+                       fine.boundary_facets[top], error=tracking, rng=rng)
+    if np.any(scan["miss"]):
+        raise FluoInputError("a reported laser beam misses the CBCT surface",
+                             field="laser pose", value=int(np.flatnonzero(scan["miss"])[0]))
+    src_true, src_rep = scan["true_points_mm"], scan["reported_points_mm"]
+    det_rep = virtual_detectors(src_rep, factor=detector_factor)
+    # the camera maps pixels to the surface with its own tracking error
+    cam_err = rng.normal(0.0, tracking.translation_sd_mm, 3) * np.array([1, 1, 0])
+    det_true = det_rep + cam_err
+    mask = detector_mask(src_rep, det_rep, exclude_mm)
+
+    # --- simulated measurement: true properties, true geometry
+    report(progress, 0.2, "forward simulation (true tissue)")
+    t0 = time.perf_counter()
+    sim = FluorescenceModel(fine, {"mua_per_mm": true_props["mua_x_per_mm"],
+                                   "musp_per_mm": true_props["musp_x_per_mm"], "n": n},
+                            {"mua_per_mm": true_props["mua_m_per_mm"],
+                             "musp_per_mm": true_props["musp_m_per_mm"], "n": n},
+                            src_true, det_true)
+    phi_m = sim.emission_data(true_props["yield_per_mm"])       # (S, D) per W
+    timings["forward_simulation"] = time.perf_counter() - t0
+    check_cancel(cancel)
+
+    # --- camera: ROI counts with shot and read noise (physics.md section 5)
+    if camera_gain is None:
+        peak_radiance = float(phi_m[mask].max()) * laser_power_w / (2 * A) / np.pi
+        camera_gain = 0.6 * 16383 / peak_radiance
+    expected = boundary_fluence_to_counts(phi_m, camera_offset_adu, camera_gain, A, laser_power_w)
+    signal = np.clip(expected - camera_offset_adu, 0, None)
+    # ROI of ~1 mm^2 averages many pixels: noise of the ROI mean, gain 1 e-/ADU
+    pixels_per_roi = 25
+    sd = np.sqrt(signal + camera_read_noise_adu ** 2) / np.sqrt(pixels_per_roi)
+    counts = expected + rng.normal(0.0, 1.0, expected.shape) * sd
+    saturated = counts > 16383
+    if np.any(saturated & mask):
+        raise FluoInputError("detector ROIs saturate: lower the exposure", field="camera_gain",
+                             value=camera_gain)
+    y_meas = counts_to_boundary_fluence(counts, camera_offset_adu, camera_gain, A, laser_power_w)
+
+    # --- reconstruction model: background properties, reported geometry
+    report(progress, 0.35, "Jacobian")
+    t0 = time.perf_counter()
+    bg = optics[1]
+    model = FluorescenceModel(fine, {"mua_per_mm": bg["mua_x_per_mm"], "musp_per_mm": bg["musp_x_per_mm"],
+                                     "n": n},
+                              {"mua_per_mm": bg["mua_m_per_mm"], "musp_per_mm": bg["musp_m_per_mm"],
+                               "n": n}, src_rep, det_rep)
+    J_fine = model.jacobian_yield()[mask.ravel()]
+    P = locator(coarse).interpolation_matrix(fine.nodes_mm, what="forward node")
+    J = np.asarray((P.T @ J_fine.T).T)                           # (M, N_coarse)
+    timings["jacobian"] = time.perf_counter() - t0
+    y = y_meas[mask]
+    # prior: CBCT label of each reconstruction node (thin targets keep the nodes
+    # within half a mesh spacing of them)
+    node_region = node_labels_from_labelmap(coarse.nodes_mm, phantom.labels, phantom.spacing_mm,
+                                            phantom.origin_mm, radius_mm=0.0)
+    node_region[node_region == 0] = 1  # surface nodes half in air belong to the tissue
+    prior = RegionPrior(node_region)
+
+    # --- truth on the profile line
+    depth = float(geo["tube_depth_mm"])
+    true_peak = float(optics[2]["yield_per_mm"])
+    results = {}
+    profiles = {}
+    zc, truth_profile = depth_profile(fine, true_props["yield_per_mm"], (0.0, 0.0))
+    profiles["truth"] = truth_profile
+    for i, method in enumerate(methods):
+        check_cancel(cancel)
+        report(progress, 0.5 + 0.45 * i / len(methods), f"reconstruction {method}")
+        res = reconstruct(J, y, method=method, lam=lam, prior=prior)
+        z, prof = depth_profile(coarse, res.yield_per_mm, (0.0, 0.0))
+        peak, centroid = peak_and_centroid(z, prof)
+        profiles[method] = prof
+        results[method] = {
+            "true_peak": true_peak, "peak": peak,
+            "peak_error_pct": 100.0 * (peak - true_peak) / true_peak,
+            "true_centroid_mm": depth, "centroid_mm": centroid,
+            "centroid_error_pct": 100.0 * (centroid - depth) / depth,
+            **res.summary(), "yield": res.yield_per_mm,
+        }
+    timings["reconstruction"] = sum(r["seconds"] for r in results.values())
+    timings["total"] = time.perf_counter() - t_all
+    report(progress, 1.0, "done")
+    return {
+        "depth_mm": depth, "results": results, "profile_depth_mm": zc, "profiles": profiles,
+        "fine": fine, "coarse": coarse, "true_yield_fine": true_props["yield_per_mm"],
+        "sources_true_mm": src_true, "sources_reported_mm": src_rep, "detectors_mm": det_rep,
+        "source_error_mm": float(np.mean(np.linalg.norm(src_true - src_rep, axis=1))),
+        "measurements": int(mask.sum()), "camera_gain": float(camera_gain),
+        "counts_range": [float(counts[mask].min()), float(counts[mask].max())],
+        "timings": timings, "solver": model.solver_name,
+        "mesh_nodes": {"forward": fine.n_nodes, "reconstruction": coarse.n_nodes},
+        "mesh_elements": {"forward": fine.n_elements, "reconstruction": coarse.n_elements},
+    }

@@ -1,0 +1,245 @@
+"""Reconstruction of fluorescence yield: no priors, soft priors, hard priors.
+
+physics.md section 8.  The update of the reference,
+
+    d_mu = (J^T J + R)^-1 J^T (y - F(mu)),
+
+is a Levenberg-Marquardt step whose damping R also regularises.  With the
+absorption known the data are linear in yield (F(mu) = J mu), so J is fixed and
+the iteration runs until the residual sum of squares changes by less than 2 %
+or 40 iterations pass.  Every step is solved in data space,
+
+    (J^T J + R)^-1 J^T r = R^-1 J^T (J R^-1 J^T + I)^-1 r,
+
+which needs only R^-1 applied to M vectors (M = number of measurements), so
+the soft-prior matrix L is never formed: L = diag(1 + 1/N_r) - B B^T with B
+the region-averaging basis, whose inverse is closed-form per region.  A 3D
+reconstruction mesh of 10^5 nodes therefore costs O(M^2 N), not O(N^3).
+
+Non-negativity: yield is a concentration times a quantum yield, so after each
+update negative nodal values are set to zero (a projected LM step).  Reported
+as ``clipped_fraction``.
+
+Regularisations:
+- NP: R = lambda * max(diag(J^T J)) * I
+- SP: R = lambda' L^T L,  L_ii = 1, L_ij = -1/N_r (same region r), lambda' as NP
+- HP: unknowns are one yield per region, J_r = J K; R = lambda * max(diag(J_r^T J_r)) I
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+from fluoguide.progress import check_cancel, report
+
+
+@dataclass
+class ReconResult:
+    method: str
+    lam: float
+    yield_per_mm: np.ndarray          # nodal yield on the reconstruction mesh
+    iterations: int
+    residual_history: list
+    seconds: float
+    region_confidence: dict = field(default_factory=dict)
+    clipped_fraction: float = 0.0
+    stop_reason: str = ""
+
+    @property
+    def residual(self):
+        return self.residual_history[-1]
+
+    def summary(self):
+        return {"method": self.method, "lambda": self.lam, "iterations": self.iterations,
+                "residual_ss": self.residual, "initial_residual_ss": self.residual_history[0],
+                "stop_reason": self.stop_reason, "seconds": self.seconds,
+                "clipped_fraction": self.clipped_fraction,
+                "region_confidence": self.region_confidence}
+
+
+class RegionPrior:
+    """Region structure of the reconstruction nodes (from the CBCT labels).
+
+    Parameters
+    ----------
+    node_region : (N,) int region label per node
+    """
+
+    def __init__(self, node_region):
+        r = np.asarray(node_region)
+        if r.ndim != 1 or len(r) == 0:
+            raise FluoInputError("needs one region label per node", field="node_region",
+                                 value=np.shape(node_region))
+        self.node_region = r
+        self.labels, self.index, self.counts = np.unique(r, return_inverse=True,
+                                                         return_counts=True)
+        self.index = self.index.ravel()
+        for lab, c in zip(self.labels, self.counts):
+            if c < 2:
+                # one node cannot be smoothed towards its region's mean; say so
+                import warnings
+
+                warnings.warn(f"region {int(lab)} has a single node: soft prior leaves it free",
+                              stacklevel=2)
+
+    def K(self):
+        """(N, n_regions) 0/1 region membership (hard-prior basis), dense."""
+        K = np.zeros((len(self.node_region), len(self.labels)))
+        K[np.arange(len(self.node_region)), self.index] = 1.0
+        return K
+
+    def region_mean(self, x):
+        s = np.bincount(self.index, weights=x, minlength=len(self.labels))
+        return s / self.counts
+
+    def apply_L(self, x):
+        """L x with L_ii = 1, L_ij = -1/N_r for i != j in region r."""
+        n = self.counts[self.index]
+        return x * (1 + 1 / n) - self.region_mean(x)[self.index]
+
+    def apply_L_inv(self, x):
+        """L^-1 x: per region L = c I - (1/N) 1 1^T, c = 1 + 1/N, whose inverse is
+        (1/c) (I + 1 1^T) (Sherman-Morrison)."""
+        n = self.counts[self.index]
+        c = 1 + 1 / n
+        sums = np.bincount(self.index, weights=x, minlength=len(self.labels))
+        return (x + sums[self.index]) / c
+
+    def apply_LtL_inv(self, X):
+        """(L^T L)^-1 applied to the columns of X (L is symmetric)."""
+        X = np.asarray(X, float)
+        if X.ndim == 1:
+            return self.apply_L_inv(self.apply_L_inv(X))
+        return np.column_stack([self.apply_L_inv(self.apply_L_inv(X[:, j]))
+                                for j in range(X.shape[1])])
+
+
+def _data_space_step(J, r, Rinv_apply):
+    """(J^T J + R)^-1 J^T r via R^-1 J^T (J R^-1 J^T + I)^-1 r."""
+    RJt = Rinv_apply(J.T)                 # (N, M)
+    S = J @ RJt
+    S[np.diag_indices_from(S)] += 1.0
+    return RJt @ np.linalg.solve(S, r), RJt, S
+
+
+def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
+                nonneg=True, lambda_decay=10 ** 0.25, progress=None, cancel=None):
+    """Reconstruct nodal yield from data ``y`` with sensitivity ``J``.
+
+    Parameters
+    ----------
+    J : (M, N) Jacobian d(data)/d(yield) on the reconstruction mesh
+    y : (M,) measured boundary fluence (same units as J @ yield)
+    method : "NP", "SP" or "HP"
+    lam : lambda of the reference (lambda' = lambda * max(diag(J^T J)))
+    prior : RegionPrior, required for SP and HP
+    lambda_decay : lambda is divided by this after every iteration, as NIRFAST's
+        Levenberg-Marquardt does (10^0.25); 1 keeps it fixed
+    """
+    t0 = time.perf_counter()
+    J = np.asarray(J, float)
+    y = np.asarray(y, float).ravel()
+    method = str(method).upper()
+    if method not in ("NP", "SP", "HP"):
+        raise FluoInputError("method must be NP, SP or HP", field="method", value=method)
+    if J.ndim != 2 or J.shape[0] != len(y):
+        raise FluoInputError("Jacobian rows must match the data", field="J",
+                             value=(J.shape, len(y)))
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(y))):
+        raise FluoInputError("data and Jacobian must be finite", field="y")
+    if not np.any(y != 0):
+        raise FluoInputError("all data are zero: nothing to reconstruct (no fluorescence "
+                             "detected, or the detectors saw no light)", field="y")
+    if not (np.isfinite(lam) and lam > 0):
+        raise FluoInputError("lambda must be a positive number", field="lambda", value=lam)
+    if method in ("SP", "HP") and prior is None:
+        raise FluoInputError(f"{method} needs the region prior (label of each node)",
+                             field="prior")
+    if prior is not None and len(prior.node_region) != J.shape[1]:
+        raise FluoInputError("prior has a different number of nodes than the Jacobian",
+                             field="prior", value=(len(prior.node_region), J.shape[1]))
+
+    if method == "HP":
+        K = prior.K()
+        A = J @ K
+    else:
+        K = None
+        A = J
+    jtj_diag = np.einsum("ij,ij->j", A, A)
+    scale = float(np.max(jtj_diag))
+    if scale <= 0:
+        raise FluoInputError("the Jacobian is zero: detectors are insensitive to every node",
+                             field="J")
+    if method == "HP":
+        # Regions differ in size by orders of magnitude; one scalar damping scaled
+        # by the largest region would freeze a small target's value, so HP uses
+        # Marquardt's diagonal scaling (each region damped by its own J^T J).
+        damping = np.maximum(jtj_diag, 1e-300 * scale)
+    else:
+        damping = np.full(A.shape[1], scale)
+
+    def make_rinv(lam_k):
+        if method == "SP":
+            return lambda X: prior.apply_LtL_inv(X) / (lam_k * scale)
+        d = lam_k * damping
+        return lambda X: (np.asarray(X).T / d).T
+
+    n_unknown = A.shape[1]
+    x = np.zeros(n_unknown) if x0 is None else (K.T @ x0 / prior.counts if K is not None
+                                                 else np.asarray(x0, float).copy())
+    resid = y - A @ x
+    history = [float(resid @ resid)]
+    stop = "max_iter"
+    clipped = 0.0
+    lam_k = float(lam)
+    for it in range(1, max_iter + 1):
+        check_cancel(cancel)
+        Rinv = make_rinv(lam_k)
+        step, RJt, S = _data_space_step(A, resid, Rinv)
+        x = x + step
+        if nonneg:
+            neg = x < 0
+            clipped = float(np.mean(neg))
+            x[neg] = 0.0
+        resid = y - A @ x
+        history.append(float(resid @ resid))
+        report(progress, it / max_iter, f"{method} iteration {it}: residual {history[-1]:.3g}")
+        if history[-2] > 0 and abs(history[-2] - history[-1]) / history[-2] < rel_tol:
+            stop = "residual change < {:.0%}".format(rel_tol)
+            break
+        lam_k /= lambda_decay
+    x_nodes = K @ x if K is not None else x
+    conf = _region_confidence(A, Rinv, S, resid, prior, x_nodes, method)
+    return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
+                       conf, clipped, stop)
+
+
+def _region_confidence(A, Rinv, S, resid, prior, x_nodes, method):
+    """Per-region mean yield and its standard deviation from the regularised
+    Hessian H = J^T J + R:  var(w^T x) = sigma^2 w^T H^-1 w, sigma^2 = residual
+    variance, w = region-averaging weights.  Cheap: Woodbury in data space,
+    w^T H^-1 w = w^T R^-1 w - (J R^-1 w)^T S^-1 (J R^-1 w)."""
+    if prior is None:
+        return {}
+    m = len(resid)
+    sigma2 = float(resid @ resid) / max(m - 1, 1)
+    out = {}
+    means = prior.region_mean(x_nodes)
+    for r, lab in enumerate(prior.labels):
+        if method == "HP":
+            w = np.zeros(A.shape[1])
+            w[r] = 1.0
+        else:
+            w = (prior.index == r).astype(float) / prior.counts[r]
+        Rinv_w = Rinv(w)
+        JRw = A @ Rinv_w
+        var = float(w @ Rinv_w - JRw @ np.linalg.solve(S, JRw)) * sigma2
+        sd = float(np.sqrt(max(var, 0.0)))
+        mean = float(means[r])
+        out[int(lab)] = {"mean_yield_per_mm": mean, "sd_yield_per_mm": sd,
+                         "relative_sd": sd / mean if mean > 0 else float("inf")}
+    return out
