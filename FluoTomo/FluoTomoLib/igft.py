@@ -24,14 +24,13 @@ from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel, report
 
 from .forward import FluorescenceModel
-from .locate import locator
 from .noncontact import (boundary_fluence_to_counts, counts_to_boundary_fluence, detector_mask,
                          virtual_detectors)
 from .optics import robin_A
 from .profile_metrics import depth_profile, peak_and_centroid
 from .recon import RegionPrior, reconstruct
 from .tracked_scan import TrackingError, raster_scan
-from .voxel_mesh import mesh_labelmap_structured, node_labels_from_labelmap
+from .voxel_mesh import mesh_labelmap_structured, node_regions_volume_preserving
 
 
 def _nodal_optics(mesh_nodes_region, optics):
@@ -49,7 +48,7 @@ def _tube_indicator(points_mm, geometry):
     return (d[:, 1] ** 2 + d[:, 2] ** 2) <= r * r
 
 
-def simulate_and_reconstruct(phantom, fine_mm=1.0, coarse_mm=2.0, n_sources=16,
+def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                              source_spacing_mm=2.5, detector_factor=2, exclude_mm=3.0,
                              roi_half_mm=(15.0, 25.0), methods=("NP", "SP", "HP"),
                              lam=10.0, laser_power_w=0.01, camera_gain=None, camera_offset_adu=100.0,
@@ -57,7 +56,12 @@ def simulate_and_reconstruct(phantom, fine_mm=1.0, coarse_mm=2.0, n_sources=16,
                              progress=None, cancel=None):
     """Run one tube depth through acquisition simulation and NP/SP/HP reconstruction.
 
-    ``camera_gain`` is G of physics.md section 5 in ADU per (W/mm^2/sr); by
+    ``fine_mm`` is the element size of the simulation (forward) mesh, ``coarse_mm``
+    that of the reconstruction mesh, on which the Jacobian is computed
+    directly (the data-space solver makes a 10^4-10^5 node reconstruction
+    mesh affordable, so the thesis's mapping from the forward mesh is not
+    needed; using two different meshes keeps the simulation from being an
+    inverse crime).  ``camera_gain`` is G of physics.md section 5 in ADU per (W/mm^2/sr); by
     default it is chosen so the brightest detector sits at ~60 % of a 14-bit
     range (what a user does with the exposure time).  Returns a dict of
     numbers, profiles and the meshes/fields for figures and the scene.
@@ -141,24 +145,22 @@ def simulate_and_reconstruct(phantom, fine_mm=1.0, coarse_mm=2.0, n_sources=16,
                              value=camera_gain)
     y_meas = counts_to_boundary_fluence(counts, camera_offset_adu, camera_gain, A, laser_power_w)
 
-    # --- reconstruction model: background properties, reported geometry
+    # --- reconstruction model: background properties, reported geometry,
+    # Jacobian on the reconstruction mesh
     report(progress, 0.35, "Jacobian")
     t0 = time.perf_counter()
     bg = optics[1]
-    model = FluorescenceModel(fine, {"mua_per_mm": bg["mua_x_per_mm"], "musp_per_mm": bg["musp_x_per_mm"],
-                                     "n": n},
+    model = FluorescenceModel(coarse, {"mua_per_mm": bg["mua_x_per_mm"],
+                                       "musp_per_mm": bg["musp_x_per_mm"], "n": n},
                               {"mua_per_mm": bg["mua_m_per_mm"], "musp_per_mm": bg["musp_m_per_mm"],
                                "n": n}, src_rep, det_rep)
-    J_fine = model.jacobian_yield()[mask.ravel()]
-    P = locator(coarse).interpolation_matrix(fine.nodes_mm, what="forward node")
-    J = np.asarray((P.T @ J_fine.T).T)                           # (M, N_coarse)
+    J = model.jacobian_yield()[mask.ravel()]
     timings["jacobian"] = time.perf_counter() - t0
     y = y_meas[mask]
-    # prior: CBCT label of each reconstruction node (thin targets keep the nodes
-    # within half a mesh spacing of them)
-    node_region = node_labels_from_labelmap(coarse.nodes_mm, phantom.labels, phantom.spacing_mm,
-                                            phantom.origin_mm, radius_mm=0.0)
-    node_region[node_region == 0] = 1  # surface nodes half in air belong to the tissue
+    # prior: CBCT regions on the reconstruction nodes, each region's nodes
+    # carrying its label-map volume (see node_regions_volume_preserving)
+    node_region = node_regions_volume_preserving(coarse, phantom.labels, phantom.spacing_mm,
+                                                 phantom.origin_mm)
     prior = RegionPrior(node_region)
 
     # --- truth on the profile line

@@ -127,7 +127,7 @@ def _data_space_step(J, r, Rinv_apply):
 
 
 def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
-                nonneg=True, lambda_decay=10 ** 0.25, progress=None, cancel=None):
+                nonneg=True, lambda_decay=1.0, progress=None, cancel=None):
     """Reconstruct nodal yield from data ``y`` with sensitivity ``J``.
 
     Parameters
@@ -137,8 +137,9 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     method : "NP", "SP" or "HP"
     lam : lambda of the reference (lambda' = lambda * max(diag(J^T J)))
     prior : RegionPrior, required for SP and HP
-    lambda_decay : lambda is divided by this after every iteration, as NIRFAST's
-        Levenberg-Marquardt does (10^0.25); 1 keeps it fixed
+    lambda_decay : lambda is divided by this after every iteration (NIRFAST's
+        scripts use 10^0.25); the default 1 keeps it fixed as the reference
+        states, so the damping also regularises the converged result
     """
     t0 = time.perf_counter()
     J = np.asarray(J, float)

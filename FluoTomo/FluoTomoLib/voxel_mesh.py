@@ -177,3 +177,57 @@ def node_labels_from_labelmap(nodes_mm, labels_kji, spacing_mm, origin_mm, radiu
     i, j, k = ijk[inside].T
     out[inside] = labels[k, j, i]
     return out
+
+
+def nodal_volumes(mesh):
+    """Lumped volume [mm^3] of each node: a share 1/(d+1) of every element around it."""
+    v = np.zeros(mesh.n_nodes)
+    np.add.at(v, mesh.elements.ravel(), np.repeat(mesh.measures / (mesh.dim + 1), mesh.dim + 1))
+    return v
+
+
+def node_regions_volume_preserving(mesh, labels_kji, spacing_mm, origin_mm, background=1):
+    """Region of each node of a (coarse) mesh such that every region's nodes carry
+    its label-map volume.
+
+    A region's nodal basis sum_n phi_n integrates to the nodes' lumped
+    volumes; labelling nodes by the voxel under them makes a thin target's
+    share jump with where the grid falls (a 2.4 mm tube on a 1.5 mm mesh gets
+    one or two node rows: +-60 % in a hard-prior yield).  Here nodes are
+    ranked by how much of their cell the region covers, and the best-covered
+    ones are taken until their volumes add up to the region's volume inside
+    the mesh.  The remaining nodes get ``background``.
+    """
+    from scipy import ndimage
+
+    labels = np.asarray(labels_kji)
+    spacing = np.asarray(spacing_mm, float)
+    origin = np.asarray(origin_mm, float)
+    h = float(mesh.meta.get("size_mm", np.median(mesh.measures) ** (1 / mesh.dim)))
+    size = [max(1, int(round(h / s))) for s in spacing[::-1]]
+    ijk = np.round((mesh.nodes_mm - origin) / spacing).astype(int)
+    ijk = np.clip(ijk, 0, np.array(labels.shape[::-1]) - 1)
+    vol = nodal_volumes(mesh)
+    lo, hi = mesh.bounds()
+    region_out = np.full(mesh.n_nodes, background, dtype=np.int64)
+    taken = np.zeros(mesh.n_nodes, bool)
+    labs = [int(v) for v in np.unique(labels) if v not in (0, background)]
+    voxel = float(np.prod(spacing))
+    # label-map volume inside the mesh's bounding box
+    sel = [slice(max(0, int(np.floor((lo[a] - origin[a]) / spacing[a]))),
+                 int(np.ceil((hi[a] - origin[a]) / spacing[a])) + 1) for a in range(3)]
+    inside = labels[sel[2], sel[1], sel[0]]
+    targets = {r: np.count_nonzero(inside == r) * voxel for r in labs}
+    for r in sorted(labs, key=lambda k: targets[k]):
+        if targets[r] == 0:
+            continue
+        cover = ndimage.uniform_filter((labels == r).astype(np.float32), size=size)
+        c = cover[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+        c[taken] = -1
+        order = np.argsort(-c, kind="stable")
+        order = order[c[order] > 0]
+        cum = np.cumsum(vol[order])
+        k = int(np.argmin(np.abs(cum - targets[r]))) + 1
+        region_out[order[:k]] = r
+        taken[order[:k]] = True
+    return region_out
