@@ -194,6 +194,33 @@ def stage_tomography(ctx):
              "digital cylinder-tube phantom with tracked-laser and camera noise, the tube's own "
              "absorption left out of the reconstruction model (as in practice).")
     _tomo_figures(ctx, runs)
+    _tomo_to_scene(ctx, runs[depths[0]], ctx.state["tube_phantoms"][depths[0]])
+
+
+def _tomo_to_scene(ctx, run, phantom):
+    """Reconstructions as volumes on the CBCT grid (for fusion) and the mesh surface."""
+    from FluoTomoLib.locate import locator
+    from FluoTomoLib.vtu_io import boundary_polydata, write_vtu
+
+    scene = ctx.state["scene"]
+    mesh = run["coarse"]
+    shape = phantom.labels.shape
+    k, j, i = np.meshgrid(*(np.arange(n) for n in shape), indexing="ij")
+    pts = phantom.origin_mm + np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * phantom.spacing_mm
+    lo, hi = mesh.bounds()
+    inside = np.all((pts >= lo) & (pts <= hi), axis=1)
+    P = locator(mesh).interpolation_matrix(pts[inside], outside="zero")
+    for method in ("NP", "SP", "HP"):
+        vol = np.zeros(len(pts), dtype=np.float32)
+        vol[inside] = P @ run["results"][method]["yield"]
+        node = mrml_io.add_volume(scene, f"FluoTomoYield{method}", vol.reshape(shape),
+                                  phantom.spacing_mm, phantom.origin_mm)
+        mrml_io.set_json_attribute(node, "FluoTomo.Reconstruction",
+                                   {k: v for k, v in run["results"][method].items() if k != "yield"})
+    mrml_io.add_model(scene, "FluoTomoMeshSurface", boundary_polydata(mesh), color=(0.6, 0.8, 1.0))
+    fields = {m: run["results"][m]["yield"] for m in ("NP", "SP", "HP")}
+    write_vtu(mesh, ctx.out / "reconstruction_mesh.vtu", point_data=fields)
+    mrml_io.save_scene(scene, ctx.out / "scene.mrml")
 
 
 def stage_camera_calibration(ctx):
@@ -237,6 +264,7 @@ def stage_camera_calibration(ctx):
     scene = ctx.state["scene"]
     store_intrinsics(scene, cam, {"rms_px": res.rms_px})
     store_handeye(scene, cmp["TSAI"]["camera_to_tool"], {"method": "TSAI"})
+    mrml_io.save_scene(scene, ctx.out / "scene.mrml")
     ctx.metrics["camera_calibration"] = out
     ctx.note("camera_calibration", f"{n_views} synthetic 9x6 chessboard views rendered for a "
              "known camera and tracked tool; thesis: 3D error 0.17 mm, 2D error 2.77 px "

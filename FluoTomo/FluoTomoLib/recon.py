@@ -127,7 +127,7 @@ def _data_space_step(J, r, Rinv_apply):
 
 
 def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
-                nonneg=True, lambda_decay=1.0, progress=None, cancel=None):
+                nonneg=True, lambda_decay=None, progress=None, cancel=None):
     """Reconstruct nodal yield from data ``y`` with sensitivity ``J``.
 
     Parameters
@@ -137,9 +137,10 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     method : "NP", "SP" or "HP"
     lam : lambda of the reference (lambda' = lambda * max(diag(J^T J)))
     prior : RegionPrior, required for SP and HP
-    lambda_decay : lambda is divided by this after every iteration (NIRFAST's
-        scripts use 10^0.25); the default 1 keeps it fixed as the reference
-        states, so the damping also regularises the converged result
+    lambda_decay : lambda is divided by this after every iteration.  Default:
+        1 (fixed, as the reference states, so the damping also regularises)
+        for NP and SP; 10^0.25 (NIRFAST's schedule) for HP, whose few region
+        unknowns are well determined and need damping only for the first steps
     """
     t0 = time.perf_counter()
     J = np.asarray(J, float)
@@ -197,6 +198,8 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     stop = "max_iter"
     clipped = 0.0
     lam_k = float(lam)
+    if lambda_decay is None:
+        lambda_decay = 10 ** 0.25 if method == "HP" else 1.0
     for it in range(1, max_iter + 1):
         check_cancel(cancel)
         Rinv = make_rinv(lam_k)

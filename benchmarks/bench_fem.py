@@ -1,0 +1,143 @@
+"""FEM speed and accuracy, against redbirdpy on the same mesh in the same run.
+
+A 3D slab (~50k nodes, graded towards the illuminated surface), 16 sources and
+16 detectors on the surface.  Times: assembly, factorisation, forward solve
+(all sources), Jacobian (adjoints + assembly of J).  Accuracy: boundary
+fluence against the exact Robin half-space solution for 3 <= rho <= 25 mm,
+and the two codes against each other.  Then a mesh-size table (coarse to
+fine) so a user can pick speed or accuracy.
+
+    python -m benchmarks fem [-- --repeats 3 --skip-redbird --nodes 50000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+MUA, MUSP, N = 0.01, 1.0, 1.37
+
+
+def _slab(h_xy, half=30.0, depth=30.0):
+    from FluoTomoLib.structured_mesh import box_mesh, graded_axis
+
+    x = np.linspace(-half, half, int(round(2 * half / h_xy)) + 1)
+    z = graded_axis(-depth, 0.0, min(0.5, h_xy / 2), 2.5, 3.0)
+    return box_mesh(x, x, z, name="slab")
+
+
+def _optodes():
+    xs = np.linspace(-22.5, 22.5, 16)
+    src = np.stack([xs, np.full(16, -3.0), np.zeros(16)], axis=1)
+    det = np.stack([xs + 1.5, np.full(16, 3.0), np.zeros(16)], axis=1)
+    return src, det
+
+
+def _accuracy(data, src, det):
+    from FluoTomoLib.analytic import robin_surface_fluence
+
+    rho = np.linalg.norm(src[:, None, :] - det[None, :, :], axis=2)
+    sel = (rho >= 3) & (rho <= 25)
+    ref = robin_surface_fluence(rho[sel], MUA, MUSP, N)
+    rel = data[sel] / ref - 1
+    return {"median_abs_err_pct": float(100 * np.median(np.abs(rel))),
+            "max_abs_err_pct": float(100 * np.max(np.abs(rel))), "pairs": int(sel.sum())}
+
+
+def run_ours(mesh, src, det):
+    from FluoTomoLib.forward import FluorescenceModel
+
+    p = dict(mua_per_mm=MUA, musp_per_mm=MUSP, n=N)
+    t0 = time.perf_counter()
+    fm = FluorescenceModel(mesh, p, p, src, det)
+    t_setup = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fm.op_x.factorize()
+    t_fact = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    data = fm.excitation_data()
+    t_fwd = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    J = fm.jacobian_mua_x()
+    t_jac = time.perf_counter() - t0
+    return data, J, {"assembly_s": fm.op_x.assembly_seconds, "setup_s": t_setup,
+                     "factor_s": t_fact, "forward_s": t_fwd, "jacobian_s": t_jac,
+                     "forward_plus_jacobian_s": t_setup + t_fact + t_fwd + t_jac,
+                     "solver": fm.solver_name}
+
+
+def run_redbird(mesh, src, det):
+    import redbirdpy as rb
+
+    cfg = {
+        "node": mesh.nodes_mm.copy(), "elem": mesh.elements + 1,
+        "prop": np.array([[0, 0, 1, 1], [MUA, MUSP, 0, N]], float),
+        "srcpos": src, "srcdir": [0, 0, -1], "detpos": det, "detdir": [0, 0, -1],
+        "seg": np.ones(mesh.n_elements, dtype=int), "omega": 0,
+    }
+    t0 = time.perf_counter()
+    cfg, sd = rb.utility.meshprep(cfg)
+    t_prep = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    detval, phi = rb.forward.runforward(cfg, sd=sd)
+    t_fwd = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    Jmua = rb.forward.jac(sd, phi, cfg["deldotdel"], cfg["elem"], cfg["evol"])
+    t_jac = time.perf_counter() - t0
+    # redbird returns detector-major values (detectors x sources) and a
+    # (nodal, elemental) pair of Jacobians
+    detval = np.asarray(detval).reshape(len(det), len(src)).T
+    Jmua = Jmua[0] if isinstance(Jmua, tuple) else Jmua
+    return detval, Jmua, {"meshprep_s": t_prep, "forward_s": t_fwd, "jacobian_s": t_jac,
+                          "forward_plus_jacobian_s": t_prep + t_fwd + t_jac}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m benchmarks fem")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--skip-redbird", action="store_true")
+    ap.add_argument("--h", type=float, default=1.2, help="lateral element size of the main slab [mm]")
+    args = ap.parse_args(argv)
+    src, det = _optodes()
+    mesh = _slab(args.h)
+    print(f"slab 60 x 60 x 30 mm: {mesh.n_nodes} nodes, {mesh.n_elements} tets; "
+          f"mua {MUA}, musp {MUSP}, n {N}; 16 sources x 16 detectors")
+    ours = []
+    for _ in range(args.repeats):
+        mesh = _slab(args.h)  # fresh mesh: no cached geometry between repeats
+        data, J, t = run_ours(mesh, src, det)
+        ours.append(t)
+    acc = _accuracy(data, src, det)
+    med = {k: float(np.median([t[k] for t in ours])) for k in ours[0] if k != "solver"}
+    print(f"FluoGuide ({ours[0]['solver']}): " + ", ".join(f"{k} {v:.2f}" for k, v in med.items()))
+    print(f"  vs exact Robin half-space (3-25 mm, {acc['pairs']} pairs): median |err| "
+          f"{acc['median_abs_err_pct']:.2f} %, max {acc['max_abs_err_pct']:.2f} %")
+    if not args.skip_redbird:
+        rbt = []
+        for _ in range(args.repeats):
+            rdata, rJ, t = run_redbird(_slab(args.h), src, det)
+            rbt.append(t)
+        rmed = {k: float(np.median([t[k] for t in rbt])) for k in rbt[0]}
+        racc = _accuracy(rdata, src, det)
+        print("redbirdpy: " + ", ".join(f"{k} {v:.2f}" for k, v in rmed.items()))
+        print(f"  vs exact Robin half-space: median |err| {racc['median_abs_err_pct']:.2f} %, "
+              f"max {racc['max_abs_err_pct']:.2f} %")
+        ratio = rmed["forward_plus_jacobian_s"] / med["forward_plus_jacobian_s"]
+        agree = np.median(np.abs(data / rdata - 1)) * 100
+        print(f"speed-up forward+Jacobian (median): {ratio:.2f}x; median |FluoGuide/redbird - 1| "
+              f"{agree:.2f} %")
+    print("\nmesh size vs error vs time (FluoGuide, forward + Jacobian):")
+    print(f"{'h_xy mm':>8} {'nodes':>8} {'median err %':>13} {'max err %':>10} {'seconds':>8}")
+    for h in (3.0, 2.0, 1.5, 1.2, 1.0):
+        m = _slab(h)
+        d, _, t = run_ours(m, src, det)
+        a = _accuracy(d, src, det)
+        print(f"{h:8.1f} {m.n_nodes:8d} {a['median_abs_err_pct']:13.2f} {a['max_abs_err_pct']:10.2f} "
+              f"{t['forward_plus_jacobian_s']:8.2f}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
