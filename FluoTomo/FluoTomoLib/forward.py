@@ -30,31 +30,42 @@ def _props(mesh, props, name):
         raise FluoInputError("needs keys mua_per_mm, musp_per_mm and n", field=name) from None
 
 
+def _chunks(mesh, S, D, budget=1.5e7):
+    nl = mesh.dim + 1
+    size = max(1, int(budget // (nl * S * D)))
+    for c0 in range(0, mesh.n_elements, size):
+        yield slice(c0, min(c0 + size, mesh.n_elements))
+
+
 def triple_product_jacobian(mesh, G, F):
     """J[(s, d), k] = integral G_d F_s phi_k for nodal fields G (N, D) and F (N, S).
 
+    Exact P1 triple products, all source-detector pairs at once per chunk of
+    elements (BLAS-friendly einsums), scattered to nodes with a sparse sum.
     Returns a dense (S * D, N) array, row index s * D + d.
     """
-    g = geometry(mesh)
-    el = g.elements
+    import scipy.sparse as sp
+
+    geo = geometry(mesh)
+    el = geo.elements
     nl = mesh.dim + 1
-    w = (g.vol * g.c3)                                   # (M,)
-    Ge = G[el]                                           # (M, nl, D)
-    Gs = Ge.sum(axis=1)                                  # (M, D)
-    scatter = sp.csr_matrix((np.ones(el.size), (np.arange(el.size), el.ravel())),
-                            shape=(el.size, mesh.n_nodes))
     S, D = F.shape[1], G.shape[1]
-    out = np.empty((S * D, mesh.n_nodes))
-    for s in range(S):
-        Fe = F[el, s]                                    # (M, nl)
-        Fs = Fe.sum(axis=1)                              # (M,)
-        gf = np.einsum("mjd,mj->md", Ge, Fe)             # (M, D): sum_j g_j f_j
-        base = Gs * Fs[:, None] + gf                     # (M, D)
-        # local[k] = base + g_k F + G f_k + 2 g_k f_k, weighted by |e| c3
-        loc = (base[:, None, :] + Ge * Fs[:, None, None] + Gs[:, None, :] * Fe[:, :, None]
-               + 2 * Ge * Fe[:, :, None]) * w[:, None, None]          # (M, nl, D)
-        out[s * D:(s + 1) * D] = (scatter.T @ loc.reshape(el.size, D)).T
-    return out
+    w = geo.vol * geo.c3
+    out = np.zeros((mesh.n_nodes, S * D))
+    for sl in _chunks(mesh, S, D):
+        e = el[sl]
+        C = len(e)
+        Ge, Fe = G[e], F[e]                                   # (C, nl, D), (C, nl, S)
+        Gs, Fs = Ge.sum(axis=1), Fe.sum(axis=1)               # (C, D), (C, S)
+        base = np.einsum("cs,cd->csd", Fs, Gs) + np.einsum("cjs,cjd->csd", Fe, Ge)
+        # local[k] = base + g_k F + G f_k + 2 g_k f_k (exact triple products)
+        loc = (base[:, None] + Fs[:, None, :, None] * Ge[:, :, None, :]
+               + Fe[:, :, :, None] * (Gs[:, None, None, :] + 2.0 * Ge[:, :, None, :]))
+        loc *= w[sl][:, None, None, None]
+        scatter = sp.csr_matrix((np.ones(C * nl), (e.ravel(), np.arange(C * nl))),
+                                shape=(mesh.n_nodes, C * nl))
+        out += scatter @ loc.reshape(C * nl, S * D)
+    return out.T
 
 
 def gradient_product_jacobian(mesh, G, F):
@@ -63,21 +74,22 @@ def gradient_product_jacobian(mesh, G, F):
     The derivative of G^T K F with respect to nodal D when K uses the
     element-mean D (fem.stiffness).  Dense (S * D, N), row s * D + d.
     """
+    import scipy.sparse as sp
+
     geo = geometry(mesh)
     el = geo.elements
     nl = mesh.dim + 1
-    # grad of a P1 field on each element: GGt already holds |e| grad_i . grad_j
-    scatter = sp.csr_matrix((np.ones(el.size), (np.arange(el.size), el.ravel())),
-                            shape=(el.size, mesh.n_nodes))
     S, D = F.shape[1], G.shape[1]
-    out = np.empty((S * D, mesh.n_nodes))
-    Ge = G[el]                                            # (M, nl, D)
-    for s in range(S):
-        KF = np.einsum("mij,mj->mi", geo.GGt, F[el, s])   # (M, nl): |e| grad_i . grad F
-        e_val = np.einsum("mid,mi->md", Ge, KF) / nl      # (M, D)
-        loc = np.repeat(e_val[:, None, :], nl, axis=1)    # same for each node of e
-        out[s * D:(s + 1) * D] = (scatter.T @ loc.reshape(el.size, D)).T
-    return out
+    out = np.zeros((mesh.n_nodes, S * D))
+    for sl in _chunks(mesh, S, D, budget=6e7):
+        e = el[sl]
+        C = len(e)
+        KF = np.einsum("cij,cjs->cis", geo.GGt[sl], F[e])      # |e| grad_i . grad F_s
+        val = np.einsum("cid,cis->csd", G[e], KF) / nl          # (C, S, D)
+        scatter = sp.csr_matrix((np.ones(C * nl), (e.ravel(), np.repeat(np.arange(C), nl))),
+                                shape=(mesh.n_nodes, C))
+        out += scatter @ val.reshape(C, S * D)
+    return out.T
 
 
 class FluorescenceModel:

@@ -92,38 +92,44 @@ class RegionPrior:
         K[np.arange(len(self.node_region)), self.index] = 1.0
         return K
 
+    def _sums(self, X):
+        """Per-region sums of the rows of X ((N,) or (N, k))."""
+        import scipy.sparse as sp
+
+        if not hasattr(self, "_B"):
+            n = len(self.node_region)
+            self._B = sp.csr_matrix((np.ones(n), (self.index, np.arange(n))),
+                                    shape=(len(self.labels), n))
+        return self._B @ X
+
     def region_mean(self, x):
-        s = np.bincount(self.index, weights=x, minlength=len(self.labels))
-        return s / self.counts
+        return self._sums(np.asarray(x, float)) / (self.counts if np.ndim(x) == 1
+                                                    else self.counts[:, None])
 
     def apply_L(self, x):
         """L x with L_ii = 1, L_ij = -1/N_r for i != j in region r."""
         n = self.counts[self.index]
         return x * (1 + 1 / n) - self.region_mean(x)[self.index]
 
-    def apply_L_inv(self, x):
-        """L^-1 x: per region L = c I - (1/N) 1 1^T, c = 1 + 1/N, whose inverse is
-        (1/c) (I + 1 1^T) (Sherman-Morrison)."""
-        n = self.counts[self.index]
-        c = 1 + 1 / n
-        sums = np.bincount(self.index, weights=x, minlength=len(self.labels))
-        return (x + sums[self.index]) / c
+    def apply_L_inv(self, X):
+        """L^-1 X: per region L = c I - (1/N) 1 1^T, c = 1 + 1/N, whose inverse is
+        (1/c) (I + 1 1^T) (Sherman-Morrison).  X may be (N,) or (N, k)."""
+        X = np.asarray(X, float)
+        c = 1 + 1 / self.counts[self.index]
+        sums = self._sums(X)[self.index]
+        return (X + sums) / (c if X.ndim == 1 else c[:, None])
 
     def apply_LtL_inv(self, X):
-        """(L^T L)^-1 applied to the columns of X (L is symmetric)."""
-        X = np.asarray(X, float)
-        if X.ndim == 1:
-            return self.apply_L_inv(self.apply_L_inv(X))
-        return np.column_stack([self.apply_L_inv(self.apply_L_inv(X[:, j]))
-                                for j in range(X.shape[1])])
+        """(L^T L)^-1 applied to X (L is symmetric)."""
+        return self.apply_L_inv(self.apply_L_inv(X))
 
 
-def _data_space_step(J, r, Rinv_apply):
-    """(J^T J + R)^-1 J^T r via R^-1 J^T (J R^-1 J^T + I)^-1 r."""
-    RJt = Rinv_apply(J.T)                 # (N, M)
-    S = J @ RJt
-    S[np.diag_indices_from(S)] += 1.0
-    return RJt @ np.linalg.solve(S, r), RJt, S
+def _chol_solve(L, b):
+    """Solve (L L^T) x = b for the Cholesky factor L of the data-space matrix
+    S = J R^-1 J^T + I (symmetric positive definite)."""
+    from scipy.linalg import solve_triangular
+
+    return solve_triangular(L.T, solve_triangular(L, b, lower=True), lower=False)
 
 
 def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
@@ -200,10 +206,17 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     lam_k = float(lam)
     if lambda_decay is None:
         lambda_decay = 10 ** 0.25 if method == "HP" else 1.0
+    cached_lam = None
     for it in range(1, max_iter + 1):
         check_cancel(cancel)
-        Rinv = make_rinv(lam_k)
-        step, RJt, S = _data_space_step(A, resid, Rinv)
+        if lam_k != cached_lam:  # J is fixed: refactor only when lambda changes
+            Rinv = make_rinv(lam_k)
+            RJt = Rinv(A.T)
+            S = A @ RJt
+            S[np.diag_indices_from(S)] += 1.0
+            S_factor = np.linalg.cholesky(S)
+            cached_lam = lam_k
+        step = RJt @ _chol_solve(S_factor, resid)
         x = x + step
         if nonneg:
             neg = x < 0
