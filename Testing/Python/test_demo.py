@@ -1,0 +1,55 @@
+"""The main job: stages, metrics.json, report.html, failures that keep earlier work."""
+
+import json
+
+import pytest
+
+from fluoguide import demo, demo_stages
+from fluoguide.errors import FluoError, FluoInputError
+
+
+def test_phantom_stage_writes_report_and_metrics(tmp_path):
+    metrics = demo.run_demo(tmp_path / "out", quick=True, only=["phantoms"])
+    out = tmp_path / "out"
+    assert metrics["stages_completed"] == ["phantoms"]
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["tube_depths_mm"] == [2.7, 4.7, 6.7]
+    html = (out / "report.html").read_text()
+    assert "phantoms.png" in html and (out / "phantoms.png").stat().st_size > 10_000
+    assert (out / "scene.mrml").exists()
+
+
+def test_failing_stage_keeps_earlier_results(tmp_path, monkeypatch):
+    def broken(ctx):
+        raise RuntimeError("detector saturated")
+
+    monkeypatch.setattr(demo_stages, "STAGES",
+                        demo_stages.STAGES[:1] + [("tomography", "broken", broken)])
+    with pytest.raises(FluoError, match="tomography.*detector saturated"):
+        demo.run_demo(tmp_path / "out", quick=True)
+    out = tmp_path / "out"
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["stages_completed"] == ["phantoms"]
+    assert "tomography" in saved["stages_failed"]
+    assert (out / "tomography.error.txt").exists() and (out / "phantoms.png").exists()
+    assert "failed" in (out / "report.html").read_text()
+
+
+def test_unwritable_output(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("")
+    with pytest.raises(FluoInputError, match="not writable"):
+        demo.run_demo(f / "sub")
+
+
+@pytest.mark.slow
+def test_quick_demo_end_to_end(tmp_path):
+    metrics = demo.run_demo(tmp_path / "q", quick=True)
+    assert not metrics["stages_failed"]
+    for m in ("NP", "SP", "HP"):
+        assert len(metrics["yield_error_pct"][m]) == 3
+        assert len(metrics["centroid_error_pct"][m]) == 3
+    hp = metrics["tomography"]["HP mean |yield error| %"]
+    np_ = metrics["tomography"]["NP mean |yield error| %"]
+    assert hp < np_
+    assert metrics["camera_calibration"]["rms reprojection [px]"] < 0.5
