@@ -143,8 +143,8 @@ class Mesh:
         facets = np.concatenate(facets)
         opposite = np.concatenate(opposite)
         key = np.sort(facets, axis=1)
-        n = np.int64(self.n_nodes)
-        if n ** d < np.iinfo(np.int64).max // n:  # one int64 per facet: far faster than axis=0
+        n = int(self.n_nodes)
+        if n ** d < np.iinfo(np.int64).max:  # one int64 per facet: far faster than axis=0
             code = key[:, 0].astype(np.int64)
             for j in range(1, d):
                 code = code * n + key[:, j]

@@ -70,7 +70,9 @@ def _scenario_fluonav(scene):
 def _scenario_fluotomo(scene):
     from FluoTomo import FluoTomoLogic
 
-    FluoTomoLogic(scene).labelVolumes()
+    logic = FluoTomoLogic(scene)
+    logic.labelVolumes()
+    logic.buildMesh(sizeMm=6.0)
 
 
 @pytest.mark.parametrize("module", ["FluoGuide", "FluoCalib", "FluoNav", "FluoTomo"])
@@ -90,3 +92,25 @@ def test_module_writes_only_documented_nodes(module, tmp_path):
     after = _data_nodes(scene)
     assert after >= before
     _check(module, before, after)
+
+
+@pytest.mark.slow
+def test_tomography_results_are_documented_and_saved(tmp_path):
+    from FluoTomo import FluoTomoLogic
+
+    scene = mrml_io.new_scene()
+    before = _data_nodes(scene)
+    run = FluoTomoLogic(scene).reconstructTubePhantom(depthMm=4.7, methods=("HP",))
+    after = _data_nodes(scene)
+    new = after - before
+    assert ("FluoTomoYieldHP", "vtkMRMLScalarVolumeNode") in new
+    # the phantom's own nodes are FluoGuide's; the rest must be FluoTomo's
+    _check("FluoTomo", before | {("CBCT", "vtkMRMLScalarVolumeNode"),
+                                 ("CBCTLabels", "vtkMRMLLabelMapVolumeNode")}, after)
+    path = mrml_io.save_scene(scene, tmp_path / "scene.mrml")
+    loaded = mrml_io.load_scene(path)
+    vol = mrml_io.volume_array(mrml_io.get_node(loaded, "FluoTomoYieldHP"))
+    assert vol.max() > 0.3 * run["results"]["HP"]["true_peak"]
+    info = mrml_io.get_json_attribute(mrml_io.get_node(loaded, "FluoTomoYieldHP"),
+                                      "FluoTomo.Reconstruction")
+    assert info["method"] == "HP" and info["iterations"] >= 1
