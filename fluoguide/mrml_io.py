@@ -459,10 +459,10 @@ def load_scene(path):
     scene = new_scene()
     scene.SetURL(str(path))
     scene.SetRootDirectory(str(path.parent))
-    if not scene.Import():
-        raise FluoInputError("corrupt MRML scene", file=path)
+    imported = scene.Import()
     if scene.GetNumberOfNodes() == 0:
         raise FluoInputError("corrupt MRML scene (no nodes)", file=path)
+    # Import fails as a whole when one data file does: find and name that file.
     for node in _storable_nodes(scene):
         sn = node.GetStorageNode()
         if sn is None:
@@ -478,4 +478,6 @@ def load_scene(path):
         if node.IsA("vtkMRMLModelNode") and (node.GetPolyData() is None
                                             or node.GetPolyData().GetNumberOfPoints() == 0):
             raise FluoInputError("corrupt model file", file=full, field=node.GetName())
+    if not imported:
+        raise FluoInputError("corrupt MRML scene", file=path)
     return scene
