@@ -29,6 +29,7 @@ CLI_MODULES = [
     "fluoguide.scene_cli",
     "fluoguide.demo_cli",
     "FluoTomoLib.fem_cli",
+    "FluoTomoLib.study_cli",
     "FluoCalibLib.geometry_cli",
 ]
 

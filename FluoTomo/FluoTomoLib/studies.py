@@ -1,0 +1,178 @@
+"""The thesis's 2D simulation studies A, B and C (physics.md section 8).
+
+50 x 30 mm tissue (top edge y = 0, depth downwards), forward mesh 0.5 mm,
+reconstruction mesh 1.0 mm (structured triangles: 6,161 / 12,000 and
+1,581 / 3,000, against the thesis's unstructured 7,504 / 14,652 and
+1,848 / 3,520).  16 sources 2.5 mm apart across the top, detectors at the 15
+other source positions (240 measurements).  mua 0.032, musp 1 /mm at both
+wavelengths, n 1.33; background yield 0.04 * 0.003, target 0.04 * 0.03 /mm.
+
+Noise: "Gaussian, max amplitude 1 %" is read as zero-mean Gaussian relative
+noise with sigma = 1/3 % (so 99.7 % of values lie within +-1 %).
+
+Data are simulated on the forward mesh with the exact target shape; the
+Jacobian is computed on the forward mesh and mapped to the reconstruction
+mesh (J_r = J_f P), as in the thesis.  Priors come from the target shape
+(study C: a filled disc while the truth is an annulus) with volume-preserving
+node regions.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+from fluoguide.progress import check_cancel, report
+
+from .forward import FluorescenceModel
+from .locate import locator
+from .profile_metrics import depth_profile, peak_and_centroid
+from .recon import RegionPrior, reconstruct
+from .structured_mesh import rectangle_mesh
+
+WIDTH_MM, DEPTH_MM = 50.0, 30.0
+MUA, MUSP, N = 0.032, 1.0, 1.33
+YIELD_BG, YIELD_TARGET = 0.04 * 0.003, 0.04 * 0.03
+
+
+def study_meshes(fine_mm=0.5, coarse_mm=1.0):
+    def mesh(h, name):
+        x = np.linspace(-WIDTH_MM / 2, WIDTH_MM / 2, int(round(WIDTH_MM / h)) + 1)
+        y = np.linspace(-DEPTH_MM, 0.0, int(round(DEPTH_MM / h)) + 1)
+        m = rectangle_mesh(x, y, name=name)
+        m.meta["size_mm"] = h
+        return m
+    return mesh(fine_mm, "forward"), mesh(coarse_mm, "reconstruction")
+
+
+def disc(diameter_mm, top_depth_mm, inner_diameter_mm=0.0):
+    """Indicator of a disc (or annulus) whose top lies ``top_depth_mm`` below y = 0."""
+    r = 0.5 * float(diameter_mm)
+    ri = 0.5 * float(inner_diameter_mm)
+    cy = -(float(top_depth_mm) + r)
+
+    def inside(p):
+        d = np.hypot(p[:, 0], p[:, 1] - cy)
+        return (d <= r) & (d >= ri)
+    return inside, -cy
+
+
+def node_regions_from_shape(mesh, inside, supersample=8):
+    """Volume-preserving node regions (2 = target, 1 = background) from an
+    analytic shape: nodes ranked by the fraction of their h x h cell inside the
+    shape, taken until their lumped areas equal the shape's area on the mesh."""
+    from .voxel_mesh import nodal_volumes
+
+    h = float(mesh.meta["size_mm"])
+    off = (np.arange(supersample) + 0.5) / supersample - 0.5
+    ox, oy = np.meshgrid(off * h, off * h)
+    pts = mesh.nodes_mm[:, None, :] + np.stack([ox.ravel(), oy.ravel()], axis=1)[None]
+    cover = inside(pts.reshape(-1, 2)).reshape(len(mesh.nodes_mm), -1).mean(axis=1)
+    area = nodal_volumes(mesh)
+    target_area = float(np.sum(cover * area))
+    order = np.argsort(-cover, kind="stable")
+    order = order[cover[order] > 0]
+    region = np.ones(mesh.n_nodes, dtype=np.int64)
+    if len(order):
+        cum = np.cumsum(area[order])
+        k = int(np.argmin(np.abs(cum - target_area))) + 1
+        region[order[:k]] = 2
+    return region
+
+
+_CACHE = {}
+
+
+def _forward_setup(fine, coarse):
+    """Sources, detectors, Jacobian on the forward mesh, mapping to the coarse one
+    (the same for every case of a study: computed once)."""
+    key = (id(fine), id(coarse))
+    if key not in _CACHE:
+        xs = (np.arange(16) - 7.5) * 2.5
+        src = np.stack([xs, np.zeros(16)], axis=1)
+        p = {"mua_per_mm": MUA, "musp_per_mm": MUSP, "n": N}
+        fm = FluorescenceModel(fine, p, p, src, src)
+        mask = ~np.eye(16, dtype=bool)
+        J_f = fm.jacobian_yield()[mask.ravel()]
+        P = locator(coarse).interpolation_matrix(fine.nodes_mm, what="forward node")
+        _CACHE.clear()
+        _CACHE[key] = (fm, mask, J_f, np.asarray((P.T @ J_f.T).T))
+    return _CACHE[key]
+
+
+def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diameter_mm=None,
+             methods=("NP", "SP", "HP"), lambdas=None, seed=0, noise_pct=1.0, meshes=None,
+             progress=None, cancel=None):
+    """One target through NP/SP/HP; returns (rows, figure data)."""
+    fine, coarse = meshes or study_meshes()
+    if not (0 < diameter_mm < 28) or top_depth_mm < 0 or top_depth_mm + diameter_mm > 28:
+        raise FluoInputError("target must fit inside the 50 x 30 mm domain",
+                             field="target", value=(diameter_mm, top_depth_mm))
+    fm, mask, J_f, J = _forward_setup(fine, coarse)
+    inside, centre_depth = disc(diameter_mm, top_depth_mm, inner_diameter_mm)
+    truth_f = np.where(inside(fine.nodes_mm), YIELD_TARGET, YIELD_BG)
+    y_clean = J_f @ truth_f
+    rng = np.random.default_rng(seed)
+    y = y_clean * (1.0 + rng.normal(0.0, noise_pct / 300.0, y_clean.shape))
+    prior_shape, _ = disc(prior_diameter_mm or diameter_mm, top_depth_mm)
+    prior = RegionPrior(node_regions_from_shape(coarse, prior_shape))
+    z_true, prof_true = depth_profile(fine, truth_f, 0.0, 0.0, -DEPTH_MM)
+    rows, fields = [], {"truth": (fine, truth_f)}
+    for method in methods:
+        for lam in (lambdas or {}).get(method, [10.0]):
+            check_cancel(cancel)
+            report(progress, 0.5, f"{case}: {method} lambda {lam:g}")
+            t0 = time.perf_counter()
+            res = reconstruct(J, y, method, lam=lam, prior=prior)
+            sec = time.perf_counter() - t0
+            z, prof = depth_profile(coarse, res.yield_per_mm, 0.0, 0.0, -DEPTH_MM)
+            peak, centroid = peak_and_centroid(z, prof)
+            rows.append({
+                "case": case, "method": method, "lambda": lam, "true_peak": YIELD_TARGET,
+                "peak": peak, "peak_error_pct": 100 * (peak - YIELD_TARGET) / YIELD_TARGET,
+                "true_centroid_mm": centre_depth, "centroid_mm": centroid,
+                "centroid_error_pct": 100 * (centroid - centre_depth) / centre_depth,
+                "seconds": sec, "iterations": res.iterations,
+                "residual_ss": res.residual, "stop_reason": res.stop_reason,
+            })
+            fields[f"{method} (lambda {lam:g})"] = (coarse, res.yield_per_mm)
+    return rows, fields
+
+
+STUDIES = {
+    "A": [(f"A: {d:g} mm disc", dict(diameter_mm=d, top_depth_mm=2.5)) for d in (2.5, 5, 10, 15)],
+    "B": [(f"B: 6 mm disc, top {t:g} mm", dict(diameter_mm=6, top_depth_mm=t))
+          for t in (2.5, 3.5, 4.5, 5.5, 6.5)],
+    "C": [("C: annulus 15/13 mm, disc prior", dict(diameter_mm=15, top_depth_mm=2.5,
+                                                    inner_diameter_mm=13, prior_diameter_mm=15,
+                                                    lambdas={"NP": [10.0], "HP": [10.0],
+                                                             "SP": [1e3, 10.0, 1e-1, 1e-3]}))],
+}
+
+
+def run_study(name, seed=0, target=None, out_dir=None, progress=None, cancel=None):
+    """Run study A, B or C (or one custom ``target`` = (diameter, top depth))."""
+    if target is not None:
+        cases = [(f"custom: {target[0]:g} mm disc, top {target[1]:g} mm",
+                  dict(diameter_mm=target[0], top_depth_mm=target[1]))]
+    elif name in STUDIES:
+        cases = STUDIES[name]
+    else:
+        raise FluoInputError("study must be A, B or C", field="study", value=name)
+    meshes = study_meshes()
+    rows, figures = [], []
+    for i, (case, kw) in enumerate(cases):
+        report(progress, i / len(cases), case)
+        r, fields = run_case(case, seed=seed, meshes=meshes, cancel=cancel, **kw)
+        rows += r
+        if out_dir is not None:
+            from .study_plots import plot_case
+
+            figures.append(plot_case(out_dir, i, case, fields))
+    report(progress, 1.0, "done")
+    return {"study": name if target is None else "custom", "rows": rows, "figures": figures,
+            "forward_mesh": [meshes[0].n_nodes, meshes[0].n_elements],
+            "reconstruction_mesh": [meshes[1].n_nodes, meshes[1].n_elements],
+            "measurements": 240, "noise": "Gaussian, sigma = 1/3 % relative (max ~1 %)"}
