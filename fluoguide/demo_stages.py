@@ -214,3 +214,58 @@ def _tomo_to_scene(ctx, run, phantom):
     write_vtu(run["coarse"], ctx.out / "reconstruction_mesh.vtu",
               point_data={m: r["yield"] for m, r in results.items()})
     mrml_io.save_scene(scene, ctx.out / "scene.mrml")
+
+
+def stage_camera_calibration(ctx):
+    """Camera intrinsics and hand-eye from rendered board images with known truth."""
+    from pathlib import Path
+
+    from FluoCalibLib import handeye as he
+    from FluoCalibLib.boards import parse_board
+    from FluoCalibLib.geometry_scene import store_handeye, store_intrinsics
+    from FluoCalibLib.intrinsics import calibrate_camera, view_poses
+    from FluoCalibLib.synthetic_boards import make_dataset
+
+    n_views = 10 if ctx.quick else 16
+    data = make_dataset(ctx.out / "calibration-images", board="chessboard:9x6:20",
+                        n_views=n_views, seed=ctx.seed)
+    images = [str(ctx.out / "calibration-images" / n) for n in data["images"]]
+    res = calibrate_camera(images, "chessboard:9x6:20", holdout=2)
+    cam = res.camera
+    true = data["camera"]
+    out = {
+        "views used / held out / rejected": [len(res.used), len(res.holdout), len(res.rejected)],
+        "rms reprojection [px]": res.rms_px,
+        "held-out rms [px]": res.holdout_rms_px,
+        "fx error %": 100 * (cam.fx - true["fx"]) / true["fx"],
+        "fy error %": 100 * (cam.fy - true["fy"]) / true["fy"],
+        "cx, cy error [px]": [cam.cx - true["cx"], cam.cy - true["cy"]],
+    }
+    board = parse_board("chessboard:9x6:20")
+    index = {Path(p).name: i for i, p in enumerate(images)}
+    keep = [v for v in res.views if v.status in ("used", "holdout")]
+    views = view_poses(cam, board, keep)
+    B = [v.board_to_camera for v in views]
+    A = [np.asarray(data["tool_to_tracker"][index[Path(v.name).name]]) for v in views]
+    cmp = he.compare_methods(cam, board, B, A, [(v.ids, v.image_points) for v in views],
+                             np.asarray(data["board_to_tracker"]), he.METHODS,
+                             truth_camera_to_tool=data["camera_to_tool"], holdout=2)
+    for method, r in cmp.items():
+        out[f"hand-eye {method}: translation error [mm]"] = r["translation_error_mm"]
+        out[f"hand-eye {method}: held-out 3D [mm] / 2D [px] error"] = [
+            r.get("holdout_err3d_mean_mm"), r.get("holdout_err2d_mean_px")]
+    scene = ctx.state["scene"]
+    store_intrinsics(scene, cam, {"rms_px": res.rms_px})
+    store_handeye(scene, cmp["TSAI"]["camera_to_tool"], {"method": "TSAI"})
+    mrml_io.save_scene(scene, ctx.out / "scene.mrml")
+    ctx.metrics["camera_calibration"] = out
+    ctx.note("camera_calibration", f"{n_views} synthetic 9x6 chessboard views rendered for a "
+             "known camera and tracked tool; thesis: 3D error 0.17 mm, 2D error 2.77 px "
+             "(31 mm open-field lens).")
+
+
+STAGES = [
+    ("phantoms", "digital phantoms", stage_phantoms),
+    ("camera_calibration", "camera and hand-eye calibration", stage_camera_calibration),
+    ("tomography", "tracked acquisition and reconstruction", stage_tomography),
+]
