@@ -80,11 +80,7 @@ class _Geometry:
 
 
 def geometry(mesh):
-    g = mesh.meta.get("_fem_geometry")
-    if g is None:
-        g = _Geometry(mesh)
-        mesh.meta["_fem_geometry"] = g
-    return g
+    return mesh.cached("_fem_geometry", _Geometry)
 
 
 def _nodal(mesh, value, name):

@@ -30,41 +30,54 @@ def _props(mesh, props, name):
         raise FluoInputError("needs keys mua_per_mm, musp_per_mm and n", field=name) from None
 
 
-def _chunks(mesh, S, D, budget=1.5e7):
+def _chunk_size(S, D, budget=1.5e7):
+    """Elements per chunk so one (C, S, D) block holds ~``budget`` doubles (120 MB).
+
+    Large chunks matter: each chunk adds a (C, S*D) block into the (N, S*D)
+    result, and that sum, not the arithmetic, dominates with small chunks.
+    """
+    return max(1, int(budget // (S * D)))
+
+
+def _incidence(mesh, weights):
+    """(N, M) CSC matrix, entry (k, e) = weights[e] if node k belongs to element e.
+
+    CSC so that column (element) chunks slice cheaply.
+    """
+    el = geometry(mesh).elements
     nl = mesh.dim + 1
-    size = max(1, int(budget // (nl * S * D)))
-    for c0 in range(0, mesh.n_elements, size):
-        yield slice(c0, min(c0 + size, mesh.n_elements))
+    return sp.csc_matrix((np.repeat(np.asarray(weights, float), nl),
+                          (el.ravel(), np.repeat(np.arange(len(el)), nl))),
+                         shape=(mesh.n_nodes, len(el)))
 
 
 def triple_product_jacobian(mesh, G, F):
     """J[(s, d), k] = integral G_d F_s phi_k for nodal fields G (N, D) and F (N, S).
 
-    Exact P1 triple products, all source-detector pairs at once per chunk of
-    elements (BLAS-friendly einsums), scattered to nodes with a sparse sum.
-    Returns a dense (S * D, N) array, row index s * D + d.
+    Exact P1 triple products.  Per element e with weight w = |e| d!/(d+3)!,
+    the contribution to node k of e is
+    w [sum_ij (1 + delta_ij) f_j g_i + g_k Fs + f_k Gs + 2 g_k f_k]
+    (Fs, Gs: sums over the element's nodes).  The last three terms factor into
+    node-level products with the sparse pattern matrix Mw[k, j] = sum of w over
+    the elements containing k and j, so only the first needs per-element work:
+    one batched matmul F_e^T (G_e + Gs) per chunk, scattered with a sparse
+    incidence product.  Returns a dense (S * D, N) array, row index s * D + d.
     """
-    import scipy.sparse as sp
-
     geo = geometry(mesh)
     el = geo.elements
-    nl = mesh.dim + 1
     S, D = F.shape[1], G.shape[1]
-    w = geo.vol * geo.c3
-    out = np.zeros((mesh.n_nodes, S * D))
-    for sl in _chunks(mesh, S, D):
-        e = el[sl]
-        C = len(e)
-        Ge, Fe = G[e], F[e]                                   # (C, nl, D), (C, nl, S)
-        Gs, Fs = Ge.sum(axis=1), Fe.sum(axis=1)               # (C, D), (C, S)
-        base = np.einsum("cs,cd->csd", Fs, Gs) + np.einsum("cjs,cjd->csd", Fe, Ge)
-        # local[k] = base + g_k F + G f_k + 2 g_k f_k (exact triple products)
-        loc = (base[:, None] + Fs[:, None, :, None] * Ge[:, :, None, :]
-               + Fe[:, :, :, None] * (Gs[:, None, None, :] + 2.0 * Ge[:, :, None, :]))
-        loc *= w[sl][:, None, None, None]
-        scatter = sp.csr_matrix((np.ones(C * nl), (e.ravel(), np.arange(C * nl))),
-                                shape=(mesh.n_nodes, C * nl))
-        out += scatter @ loc.reshape(C * nl, S * D)
+    Ew = _incidence(mesh, geo.vol * geo.c3)
+    Mw = (Ew @ _incidence(mesh, np.ones(len(el))).T).tocsr()
+    HF, HG = Mw @ F, Mw @ G
+    W = np.asarray(Ew.sum(axis=1)).ravel()
+    out = (HF[:, :, None] * G[:, None, :]
+           + F[:, :, None] * (HG + 2.0 * W[:, None] * G)[:, None, :]).reshape(-1, S * D)
+    size = _chunk_size(S, D)
+    for c0 in range(0, len(el), size):
+        e = el[c0:c0 + size]
+        Ge = G[e]
+        base = np.matmul(F[e].transpose(0, 2, 1), Ge + Ge.sum(axis=1, keepdims=True))
+        out += Ew[:, c0:c0 + size] @ base.reshape(len(e), S * D)
     return out.T
 
 
@@ -74,21 +87,18 @@ def gradient_product_jacobian(mesh, G, F):
     The derivative of G^T K F with respect to nodal D when K uses the
     element-mean D (fem.stiffness).  Dense (S * D, N), row s * D + d.
     """
-    import scipy.sparse as sp
-
     geo = geometry(mesh)
     el = geo.elements
     nl = mesh.dim + 1
     S, D = F.shape[1], G.shape[1]
+    E = _incidence(mesh, np.full(len(el), 1.0 / nl))
     out = np.zeros((mesh.n_nodes, S * D))
-    for sl in _chunks(mesh, S, D, budget=6e7):
-        e = el[sl]
-        C = len(e)
-        KF = np.einsum("cij,cjs->cis", geo.GGt[sl], F[e])      # |e| grad_i . grad F_s
-        val = np.einsum("cid,cis->csd", G[e], KF) / nl          # (C, S, D)
-        scatter = sp.csr_matrix((np.ones(C * nl), (e.ravel(), np.repeat(np.arange(C), nl))),
-                                shape=(mesh.n_nodes, C))
-        out += scatter @ val.reshape(C, S * D)
+    size = _chunk_size(S, D)
+    for c0 in range(0, len(el), size):
+        e = el[c0:c0 + size]
+        KF = np.matmul(geo.GGt[c0:c0 + size], F[e])           # (C, nl, S): |e| grad_i . grad F_s
+        val = np.matmul(KF.transpose(0, 2, 1), G[e])          # (C, S, D)
+        out += E[:, c0:c0 + size] @ val.reshape(len(e), S * D)
     return out.T
 
 

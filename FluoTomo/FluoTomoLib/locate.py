@@ -87,11 +87,7 @@ class PointLocator:
 
 def locator(mesh):
     """The mesh's cached PointLocator."""
-    loc = mesh.meta.get("_locator")
-    if loc is None:
-        loc = PointLocator(mesh)
-        mesh.meta["_locator"] = loc
-    return loc
+    return mesh.cached("_locator", PointLocator)
 
 
 def _closest_on_segments(p, a, b):
@@ -177,8 +173,5 @@ class BoundaryLocator:
 
 
 def boundary_locator(mesh):
-    loc = mesh.meta.get("_boundary_locator")
-    if loc is None:
-        loc = BoundaryLocator(mesh)
-        mesh.meta["_boundary_locator"] = loc
-    return loc
+    """The mesh's cached BoundaryLocator."""
+    return mesh.cached("_boundary_locator", BoundaryLocator)

@@ -206,6 +206,15 @@ class Mesh:
         acc[ok] /= nrm[ok, None]
         return acc
 
+    def cached(self, key, factory):
+        """A per-mesh object built once by ``factory(self)`` (point locators, FEM
+        geometry): the mesh is immutable once built, so they never go stale."""
+        obj = self.meta.get(key)
+        if obj is None:
+            obj = factory(self)
+            self.meta[key] = obj
+        return obj
+
     def bounds(self):
         return self.nodes_mm.min(axis=0), self.nodes_mm.max(axis=0)
 

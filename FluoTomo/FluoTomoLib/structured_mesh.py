@@ -58,6 +58,21 @@ def rectangle_mesh(x, y, name="rectangle"):
     return Mesh(nodes, tris, name=name).oriented()
 
 
+def kuhn_paths():
+    """The 6 monotone corner paths 000 -> 111 of a unit cube (one per axis
+    permutation); each is a tetrahedron, and together they tile the cube
+    conformingly with the neighbouring cubes (Kuhn / Freudenthal)."""
+    paths = []
+    for perm in itertools.permutations(range(3)):
+        path = [(0, 0, 0)]
+        for ax in perm:
+            nxt = list(path[-1])
+            nxt[ax] = 1
+            path.append(tuple(nxt))
+        paths.append(path)
+    return paths
+
+
 def box_mesh(x, y, z, name="box"):
     """Tetrahedra on the grid x by y by z (coordinate arrays, mm)."""
     x, y, z = (np.asarray(a, float) for a in (x, y, z))
@@ -67,15 +82,7 @@ def box_mesh(x, y, z, name="box"):
     idx = np.arange(np.prod(shape)).reshape(shape)
     i, j, k = (a.ravel() for a in np.meshgrid(*(np.arange(n - 1) for n in shape), indexing="ij"))
     corner = {c: idx[i + c[0], j + c[1], k + c[2]] for c in itertools.product((0, 1), repeat=3)}
-    tets = []
-    # Kuhn: each permutation of the axes gives a monotone path 000 -> 111
-    for perm in itertools.permutations(range(3)):
-        path = [(0, 0, 0)]
-        for ax in perm:
-            nxt = list(path[-1])
-            nxt[ax] = 1
-            path.append(tuple(nxt))
-        tets.append(np.stack([corner[c] for c in path], axis=1))
+    tets = [np.stack([corner[c] for c in path], axis=1) for path in kuhn_paths()]
     return Mesh(nodes, np.concatenate(tets), name=name).oriented()
 
 

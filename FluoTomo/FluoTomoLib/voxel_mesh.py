@@ -12,7 +12,6 @@ permutation of the identity, as CBCT volumes from Slicer are).
 
 from __future__ import annotations
 
-import itertools
 import time
 
 import numpy as np
@@ -21,6 +20,7 @@ from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel, report
 
 from .mesh import Mesh
+from .structured_mesh import kuhn_paths
 
 
 def _cell_labels(labels_kji, spacing, origin, roi, size_mm):
@@ -120,15 +120,8 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     report(progress, 0.4, "building tetrahedra")
     shape = tuple(len(e) for e in edges)
     node_id = lambda i, j, k: (i * shape[1] + j) * shape[2] + k  # noqa: E731
-    tets = []
-    for perm in itertools.permutations(range(3)):
-        path = [(0, 0, 0)]
-        for ax in perm:
-            nxt = list(path[-1])
-            nxt[ax] = 1
-            path.append(tuple(nxt))
-        tets.append(np.stack([node_id(ci + a, cj + b, ck + c) for a, b, c in path], axis=1))
-    tets = np.concatenate(tets)
+    tets = np.concatenate([np.stack([node_id(ci + a, cj + b, ck + c) for a, b, c in path], axis=1)
+                           for path in kuhn_paths()])
     region = np.tile(cell[ci, cj, ck], 6)
     used, inverse = np.unique(tets, return_inverse=True)
     X, Y, Z = np.meshgrid(*edges, indexing="ij")
