@@ -51,6 +51,22 @@ def _incidence(mesh, weights):
                          shape=(mesh.n_nodes, len(el)))
 
 
+def _jacobian_operators(mesh):
+    """Mesh-only sparse operators of the Jacobian assembly, cached on the mesh's
+    FEM geometry so repeated Jacobians (Newton iterations) build them once."""
+    geo = geometry(mesh)
+    ops = getattr(geo, "_jacobian_ops", None)
+    if ops is None:
+        nl = mesh.dim + 1
+        n_el = len(geo.elements)
+        Ew = _incidence(mesh, geo.vol * geo.c3)                 # triple-product weights
+        Mw = (Ew @ _incidence(mesh, np.ones(n_el)).T).tocsr()  # sum of w over shared elements
+        ops = {"Ew": Ew, "Mw": Mw, "W": np.asarray(Ew.sum(axis=1)).ravel(),
+               "E_mean": _incidence(mesh, np.full(n_el, 1.0 / nl))}
+        geo._jacobian_ops = ops
+    return ops
+
+
 def triple_product_jacobian(mesh, G, F):
     """J[(s, d), k] = integral G_d F_s phi_k for nodal fields G (N, D) and F (N, S).
 
@@ -66,10 +82,9 @@ def triple_product_jacobian(mesh, G, F):
     geo = geometry(mesh)
     el = geo.elements
     S, D = F.shape[1], G.shape[1]
-    Ew = _incidence(mesh, geo.vol * geo.c3)
-    Mw = (Ew @ _incidence(mesh, np.ones(len(el))).T).tocsr()
-    HF, HG = Mw @ F, Mw @ G
-    W = np.asarray(Ew.sum(axis=1)).ravel()
+    ops = _jacobian_operators(mesh)
+    Ew, W = ops["Ew"], ops["W"]
+    HF, HG = ops["Mw"] @ F, ops["Mw"] @ G
     out = (HF[:, :, None] * G[:, None, :]
            + F[:, :, None] * (HG + 2.0 * W[:, None] * G)[:, None, :]).reshape(-1, S * D)
     size = _chunk_size(S, D)
@@ -89,9 +104,8 @@ def gradient_product_jacobian(mesh, G, F):
     """
     geo = geometry(mesh)
     el = geo.elements
-    nl = mesh.dim + 1
     S, D = F.shape[1], G.shape[1]
-    E = _incidence(mesh, np.full(len(el), 1.0 / nl))
+    E = _jacobian_operators(mesh)["E_mean"]
     out = np.zeros((mesh.n_nodes, S * D))
     size = _chunk_size(S, D)
     for c0 in range(0, len(el), size):
