@@ -14,7 +14,15 @@ def _handler(args):
     with TqdmProgress("fluo demo", force=not args.json) as bar:
         metrics = run_demo(args.out, quick=args.quick, seed=args.seed, progress=bar, only=only)
     metrics["report"] = str(Path(args.out).resolve() / "report.html")
-    return metrics
+    if args.json:
+        return metrics
+    # on a terminal: the headline numbers; everything else is in the report
+    brief = {"report": metrics["report"], "stage_seconds": metrics["stage_seconds"]}
+    for key in ("camera_calibration", "tomography"):
+        if key in metrics:
+            brief[key] = {k: v for k, v in metrics[key].items()
+                          if "error" in k or "per case" in k or "speed-up" in k}
+    return brief
 
 
 def register(sub):
