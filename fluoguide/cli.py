@@ -30,6 +30,7 @@ CLI_MODULES = [
     "fluoguide.demo_cli",
     "FluoTomoLib.fem_cli",
     "FluoTomoLib.study_cli",
+    "FluoTomoLib.mesh_cli",
     "FluoCalibLib.geometry_cli",
 ]
 

@@ -127,16 +127,16 @@ def _tomo_figures(ctx, runs):
 
     d = depths[0]
     run = runs[d]
-    yy, zz = np.meshgrid(np.linspace(-12, 12, 241), np.linspace(0, -12, 121))
+    yy, zz = np.meshgrid(np.linspace(-8, 8, 321), np.linspace(0, -10, 201))
     pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
     panels = [("forward model (truth)", run["fine"], run["true_yield_fine"])]
     panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in methods]
     vmax = max(float(np.max(v)) for _, _, v in panels)
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.4))
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
     for ax, (title, mesh, values) in zip(axes, panels):
         P = locator(mesh).interpolation_matrix(pts, outside="nan")
         img = (P @ values).reshape(yy.shape)
-        im = ax.imshow(1e3 * img, extent=(-12, 12, -12, 0), origin="upper", cmap="inferno",
+        im = ax.imshow(1e3 * img, extent=(-8, 8, -10, 0), origin="upper", cmap="inferno",
                        vmin=0, vmax=1e3 * vmax, aspect="equal")
         ax.set_title(title)
         ax.set_xlabel("y [mm]")

@@ -50,13 +50,35 @@ def _cell_labels(labels_kji, spacing, origin, roi, size_mm):
     K, J, I = np.meshgrid(ck, cj, ci, indexing="ij")
     np.add.at(counts, (I.ravel(), J.ravel(), K.ravel(), sub.ravel().astype(np.int64)), 1)
     total = counts.sum(axis=3)
-    cell = np.argmax(counts, axis=3)
-    # a cell with tissue covering at least half of it counts as tissue: majority
-    # among tissue labels, so a thin inclusion is not lost to the background
-    tissue = counts[..., 1:].sum(axis=3) * 2 >= np.maximum(total, 1)
-    best_tissue = 1 + np.argmax(counts[..., 1:], axis=3) if n_labels > 1 else cell
-    cell = np.where(tissue, best_tissue, 0)
-    cell[total == 0] = 0
+    # Volume-preserving labels: every tissue region, smallest first, takes the
+    # cells it covers most until their volume matches its voxel volume (as the
+    # phantom voxeliser does for voxels).  A plain majority vote drops thin
+    # regions (a 2.4 mm tube in 1.6 mm cells loses ~40 %) and a half-cell rule
+    # adds a layer at every boundary the grid does not meet.
+    frac = counts / np.maximum(total, 1)[..., None]
+    cell_vol = float(np.prod([e[1] - e[0] for e in edges]))
+    region_vol = counts.sum(axis=(0, 1, 2)) * float(np.prod(spacing))
+    cell = np.zeros(total.shape, dtype=np.int64)
+    taken = np.zeros(total.size, bool)
+    order_r = sorted((r for r in range(1, n_labels) if region_vol[r] > 0),
+                     key=lambda r: region_vol[r])
+    for r in order_r:
+        f = np.where(taken, -1.0, frac[..., r].ravel())
+        target = max(1, int(round(region_vol[r] / cell_vol)))
+        chosen = f >= 0.5                      # the majority cells, then adjust the rim
+        n = int(chosen.sum())
+        if n < target:                         # add the best-covered remaining cells
+            cand = np.flatnonzero(~chosen & (f > 0))
+            chosen[cand[np.argsort(-f[cand], kind="stable")[:target - n]]] = True
+        elif n > target:
+            # drop the least-covered partial cells; they return to the pool for the
+            # regions still to come.  The last (largest) region may drop only cells
+            # on the air side: one dropped at an internal interface would be a hole.
+            edge = (frac[..., 0].ravel() > 0) if r == order_r[-1] else (f < 1.0)
+            cand = np.flatnonzero(chosen & edge)
+            chosen[cand[np.argsort(f[cand], kind="stable")[:n - target]]] = False
+        cell.ravel()[chosen] = r
+        taken |= chosen
     return cell, edges
 
 

@@ -53,9 +53,9 @@ def from_vtk(grid, name="mesh", source=None):
 
     if grid.GetNumberOfPoints() == 0 or grid.GetNumberOfCells() == 0:
         raise FluoInputError("mesh has no points or cells", file=source)
-    types = ns.vtk_to_numpy(grid.GetCellTypesArray()) if grid.GetCellTypesArray() else None
-    if types is None:
-        types = np.array([grid.GetCellType(i) for i in range(grid.GetNumberOfCells())])
+    types = grid.GetCellTypes()  # VTK >= 9.6: the per-cell type array
+    types = (ns.vtk_to_numpy(types) if types is not None and hasattr(types, "GetNumberOfTuples")
+             else np.array([grid.GetCellType(i) for i in range(grid.GetNumberOfCells())]))
     if np.all(types == vtk.VTK_TETRA):
         k = 4
     elif np.all(types == vtk.VTK_TRIANGLE):

@@ -46,3 +46,32 @@ def test_bad_label_maps():
                                  direction=[[0.8, 0.6, 0], [-0.6, 0.8, 0], [0, 0, 1]])
     with pytest.raises(FluoInputError, match="cells"):
         mesh_labelmap_structured(lab, (1000, 1000, 1000), (0, 0, 0), 0.01)
+
+
+def test_thin_region_keeps_its_volume_and_cli(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from fluoguide.phantoms import write_phantom
+
+    ph = make_phantom("cylinder-tube", depth_mm=3.7)
+    m = mesh_labelmap_structured(ph.labels, ph.spacing_mm, ph.origin_mm, 1.6)
+    ref = labelmap_region_volumes(ph.labels, ph.spacing_mm)
+    assert m.region_measures()[2] == pytest.approx(ref[2], rel=0.03)  # 2.4 mm tube, 1.6 mm cells
+    write_phantom(ph, tmp_path / "p")
+    r = subprocess.run([sys.executable, "-m", "fluoguide", "mesh", str(tmp_path / "p" / "CBCTLabels.nrrd"),
+                        "--out", str(tmp_path / "m.vtu"), "--size", "2", "--fast", "--json"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["inverted"] == 0 and doc["min_dihedral_deg"] > 30
+    for region in doc["regions"].values():
+        assert abs(region["volume_mm3"] - region["labelmap_volume_mm3"]) / region["labelmap_volume_mm3"] < 0.03
+    from FluoTomoLib.vtu_io import read_vtu
+
+    back = read_vtu(tmp_path / "m.vtu")
+    assert back.n_elements == doc["tets"] and set(back.regions.tolist()) == {1, 2}
+    bad = subprocess.run([sys.executable, "-m", "fluoguide", "mesh", str(tmp_path / "nope.nrrd"),
+                          "--out", str(tmp_path / "x.vtu"), "--fast"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "nope.nrrd" in bad.stderr
