@@ -30,31 +30,50 @@ from .forward import FluorescenceModel
 from .locate import locator
 from .profile_metrics import depth_profile, peak_and_centroid
 from .recon import RegionPrior, reconstruct
-from .structured_mesh import rectangle_mesh
+from .structured_mesh import box_mesh, rectangle_mesh
 
 WIDTH_MM, DEPTH_MM = 50.0, 30.0
 MUA, MUSP, N = 0.032, 1.0, 1.33
 YIELD_BG, YIELD_TARGET = 0.04 * 0.003, 0.04 * 0.03
 
 
-def study_meshes(fine_mm=0.5, coarse_mm=1.0):
+SLAB_Y_MM, SLAB_DEPTH_MM = 30.0, 20.0   # 3D: 50 x 30 x 20 mm slab
+
+
+def study_meshes(fine_mm=None, coarse_mm=None, dim=2):
+    """Forward and reconstruction meshes: 2D 50 x 30 mm at 0.5 / 1.0 mm; 3D slab
+    50 x 30 x 20 mm at 1.0 / 1.5 mm (33k / 10k nodes)."""
+    def axis(lo, hi, h):
+        return np.linspace(lo, hi, int(round((hi - lo) / h)) + 1)
+
     def mesh(h, name):
-        x = np.linspace(-WIDTH_MM / 2, WIDTH_MM / 2, int(round(WIDTH_MM / h)) + 1)
-        y = np.linspace(-DEPTH_MM, 0.0, int(round(DEPTH_MM / h)) + 1)
-        m = rectangle_mesh(x, y, name=name)
+        if dim == 2:
+            m = rectangle_mesh(axis(-WIDTH_MM / 2, WIDTH_MM / 2, h), axis(-DEPTH_MM, 0.0, h),
+                               name=name)
+        else:
+            m = box_mesh(axis(-WIDTH_MM / 2, WIDTH_MM / 2, h),
+                         axis(-SLAB_Y_MM / 2, SLAB_Y_MM / 2, h), axis(-SLAB_DEPTH_MM, 0.0, h),
+                         name=name)
         m.meta["size_mm"] = h
         return m
+    if dim not in (2, 3):
+        raise FluoInputError("dimension must be 2 or 3", field="dim", value=dim)
+    fine_mm = fine_mm or (0.5 if dim == 2 else 1.0)
+    coarse_mm = coarse_mm or (1.0 if dim == 2 else 1.5)
     return mesh(fine_mm, "forward"), mesh(coarse_mm, "reconstruction")
 
 
 def disc(diameter_mm, top_depth_mm, inner_diameter_mm=0.0):
-    """Indicator of a disc (or annulus) whose top lies ``top_depth_mm`` below y = 0."""
+    """Indicator of a disc (2D) or sphere (3D), or their hollow versions, whose top
+    lies ``top_depth_mm`` below the surface (the last coordinate is depth, surface 0)."""
     r = 0.5 * float(diameter_mm)
     ri = 0.5 * float(inner_diameter_mm)
     cy = -(float(top_depth_mm) + r)
 
     def inside(p):
-        d = np.hypot(p[:, 0], p[:, 1] - cy)
+        q = np.array(p, dtype=float, copy=True)
+        q[:, -1] -= cy
+        d = np.linalg.norm(q, axis=1)
         return (d <= r) & (d >= ri)
     return inside, -cy
 
@@ -66,10 +85,13 @@ def node_regions_from_shape(mesh, inside, supersample=8):
     from .voxel_mesh import nodal_volumes
 
     h = float(mesh.meta["size_mm"])
-    off = (np.arange(supersample) + 0.5) / supersample - 0.5
-    ox, oy = np.meshgrid(off * h, off * h)
-    pts = mesh.nodes_mm[:, None, :] + np.stack([ox.ravel(), oy.ravel()], axis=1)[None]
-    cover = inside(pts.reshape(-1, 2)).reshape(len(mesh.nodes_mm), -1).mean(axis=1)
+    d = mesh.dim
+    ss = supersample if d == 2 else max(2, supersample // 2)
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    grids = np.meshgrid(*([off * h] * d))
+    offsets = np.stack([g.ravel() for g in grids], axis=1)
+    pts = mesh.nodes_mm[:, None, :] + offsets[None]
+    cover = inside(pts.reshape(-1, d)).reshape(len(mesh.nodes_mm), -1).mean(axis=1)
     area = nodal_volumes(mesh)
     target_area = float(np.sum(cover * area))
     order = np.argsort(-cover, kind="stable")
@@ -91,7 +113,7 @@ def _forward_setup(fine, coarse):
     key = (id(fine), id(coarse))
     if key not in _CACHE:
         xs = (np.arange(16) - 7.5) * 2.5
-        src = np.stack([xs, np.zeros(16)], axis=1)
+        src = np.stack([xs] + [np.zeros(16)] * (fine.dim - 1), axis=1)
         p = {"mua_per_mm": MUA, "musp_per_mm": MUSP, "n": N}
         fm = FluorescenceModel(fine, p, p, src, src)
         mask = ~np.eye(16, dtype=bool)
@@ -107,9 +129,12 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
              progress=None, cancel=None):
     """One target through NP/SP/HP; returns (rows, figure data)."""
     fine, coarse = meshes or study_meshes()
-    if not (0 < diameter_mm < 28) or top_depth_mm < 0 or top_depth_mm + diameter_mm > 28:
+    depth_max = (DEPTH_MM if fine.dim == 2 else SLAB_DEPTH_MM) - 2
+    if not (0 < diameter_mm < depth_max) or top_depth_mm < 0 or top_depth_mm + diameter_mm > depth_max:
         raise FluoInputError("target must fit inside the 50 x 30 mm domain",
                              field="target", value=(diameter_mm, top_depth_mm))
+    line = 0.0 if fine.dim == 2 else (0.0, 0.0)   # the depth profile through the target
+    bottom = -(DEPTH_MM if fine.dim == 2 else SLAB_DEPTH_MM)
     fm, mask, J_f, J = _forward_setup(fine, coarse)
     inside, centre_depth = disc(diameter_mm, top_depth_mm, inner_diameter_mm)
     truth_f = np.where(inside(fine.nodes_mm), YIELD_TARGET, YIELD_BG)
@@ -118,7 +143,7 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
     y = y_clean * (1.0 + rng.normal(0.0, noise_pct / 300.0, y_clean.shape))
     prior_shape, _ = disc(prior_diameter_mm or diameter_mm, top_depth_mm)
     prior = RegionPrior(node_regions_from_shape(coarse, prior_shape))
-    z_true, prof_true = depth_profile(fine, truth_f, 0.0, 0.0, -DEPTH_MM)
+    z_true, prof_true = depth_profile(fine, truth_f, line, 0.0, bottom)
     rows, fields = [], {"truth": (fine, truth_f)}
     for method in methods:
         for lam in (lambdas or {}).get(method, [10.0]):
@@ -127,7 +152,7 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
             t0 = time.perf_counter()
             res = reconstruct(J, y, method, lam=lam, prior=prior)
             sec = time.perf_counter() - t0
-            z, prof = depth_profile(coarse, res.yield_per_mm, 0.0, 0.0, -DEPTH_MM)
+            z, prof = depth_profile(coarse, res.yield_per_mm, line, 0.0, bottom)
             peak, centroid = peak_and_centroid(z, prof)
             rows.append({
                 "case": case, "method": method, "lambda": lam, "true_peak": YIELD_TARGET,
@@ -152,8 +177,9 @@ STUDIES = {
 }
 
 
-def run_study(name, seed=0, target=None, out_dir=None, progress=None, cancel=None):
-    """Run study A, B or C (or one custom ``target`` = (diameter, top depth))."""
+def run_study(name, seed=0, target=None, out_dir=None, dim=2, progress=None, cancel=None):
+    """Run study A, B or C (or one custom ``target`` = (diameter, top depth)), in 2D
+    (discs in a 50 x 30 mm section) or 3D (spheres in a 50 x 30 x 20 mm slab)."""
     if target is not None:
         cases = [(f"custom: {target[0]:g} mm disc, top {target[1]:g} mm",
                   dict(diameter_mm=target[0], top_depth_mm=target[1]))]
@@ -161,7 +187,10 @@ def run_study(name, seed=0, target=None, out_dir=None, progress=None, cancel=Non
         cases = STUDIES[name]
     else:
         raise FluoInputError("study must be A, B or C", field="study", value=name)
-    meshes = study_meshes()
+    if dim == 3:
+        cases = [(c.replace("disc", "sphere").replace("annulus", "spherical shell"), kw)
+                 for c, kw in cases]
+    meshes = study_meshes(dim=dim)
     rows, figures = [], []
     for i, (case, kw) in enumerate(cases):
         report(progress, i / len(cases), case)
@@ -172,7 +201,8 @@ def run_study(name, seed=0, target=None, out_dir=None, progress=None, cancel=Non
 
             figures.append(plot_case(out_dir, i, case, fields))
     report(progress, 1.0, "done")
-    return {"study": name if target is None else "custom", "rows": rows, "figures": figures,
+    return {"study": name if target is None else "custom", "dim": dim, "rows": rows,
+            "figures": figures,
             "forward_mesh": [meshes[0].n_nodes, meshes[0].n_elements],
             "reconstruction_mesh": [meshes[1].n_nodes, meshes[1].n_elements],
             "measurements": 240, "noise": "Gaussian, sigma = 1/3 % relative (max ~1 %)"}

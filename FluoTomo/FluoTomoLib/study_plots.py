@@ -22,15 +22,24 @@ def plot_case(out_dir, index, title, fields):
     fig, axes = plt.subplots(1, n, figsize=(3.3 * n, 2.8))
     axes = np.atleast_1d(axes)
     for ax, (name, (mesh, values)) in zip(axes, fields.items()):
-        tri = mtri.Triangulation(mesh.nodes_mm[:, 0], mesh.nodes_mm[:, 1], mesh.elements)
-        im = ax.tripcolor(tri, 1e3 * np.asarray(values), shading="gouraud", cmap="inferno",
-                          vmin=0, vmax=1e3 * vmax)
+        if mesh.dim == 2:
+            tri = mtri.Triangulation(mesh.nodes_mm[:, 0], mesh.nodes_mm[:, 1], mesh.elements)
+            im = ax.tripcolor(tri, 1e3 * np.asarray(values), shading="gouraud", cmap="inferno",
+                              vmin=0, vmax=1e3 * vmax)
+        else:  # the y = 0 section through the target
+            from .locate import locator
+
+            xx, zz = np.meshgrid(np.linspace(-20, 20, 201), np.linspace(0, -20, 101))
+            pts = np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], axis=1)
+            img = (locator(mesh).interpolation_matrix(pts, outside="zero") @ values).reshape(xx.shape)
+            im = ax.imshow(1e3 * img, extent=(-20, 20, -20, 0), origin="upper", cmap="inferno",
+                           vmin=0, vmax=1e3 * vmax)
         ax.set_aspect("equal")
         ax.set_xlim(-20, 20)
         ax.set_ylim(-20, 0)
         ax.set_title("forward model" if name == "truth" else name, fontsize=9)
         ax.set_xlabel("x [mm]")
-    axes[0].set_ylabel("y [mm] (surface at 0)")
+    axes[0].set_ylabel("depth axis [mm] (surface at 0)")
     fig.colorbar(im, ax=list(axes), shrink=0.8, label="yield [1e-3 / mm]")
     fig.suptitle(title, fontsize=10)
     path = out / f"case_{index:02d}.png"

@@ -45,3 +45,14 @@ def test_bad_targets():
         run_case("x", diameter_mm=40, top_depth_mm=2.5, meshes=meshes)
     with pytest.raises(FluoInputError, match="study"):
         run_study("D")
+
+
+@pytest.mark.slow
+def test_3d_slab_study_custom_target(tmp_path):
+    out = run_study("A", target=(6.0, 3.5), dim=3, out_dir=tmp_path)
+    assert out["dim"] == 3 and 8000 < out["reconstruction_mesh"][0] < 12000
+    by = {r["method"]: r for r in out["rows"]}
+    assert "sphere" in by["HP"]["case"]
+    assert abs(by["HP"]["peak_error_pct"]) < 25 and abs(by["HP"]["centroid_error_pct"]) < 10
+    assert abs(by["HP"]["peak_error_pct"]) < abs(by["NP"]["peak_error_pct"])
+    assert (tmp_path / "case_00.png").exists()
