@@ -206,3 +206,41 @@ def run_study(name, seed=0, target=None, out_dir=None, dim=2, progress=None, can
             "forward_mesh": [meshes[0].n_nodes, meshes[0].n_elements],
             "reconstruction_mesh": [meshes[1].n_nodes, meshes[1].n_elements],
             "measurements": 240, "noise": "Gaussian, sigma = 1/3 % relative (max ~1 %)"}
+
+
+SWEEPS = {
+    "lambda": [1e-3, 1e-1, 1.0, 10.0, 1e2, 1e3],
+    "noise": [0.0, 0.5, 1.0, 2.0, 5.0],
+    "mesh": [0.75, 1.0, 1.5, 2.0],
+}
+
+
+def run_sweep(kind, target=(6.0, 3.5), dim=2, seed=0, progress=None, cancel=None):
+    """Error against time for one target as lambda, noise [% max amplitude] or the
+    reconstruction mesh size [mm] varies: the speed/accuracy trade a user makes."""
+    if kind not in SWEEPS:
+        raise FluoInputError(f"sweep must be one of {', '.join(SWEEPS)}", field="--sweep",
+                             value=kind)
+    rows = []
+    base = study_meshes(dim=dim)
+    for i, value in enumerate(SWEEPS[kind]):
+        report(progress, i / len(SWEEPS[kind]), f"{kind} = {value:g}")
+        kw = dict(diameter_mm=target[0], top_depth_mm=target[1], seed=seed, cancel=cancel)
+        if kind == "lambda":
+            kw["lambdas"] = {m: [value] for m in ("NP", "SP", "HP")}
+            meshes = base
+        elif kind == "noise":
+            kw["noise_pct"] = value
+            meshes = base
+        else:
+            h = value if dim == 2 else 1.5 * value
+            meshes = study_meshes(coarse_mm=h, dim=dim)
+        t0 = time.perf_counter()
+        r, _ = run_case(f"{kind} = {value:g}", meshes=meshes, **kw)
+        elapsed = time.perf_counter() - t0
+        for row in r:
+            row["sweep"] = kind
+            row["value"] = value
+            row["case_seconds_including_jacobian"] = elapsed
+        rows += r
+    return {"sweep": kind, "dim": dim, "target": list(target), "rows": rows}

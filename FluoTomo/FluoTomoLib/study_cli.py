@@ -21,12 +21,16 @@ def _handler(args):
             raise FluoInputError("expected diameter_mm,depth_mm", field="--target",
                                  value=args.target) from None
         target = (d, depth)
-    from .studies import run_study
+    from .studies import run_study, run_sweep
 
     t0 = time.perf_counter()
     with TqdmProgress(f"study {args.study}", force=not args.json) as bar:
-        out = run_study(args.study, seed=args.seed, target=target, out_dir=args.out,
-                        dim=args.dim, progress=bar)
+        if args.sweep:
+            out = run_sweep(args.sweep, target=target or (6.0, 3.5), dim=args.dim,
+                            seed=args.seed, progress=bar)
+        else:
+            out = run_study(args.study, seed=args.seed, target=target, out_dir=args.out,
+                            dim=args.dim, progress=bar)
     out["seconds"] = time.perf_counter() - t0
     if args.out:
         import json
@@ -49,6 +53,9 @@ def register(sub):
                    help="2: discs in a 50 x 30 mm section (default); 3: spheres in a 50 x 30 x 20 mm slab")
     p.add_argument("--seed", type=int, default=0, help="noise seed")
     p.add_argument("--target", default=None, help="one custom case: diameter_mm,depth_mm")
+    p.add_argument("--sweep", choices=["lambda", "noise", "mesh"], default=None,
+                   help="error against time for one target (--target, default 6,3.5) as "
+                   "lambda, noise or the reconstruction mesh size varies")
     p.add_argument("--out", default=None, help="folder for study.json and PNG figures")
     add_json_flag(p)
     p.set_defaults(func=_handler)

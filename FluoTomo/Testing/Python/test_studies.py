@@ -56,3 +56,15 @@ def test_3d_slab_study_custom_target(tmp_path):
     assert abs(by["HP"]["peak_error_pct"]) < 25 and abs(by["HP"]["centroid_error_pct"]) < 10
     assert abs(by["HP"]["peak_error_pct"]) < abs(by["NP"]["peak_error_pct"])
     assert (tmp_path / "case_00.png").exists()
+
+
+def test_sweeps_report_error_and_time():
+    from FluoTomoLib.studies import run_sweep
+
+    out = run_sweep("noise", target=(6.0, 3.5))
+    hp = [r for r in out["rows"] if r["method"] == "HP"]
+    assert [r["value"] for r in hp] == [0.0, 0.5, 1.0, 2.0, 5.0]
+    assert all(r["case_seconds_including_jacobian"] > 0 for r in hp)
+    assert abs(hp[0]["peak_error_pct"]) < 20  # noise-free: only the model/mesh error
+    with pytest.raises(FluoInputError, match="sweep"):
+        run_sweep("colour")
