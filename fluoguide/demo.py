@@ -9,7 +9,6 @@ stops the demo with a clear message and keeps everything earlier stages made.
 from __future__ import annotations
 
 import html
-import json
 import time
 import traceback
 from dataclasses import dataclass, field
