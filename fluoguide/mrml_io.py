@@ -410,6 +410,9 @@ def save_scene(scene, path):
                     continue
                 scene.AddNode(sn)
                 node.SetAndObserveStorageNodeID(sn.GetID())
+            if node.IsA("vtkMRMLSequenceNode"):
+                # volume sequences are .seq.nrrd; ask the storage node
+                ext = "." + (sn.GetDefaultWriteFileExtension() or "seq.mrb")
             stem = _safe_file_stem(node.GetName())
             fname = stem + ext
             k = 1
