@@ -36,7 +36,14 @@ class FluoCalib(ScriptedLoadableModule):
 
 class FluoCalibWidget(ScriptedLoadableModuleWidget):
     """In Slicer: a Qt form over FluoCalibLogic.  Outside Slicer the web app
-    (``fluo app``) builds its panel from the same logic."""
+    (``fluo app``) builds its panel from the same logic with :meth:`setupWeb`."""
+
+    def setupWeb(self, app):
+        """The FluoCalib panel of the web app (``fluoguide.webapp``) on ``app.scene``."""
+        from fluoguide.webapp.calib_panel import CalibPanel
+
+        self.logic = FluoCalibLogic(app.scene)
+        return CalibPanel(app, self.logic)
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -83,6 +90,28 @@ class FluoCalibLogic(ScriptedLoadableModuleLogic):
         node = mrml_io.set_transform(self.scene, "CameraToTracker", matrix)
         logging.info("FluoCalib: CameraToTracker updated")
         return node
+
+    def prepareCameraCalibration(self, images, board="chessboard:9x6:25", holdout=2):
+        """A job ``job(progress, cancel) -> IntrinsicsResult`` over board images
+        (paths); it touches no scene node, so it may run on a worker thread.
+        Hand the result to :meth:`storeCameraCalibration`."""
+        from FluoCalibLib.intrinsics import calibrate_camera
+
+        images = [str(p) for p in images]
+
+        def job(progress=None, cancel=None):
+            return calibrate_camera(images, board, holdout=holdout, progress=progress,
+                                    cancel=cancel)
+
+        return job
+
+    def storeCameraCalibration(self, result):
+        """``FluoCalib.CameraIntrinsics`` on the ``FluoCalibration`` node."""
+        from FluoCalibLib.geometry_scene import store_intrinsics
+
+        store_intrinsics(self.scene, result.camera, {"rms_px": result.rms_px,
+                                                     "board": result.board_spec})
+        return result
 
     def loadCalibrationJson(self, path):
         """Put a calibration JSON file (as written by ``fluo calib ...``) on the

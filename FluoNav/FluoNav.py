@@ -35,7 +35,14 @@ class FluoNav(ScriptedLoadableModule):
 
 class FluoNavWidget(ScriptedLoadableModuleWidget):
     """In Slicer: a Qt form over FluoNavLogic.  Outside Slicer the web app
-    (``fluo app``) builds its panel from the same logic."""
+    (``fluo app``) builds its panel from the same logic with :meth:`setupWeb`."""
+
+    def setupWeb(self, app):
+        """The FluoNav panel of the web app (``fluoguide.webapp``) on ``app.scene``."""
+        from fluoguide.webapp.nav_panel import NavPanel
+
+        self.logic = FluoNavLogic(app.scene)
+        return NavPanel(app, self.logic)
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)

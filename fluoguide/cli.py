@@ -28,6 +28,7 @@ CLI_MODULES = [
     "fluoguide.phantom_cli",
     "fluoguide.scene_cli",
     "fluoguide.demo_cli",
+    "fluoguide.webapp.app_cli",
     "FluoTomoLib.fem_cli",
     "FluoTomoLib.study_cli",
     "FluoTomoLib.mesh_cli",

@@ -114,3 +114,22 @@ class ScriptedLoadableModuleTest(unittest.TestCase):
 
     def setUp(self):
         pass
+
+
+def import_module_file(name):
+    """Import a module file (``FluoTomo`` from ``FluoTomo/FluoTomo.py``) the way
+    Slicer does, by putting its folder on ``sys.path``.
+
+    The web app uses the same module files (their Widget classes build its
+    panels); module folders sit at the repository root next to ``fluoguide/``.
+    """
+    import importlib
+    import sys
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / name
+    if not (folder / f"{name}.py").is_file():
+        raise ImportError(f"module file {name}.py not found in {folder}")
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+    return importlib.import_module(name)

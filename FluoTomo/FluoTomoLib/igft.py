@@ -53,7 +53,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                              roi_half_mm=(15.0, 25.0), methods=("NP", "SP", "HP"),
                              lam=10.0, laser_power_w=0.01, camera_gain=None, camera_offset_adu=100.0,
                              camera_read_noise_adu=2.0, tracking=TrackingError(), seed=0,
-                             progress=None, cancel=None):
+                             progress=None, cancel=None, recon_labels=None):
     """Run one tube depth through acquisition simulation and NP/SP/HP reconstruction.
 
     ``fine_mm`` is the element size of the simulation (forward) mesh, ``coarse_mm``
@@ -65,6 +65,11 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     default it is chosen so the brightest detector sits at ~60 % of a 14-bit
     range (what a user does with the exposure time).  Returns a dict of
     numbers, profiles and the meshes/fields for figures and the scene.
+
+    ``recon_labels = (labels_kji, spacing_mm, origin_mm)`` is the label map the
+    reconstruction mesh and the priors come from (e.g. the user's segmentation
+    of the CBCT in the app); by default the phantom's own labels.  The
+    measurement is always simulated on the phantom's truth.
     """
     t_all = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -87,7 +92,9 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     t0 = time.perf_counter()
     fine = mesh_labelmap_structured(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
                                     fine_mm, roi=roi, name="forward")
-    coarse = mesh_labelmap_structured(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+    r_labels, r_spacing, r_origin = recon_labels or (phantom.labels, phantom.spacing_mm,
+                                                     phantom.origin_mm)
+    coarse = mesh_labelmap_structured(r_labels, r_spacing, r_origin,
                                       coarse_mm, roi=roi, name="reconstruction")
     timings["meshing"] = time.perf_counter() - t0
     check_cancel(cancel)
@@ -159,8 +166,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     y = y_meas[mask]
     # prior: CBCT regions on the reconstruction nodes, each region's nodes
     # carrying its label-map volume (see node_regions_volume_preserving)
-    node_region = node_regions_volume_preserving(coarse, phantom.labels, phantom.spacing_mm,
-                                                 phantom.origin_mm)
+    node_region = node_regions_volume_preserving(coarse, r_labels, r_spacing, r_origin)
     prior = RegionPrior(node_region)
 
     # --- truth on the profile line

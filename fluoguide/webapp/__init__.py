@@ -1,0 +1,1 @@
+"""The FluoGuide web application (trame-slicer): ``fluo app``."""
