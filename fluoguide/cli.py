@@ -33,6 +33,7 @@ CLI_MODULES = [
     "FluoTomoLib.study_cli",
     "FluoTomoLib.mesh_cli",
     "FluoCalibLib.geometry_cli",
+    "FluoCalibLib.light_cli",
 ]
 
 

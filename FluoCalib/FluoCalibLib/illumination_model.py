@@ -2,7 +2,7 @@
 and distance roll-off (``physics.md`` section 6)::
 
     I(theta, beta, d) = A(theta, phi) * cos(beta) / (1 + gamma d)^2
-    A(theta, phi)     = cos(theta)^alpha * (1 + a * (theta / Phi_L) * cos(phi - phi0))
+    A(theta, phi)     = cos(theta)^alpha * (1 + a * (theta / Phi_L)^2 * cos(phi - phi0))
     S(u, v)           = Dsys * T(p_s) * I           (forward image, ADU)
 
 with r = p_s - p_L, d = |r|, theta = angle(r, n_L) (lit only for theta <= Phi_L),
@@ -10,7 +10,9 @@ cos(beta) = n_s . (-r / d).  ``a = 0`` (the default) is the thesis's
 axisymmetric model; ``a > 0`` adds the first azimuthal harmonic that turns the
 spot into the crescent seen with endoscope light guides (phi is the azimuth
 about the axis measured from ``azimuth_ref``; the term grows from 0 on the axis
-to ``a`` at the cone edge, so the model stays continuous on the axis).
+to ``a`` at the cone edge, so the model stays continuous on the axis).  It
+grows with the square of theta because a term linear in theta is, to first
+order, the same as a tilt of the axis, and a fit could not tell them apart.
 
 Origin and axis are in the frame named by ``frame`` (``Camera`` for a light
 coupled to the camera, or a tracked light tool's frame); callers transform the
@@ -139,7 +141,8 @@ class IlluminationCone:
         if not self.is_axisymmetric:
             e1, e2 = self.azimuth_basis()
             phi = np.arctan2(u @ e2, u @ e1)
-            ang = ang * (1.0 + self.asym_amplitude * (theta / phi_max) * np.cos(phi - self.asym_phase_rad))
+            crescent = 1.0 + self.asym_amplitude * (theta / phi_max) ** 2 * np.cos(phi - self.asym_phase_rad)
+            ang = np.where(lit, ang * np.where(lit, crescent, 1.0), 0.0)
         fore = np.where(lit, np.clip(cos_b, 0.0, 1.0), 0.0)
         dist = np.where(lit, 1.0 / (1.0 + self.gamma_per_mm * d) ** 2, 0.0)
         return IlluminationFactors(theta_rad=np.where(np.isfinite(theta), theta, np.pi),

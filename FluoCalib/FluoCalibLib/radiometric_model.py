@@ -56,12 +56,12 @@ class RadiometricCamera:
     bit_depth: int = 14
 
     def __post_init__(self):
-        for name in ("exposure_s", "f_number", "filter_transmittance", "pixel_pitch_mm",
+        for name in ("f_number", "filter_transmittance", "pixel_pitch_mm",
                      "wavelength_nm", "quantum_efficiency", "gain_adu_per_e", "full_well_e"):
             v = getattr(self, name)
             if not np.isfinite(v) or v <= 0:
                 raise FluoInputError(f"must be a positive finite number", field=name, value=v)
-        for name in ("bias_e", "dark_current_e_per_s", "read_noise_e"):
+        for name in ("exposure_s", "bias_e", "dark_current_e_per_s", "read_noise_e"):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0:
                 raise FluoInputError("must be a finite number >= 0", field=name, value=v)
@@ -118,6 +118,9 @@ class RadiometricCamera:
         the offset is below ``min_snr`` times the read noise (in ADU) or
         negative.
         """
+        if self.exposure_s <= 0:
+            raise FluoInputError("a zero exposure carries no radiance information",
+                                 field="exposure_s", value=self.exposure_s)
         s = np.asarray(counts_adu, float)
         signal = s - self.offset_adu
         saturated = (s >= self.adc_max_adu) | (signal >= self.full_well_e * self.gain_adu_per_e)

@@ -1,0 +1,83 @@
+"""PNG plots of the radiometric calibrations (photon transfer, linearity, dark
+signal, ratio images) that a person can read."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["plot_radiometry", "plot_ratio_images"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_radiometry(res, out_dir):
+    """photon_transfer.png, linearity.png, dark.png; returns their paths."""
+    plt = _plt()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    mu = np.array(res["ptc"]["mean_adu"])
+    var = np.array(res["ptc"]["var_adu2"])
+    fit = np.array(res["ptc"]["fit"], bool)
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    ax.plot(mu[fit], var[fit], "o", label="fitted (< 70 % of saturation)")
+    ax.plot(mu[~fit], var[~fit], "x", label="not fitted")
+    x = np.linspace(0, mu.max(), 50)
+    ax.plot(x, res["gain_adu_per_e"] * x, "-", label=f"K = {res['gain_adu_per_e']:.3f} ADU/e-")
+    ax.set_xlabel("mean signal above dark [ADU]")
+    ax.set_ylabel("temporal variance [ADU²]")
+    ax.set_title("Photon transfer")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    paths.append(out / "photon_transfer.png")
+    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    t = np.array(res["linearity"]["exposure_s"])
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    ax.plot(t, mu, "o")
+    ax.plot(t, res["linearity"]["slope_adu_per_s"] * t + res["linearity"]["intercept_adu"], "-")
+    ax.set_xlabel("exposure [s]")
+    ax.set_ylabel("mean signal above dark [ADU]")
+    ax.set_title(f"Linearity: R² {res['linearity_r2']:.5f}, NL {res['nonlinearity_pct']:.2f} %")
+    ax.grid(alpha=0.3)
+    paths.append(out / "linearity.png")
+    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    ax.plot(res["dark"]["exposure_s"], res["dark"]["mean_adu"], "o")
+    ax.set_xlabel("exposure [s]")
+    ax.set_ylabel("mean dark signal [ADU]")
+    ax.set_title(f"Dark: {res['dark_current_e_per_s']:.2f} e-/s, bias {res['bias_e']:.1f} e-")
+    ax.grid(alpha=0.3)
+    paths.append(out / "dark.png")
+    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return [str(p) for p in paths]
+
+
+def plot_ratio_images(ratios, out_dir):
+    """ratio_images.png: measured / model per image, 0.8..1.2 colour range."""
+    plt = _plt()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    n = len(ratios)
+    fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 2.8), squeeze=False)
+    for ax, r in zip(axes[0], ratios):
+        im = ax.imshow(r, vmin=0.8, vmax=1.2, cmap="coolwarm")
+        ok = np.isfinite(r)
+        ax.set_title(f"mean {np.mean(r[ok]):.3f}, SD {np.std(r[ok]):.3f}", fontsize=9)
+        ax.axis("off")
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="measured / model")
+    path = out / "ratio_images.png"
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return [str(path)]
