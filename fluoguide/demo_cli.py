@@ -18,7 +18,7 @@ def _handler(args):
         return metrics
     # on a terminal: the headline numbers; everything else is in the report
     brief = {"report": metrics["report"], "stage_seconds": metrics["stage_seconds"]}
-    for key in ("camera_calibration", "tomography"):
+    for key in ("camera_calibration", "light_calibration", "tomography"):
         if key in metrics:
             brief[key] = {k: v for k, v in metrics[key].items()
                           if "error" in k or "per case" in k or "speed-up" in k}

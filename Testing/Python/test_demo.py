@@ -53,3 +53,8 @@ def test_quick_demo_end_to_end(tmp_path):
     np_ = metrics["tomography"]["NP mean |yield error| %"]
     assert hp < np_
     assert metrics["camera_calibration"]["rms reprojection [px]"] < 0.5
+    light = metrics["light_calibration"]
+    assert abs(light["gain_adu_per_e (truth 1.08)"] - 1.08) / 1.08 < 0.03
+    assert light["illumination: axis error [deg]"] < 0.5
+    assert light["laser: direction error [deg]"] < 0.3
+    assert (tmp_path / "q" / "illumination_ratio.png").is_file()
