@@ -34,6 +34,7 @@ CLI_MODULES = [
     "FluoTomoLib.mesh_cli",
     "FluoCalibLib.geometry_cli",
     "FluoCalibLib.light_cli",
+    "FluoNavLib.devices_cli",
 ]
 
 
