@@ -133,18 +133,24 @@ def synthetic_illumination(camera=None, cone=None, poses=None, rd=0.5, radiometr
     return images, truth
 
 
-def write_illumination_set(folder, images, truth):
-    """``illumination.json`` (camera, offset, Rd, per-image PhantomToCamera) + PNGs."""
+def _write_pngs(folder, images, prefix):
+    """16-bit PNGs ``<prefix>_NN.png``; returns their names."""
     import cv2
 
-    folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     names = []
     for i, img in enumerate(images):
-        name = f"illum_{i:02d}.png"
+        name = f"{prefix}_{i:02d}.png"
         if not cv2.imwrite(str(folder / name), np.asarray(img).astype(np.uint16)):
             raise FluoInputError("cannot write image", file=folder / name)
         names.append(name)
+    return names
+
+
+def write_illumination_set(folder, images, truth):
+    """``illumination.json`` (camera, offset, Rd, per-image PhantomToCamera) + PNGs."""
+    folder = Path(folder)
+    names = _write_pngs(folder, images, "illum")
     doc = {"camera": truth["camera"], "offset_adu": truth["offset_adu"], "rd": truth["rd"],
            "images": names, "phantom_to_camera": truth["phantom_to_camera"],
            "truth": {"cone": truth["cone"]}}
@@ -205,16 +211,8 @@ def synthetic_laser(camera=None, n_images=10, seed=0, pose_noise_mm=0.1, pose_no
 
 def write_laser_set(folder, images, truth):
     """``laser.json`` (camera, poses, pointer origin) + PNGs."""
-    import cv2
-
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    names = []
-    for i, img in enumerate(images):
-        name = f"laser_{i:02d}.png"
-        if not cv2.imwrite(str(folder / name), np.asarray(img).astype(np.uint16)):
-            raise FluoInputError("cannot write image", file=folder / name)
-        names.append(name)
+    names = _write_pngs(folder, images, "laser")
     doc = {k: truth[k] for k in ("camera", "camera_to_tracker", "laser_to_tracker",
                                  "phantom_to_tracker", "pointer_origin_tool_mm")}
     doc["images"] = names
