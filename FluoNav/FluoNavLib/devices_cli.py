@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
+
+import numpy as np
 
 from fluoguide.cli import add_json_flag
 from fluoguide.errors import FluoInputError
@@ -54,6 +57,8 @@ def _track(args):
 
     if args.seconds <= 0:
         raise FluoInputError("must be > 0", field="--seconds", value=args.seconds)
+    if args.igtl:
+        return _track_igtl(args)
     sim = None
     if args.sim:
         sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(),
@@ -88,6 +93,85 @@ def _track(args):
             "simulator": sim.counters if sim is not None else None}
 
 
+def _track_igtl(args):
+    from fluoguide import mrml_io
+
+    from .igtl_client import IGTLReceiver
+
+    host, _, port = args.igtl.rpartition(":")
+    if not host or not port.isdigit():
+        raise FluoInputError("expected HOST:PORT", field="--igtl", value=args.igtl)
+    with IGTLReceiver(mrml_io.new_scene(), host, int(port), nominal_rate_hz=args.rate) as rx:
+        out = rx.receive(args.seconds)
+    out["seconds"] = args.seconds
+    return out
+
+
+def _record(args):
+    """Simulated tracker + synthetic camera frames -> a recording folder."""
+    from .ndi_client import NDIClient
+    from .ndi_simulator import Faults, NDISimulator
+    from .recorder import Recorder
+    from .timesync import PoseBuffer
+
+    if args.seconds <= 0 or args.fps <= 0:
+        raise FluoInputError("seconds and fps must be > 0", field="--seconds/--fps",
+                             value=(args.seconds, args.fps))
+    rng = np.random.default_rng(args.seed)
+    sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(), seed=args.seed)
+    port = sim.start()
+    buf = PoseBuffer(max_gap_s=0.05, max_age_s=0.1)
+    t_start = None
+    try:
+        with NDIClient(port) as client, Recorder(args.out) as rec:
+            client.initialize([b"camera tool rom " * 4])
+            client.start()
+            next_frame = time.monotonic() + 0.1
+            t_end = time.monotonic() + args.seconds
+            flagged = 0
+
+            def on_pose(reply, t_host):
+                pose = reply.tools.get(1)
+                buf.add(t_host, pose.matrix() if pose is not None else None)
+
+            while time.monotonic() < t_end:
+                client.track(max(0.0, next_frame - time.monotonic()), on_frame=on_pose)
+                t = next_frame - 0.5 / args.fps      # mid-exposure time of this frame
+                m, status = buf.at(t)
+                if m is None:
+                    flagged += 1
+                img = rng.poisson(200.0 + 50.0 * np.sin(t) ** 2, size=(args.height, args.width))
+                rec.add(img.astype(np.uint16), t, {"CameraToolToTracker": m}, exposure_s=0.5 / args.fps,
+                        pose_valid=m is not None, pose_status=status)
+                t_start = t_start or t
+                next_frame += 1.0 / args.fps
+            client.stop()
+            stats = client.stats
+            n = rec.n
+    finally:
+        sim.stop()
+    return {"frames": n, "frames_without_pose": flagged, "tracker_frames": stats.frames,
+            "tracker_missing": stats.missing, "crc_errors": stats.crc_errors,
+            "recovered": stats.recovered, "lost_unreported": stats.lost_unreported(),
+            "folder": str(Path(args.out).resolve())}
+
+
+def _replay(args):
+    from .recorder import replay, to_scene
+
+    n = valid = 0
+    t0 = time.monotonic()
+    for _, info, poses in replay(args.folder, "max" if args.max_speed else "recorded"):
+        n += 1
+        valid += bool(info["pose_valid"])
+    out = {"frames": n, "frames_with_pose": valid, "seconds": time.monotonic() - t0}
+    if args.scene:
+        from fluoguide import mrml_io
+
+        out["scene"] = str(mrml_io.save_scene(to_scene(args.folder), args.scene))
+    return out
+
+
 def register(subparsers):
     p = subparsers.add_parser("devices", help="list attached trackers and cameras (USB / serial)")
     add_json_flag(p)
@@ -96,6 +180,9 @@ def register(subparsers):
     src = p.add_mutually_exclusive_group()
     src.add_argument("--sim", action="store_true", help="protocol-faithful simulator on a pty")
     src.add_argument("--serial", metavar="PORT", help="serial port of a real NDI tracker")
+    src.add_argument("--igtl", metavar="HOST:PORT", help="OpenIGTLink server (e.g. PLUS)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="--igtl: nominal message rate [Hz] for loss counting by timestamps")
     p.add_argument("--seconds", type=float, default=5.0)
     p.add_argument("--inject-faults", action="store_true",
                    help="simulator: CRC errors, slow replies, dropouts and a disconnect")
@@ -103,3 +190,21 @@ def register(subparsers):
     p.add_argument("--seed", type=int, default=0)
     add_json_flag(p)
     p.set_defaults(func=_track)
+    p = subparsers.add_parser("record", help="record tracked camera frames (simulated tracker and "
+                              "synthetic frames) incrementally to a folder")
+    p.add_argument("--out", required=True, help="new or empty folder")
+    p.add_argument("--seconds", type=float, default=5.0)
+    p.add_argument("--fps", type=float, default=20.0)
+    p.add_argument("--width", type=int, default=348)
+    p.add_argument("--height", type=int, default=260)
+    p.add_argument("--inject-faults", action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+    add_json_flag(p)
+    p.set_defaults(func=_record)
+    p = subparsers.add_parser("replay", help="replay a recording (poses bit-exact), optionally as "
+                              "an MRML scene")
+    p.add_argument("folder")
+    p.add_argument("--max-speed", action="store_true", help="as fast as possible")
+    p.add_argument("--scene", help="also write the recording as an MRML scene (.mrml)")
+    add_json_flag(p)
+    p.set_defaults(func=_replay)
