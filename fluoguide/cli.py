@@ -35,6 +35,7 @@ CLI_MODULES = [
     "FluoCalibLib.geometry_cli",
     "FluoCalibLib.light_cli",
     "FluoNavLib.devices_cli",
+    "FluoNavLib.nav_cli",
 ]
 
 
