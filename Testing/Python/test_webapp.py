@@ -144,3 +144,20 @@ def test_tomo_reconstruction_job_overlays_the_result(app):
     assert node.GetDisplayNode().GetApplyThreshold()
     assert mrml_io.get_node(app.scene, "FluoTomoYieldSurface") is not None
     assert float(app.state.tomo_colorbar["max"]) > 0
+
+
+def test_nav_stream_from_the_simulated_tracker(app):
+    nav = _panel(app, "FluoNav")
+    app.state.nav_seconds = 2
+    app.ctrl.nav_stream()
+    t0 = time.time()
+    while app.jobs.busy and time.time() - t0 < 60:
+        app.poll()
+        time.sleep(0.1)
+    app.poll()
+    assert not app.jobs.busy and not app.jobs.state.error, app.jobs.state.error
+    assert app.state.nav_frames_shown >= 2
+    frame = app.state.nav_frame
+    assert frame["raw"].startswith("data:image/png;base64,") and frame["miss_corrected"] < 5
+    assert mrml_io.get_node(app.scene, "FluoNavCamera") is not None
+    assert "unreported losses: 0" in app.state.fluo_message

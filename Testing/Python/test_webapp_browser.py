@@ -173,3 +173,20 @@ def test_an_error_is_a_message_not_a_dead_page(page):
     _wait_text(pg, "#fluo-message", "lambda")
     pg.screenshot(path=str(ARTIFACTS / "05-error-message.png"))
     assert _ping_ms(pg) < 5000  # the page still talks to the server
+
+
+def test_nav_panel_streams_tracked_frames(page):
+    pg = page
+    pg.click("#tool-FluoNav")
+    pg.wait_for_selector("#nav-stream", timeout=10000)
+    pg.fill("#nav-seconds", "4")
+    pg.click("#nav-stream")
+    pg.wait_for_selector("#nav-corrected", timeout=60000)
+    first = pg.inner_text("#nav-count")
+    pg.wait_for_function(f"document.querySelector('#nav-count').innerText !== {first!r}",
+                         timeout=30000)               # frames keep coming
+    pg.screenshot(path=str(ARTIFACTS / "06-nav-stream.png"))
+    text = pg.inner_text("#nav-images")
+    assert "corrected" in text and "tracker frame" in text
+    src = pg.get_attribute("#nav-raw", "src")
+    assert src and src.startswith("data:image/png;base64,")

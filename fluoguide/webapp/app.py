@@ -147,6 +147,10 @@ class FluoGuideApp:
         with self.state:
             self.jobs.poll()
             self.state.job = self.jobs.state.as_dict()
+            for panel in self.panels:
+                hook = getattr(panel, "on_poll", None)
+                if hook is not None:
+                    hook()
 
     # -- scene ---------------------------------------------------------------
     def load_scene_file(self, path):
