@@ -18,10 +18,11 @@ def _handler(args):
         return metrics
     # on a terminal: the headline numbers; everything else is in the report
     brief = {"report": metrics["report"], "stage_seconds": metrics["stage_seconds"]}
-    for key in ("camera_calibration", "light_calibration", "tomography"):
+    for key in ("camera_calibration", "light_calibration", "surface_mapping", "tomography"):
         if key in metrics:
             brief[key] = {k: v for k, v in metrics[key].items()
-                          if "error" in k or "per case" in k or "speed-up" in k}
+                          if "error" in k or "per case" in k or "speed-up" in k
+                          or "miss rate" in k or "frames/s" in k}
     return brief
 
 

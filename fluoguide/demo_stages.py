@@ -329,9 +329,71 @@ def stage_light_calibration(ctx):
              "0.01; laser direction < 0.3 deg, 3D error < 0.5 mm (thesis 0.92 mm).")
 
 
+def stage_surface_mapping(ctx):
+    """Tracked views of the oral-cavity phantom (homogeneous fluorescence): per-pixel
+    ray casting, optical-transport correction, 40 % contour miss rates."""
+    import time
+
+    from FluoCalibLib.radiometric_model import RadiometricCamera
+    from FluoNavLib.contour_classify import miss_rate, overlay_png
+    from FluoNavLib.flux_map import transport_image
+    from FluoNavLib.nav_synth import (coupled_light, open_field_camera, oral_cavity_surface,
+                                      render_view, view_poses)
+    from FluoNavLib.pixel_cast import cast_camera
+
+    caster, _ = oral_cavity_surface(62000, seed=ctx.seed)
+    cone = coupled_light()
+    rc = RadiometricCamera(gain_adu_per_e=1.0)
+    cam = open_field_camera(binning=4)
+    within, raw_rates, cor_rates = [], [], []
+    for k, pose in enumerate(view_poses(2 if ctx.quick else 4)):
+        counts, hits, vm = render_view(caster, cam, pose, cone, 0.3, rc, seed=ctx.seed + k)
+        S = counts - rc.offset_adu
+        T, ok = transport_image(S, vm, cone)
+        within.append(float((ok & (np.abs(T / 0.3 - 1) < 0.05)).sum() / hits.visible.sum()))
+        r_raw, c_raw, _ = miss_rate(S, hits.visible)
+        r_cor, c_cor, _ = miss_rate(T, ok)
+        raw_rates.append(r_raw)
+        cor_rates.append(r_cor)
+        if k == 1:
+            overlay_png(ctx.out / "mapping_raw.png", S, c_raw,
+                        f"raw counts, 40 % contour: miss {r_raw:.1f} %", hits.visible)
+            overlay_png(ctx.out / "mapping_corrected.png", T, c_cor,
+                        f"corrected transport T (truth 0.3): miss {r_cor:.1f} %", ok)
+    full = open_field_camera()
+    pose = view_poses(2)[1]
+    ts = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        cast_camera(caster, full, pose)
+        ts.append(time.perf_counter() - t0)
+    ts_b = []
+    for _ in range(10):
+        t0 = time.perf_counter()
+        cast_camera(caster, full, pose, binning=10)
+        ts_b.append(time.perf_counter() - t0)
+    ctx.metrics["surface_mapping"] = {
+        "views": len(within), "triangles": caster.n_faces,
+        "visible pixels with transport within 5 % (per view)": within,
+        "miss rate raw % (per view)": raw_rates, "miss rate corrected % (per view)": cor_rates,
+        "frames/s full resolution 1392x1040 (median)": 1.0 / float(np.median(ts)),
+        "frames/s 10x binned (median)": 1.0 / float(np.median(ts_b)),
+    }
+    ctx.figure("surface_mapping", "mapping_raw.png",
+               "Raw fluorescence of homogeneous tissue seen by the tracked camera: the 40 % "
+               "contour misses the cavity walls (illumination and angle).")
+    ctx.figure("surface_mapping", "mapping_corrected.png",
+               "After per-pixel ray casting and the navigated illumination model: uniform "
+               "optical transport, nothing missed.")
+    ctx.note("surface_mapping", "Targets: transport within 5 % over >= 90 % of visible pixels, "
+             "corrected miss rate < 5 %; 30 frames/s at full resolution is not reached on this "
+             "2-core machine (docs/surface-mapping.md).")
+
+
 STAGES = [
     ("phantoms", "digital phantoms", stage_phantoms),
     ("camera_calibration", "camera and hand-eye calibration", stage_camera_calibration),
     ("light_calibration", "radiometric, illumination and laser calibration", stage_light_calibration),
+    ("surface_mapping", "tracked views and surface-flux mapping", stage_surface_mapping),
     ("tomography", "tracked acquisition and reconstruction", stage_tomography),
 ]

@@ -58,3 +58,6 @@ def test_quick_demo_end_to_end(tmp_path):
     assert light["illumination: axis error [deg]"] < 0.5
     assert light["laser: direction error [deg]"] < 0.3
     assert (tmp_path / "q" / "illumination_ratio.png").is_file()
+    mapping = metrics["surface_mapping"]
+    assert min(mapping["visible pixels with transport within 5 % (per view)"]) >= 0.9
+    assert max(mapping["miss rate corrected % (per view)"]) < 5
