@@ -161,3 +161,27 @@ def test_nav_stream_from_the_simulated_tracker(app):
     assert frame["raw"].startswith("data:image/png;base64,") and frame["miss_corrected"] < 5
     assert mrml_io.get_node(app.scene, "FluoNavCamera") is not None
     assert "unreported losses: 0" in app.state.fluo_message
+
+
+def test_calib_panel_runs_the_light_calibrations(app):
+    app.ctrl.calib_light_synth()
+    _wait(app.jobs)
+    app.poll()
+    from pathlib import Path
+
+    root = Path(app.state.calib_light_folder).parent
+    for kind, key in (("radiometry", "gain_adu_per_e"), ("illumination", "alpha"),
+                      ("laser", "error_3d_mm")):
+        app.state.calib_light_kind = kind
+        app.state.calib_light_folder = str(root / ("stack" if kind == "radiometry" else kind))
+        app.ctrl.calib_light_run()
+        _wait(app.jobs, 120)
+        app.poll()
+        assert not app.jobs.state.error, app.jobs.state.error
+        assert key in app.state.calib_light_result
+    from FluoCalibLib import light_scene
+
+    assert light_scene.load_calibration(app.scene, light_scene.LASER_KEY)["error_3d_mm"] < 0.5
+    app.state.calib_light_folder = "/nonexistent"
+    app.ctrl.calib_light_run()
+    assert "folder not found" in app.state.fluo_message
