@@ -205,8 +205,19 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
                                  field=f.name, value=getattr(img, "shape", None))
         if not np.all(np.isfinite(img)):
             raise FluoInputError("frame has NaN or infinite values", field=f.name)
-    main = [f for f in frames if f.f_number is None or f.f_number == _common(frames, "f_number")]
-    main = [f for f in main if f.wavelength_nm is None or f.wavelength_nm == _common(frames, "wavelength_nm")]
+    # every statistic compares frames pixel by pixel or pools them: one size only
+    shapes = {np.shape(f.image) for f in frames}
+    if len(shapes) > 1:
+        odd = next(f for f in frames if np.shape(f.image) != np.shape(frames[0].image))
+        raise FluoInputError("frames differ in size", field=odd.name or "frames",
+                             value=sorted(shapes))
+    # The gain/linearity series is the light frames of the most frequent
+    # (f-number, wavelength) setting; frames at other f-numbers or wavelengths
+    # (usually at other radiances) only feed the lens and spectral fits: mixed
+    # into the series they would bend the linearity.  Dark frames do not depend
+    # on either setting and are all used.
+    setting = _main_setting(frames)
+    main = [f for f in frames if f.kind == "dark" or (f.f_number, f.wavelength_nm) == setting]
     dark = _levels(main, "dark", adc_max)
     light = _levels(main, "light", adc_max)
     dark_pairs = [d for d in dark if np.isfinite(d.var_adu2)]
@@ -295,13 +306,19 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
     return out
 
 
-def _common(frames, attr):
-    """Most frequent value of an optional attribute among light frames (None if unset)."""
-    vals = [getattr(f, attr) for f in frames if f.kind == "light" and getattr(f, attr) is not None]
-    if not vals:
-        return None
-    u, c = np.unique(vals, return_counts=True)
-    return float(u[np.argmax(c)])
+def _main_setting(frames):
+    """Most frequent (f_number, wavelength_nm) among light frames, None counting
+    as a value; ties go to the unlabelled setting, then to the first seen."""
+    counts = {}
+    for f in frames:
+        if f.kind == "light":
+            key = (f.f_number, f.wavelength_nm)
+            counts[key] = counts.get(key, 0) + 1
+    if not counts:
+        return (None, None)
+    top = max(counts.values())
+    best = [k for k, c in counts.items() if c == top]
+    return (None, None) if (None, None) in best else best[0]
 
 
 def _lens_exponent(frames, adc_max, dark_mean):

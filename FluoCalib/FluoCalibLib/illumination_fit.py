@@ -86,13 +86,36 @@ def _fit_geometry(points):
     return c, n, float(np.rad2deg(sol.x[5])), sol
 
 
+def _check_plane_poses(phantom_to_camera, light_from_camera=None, min_span_mm=5.0,
+                       min_tilt_deg=5.0):
+    """Raise unless the phantom planes differ in distance or tilt: one plane
+    (or several copies of it) cannot separate the cone apex from its angle."""
+    h, nrm = [], []
+    for k, T in enumerate(phantom_to_camera):
+        T = np.asarray(T, float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise FluoInputError("must be a finite 4x4 matrix", field=f"phantom_to_camera[{k}]")
+        M = np.eye(4) if light_from_camera is None else np.asarray(light_from_camera[k], float)
+        n = M[:3, :3] @ T[:3, 2]
+        p = M[:3, :3] @ T[:3, 3] + M[:3, 3]
+        h.append(abs(float(n @ p)))
+        nrm.append(n * np.sign(n @ p or 1.0))
+    nrm = np.asarray(nrm)
+    tilt = float(np.degrees(np.arccos(np.clip(np.min(nrm @ nrm.T), -1.0, 1.0))))
+    if max(h) - min(h) < min_span_mm and tilt < min_tilt_deg:
+        raise FluoInputError(f"phantom poses too alike: distances span {max(h) - min(h):.1f} mm "
+                             f"(need >= {min_span_mm:g}) and tilts {tilt:.1f} deg (need >= "
+                             f"{min_tilt_deg:g}); the cone apex is not determined",
+                             field="phantom_to_camera", value=[round(x, 1) for x in h])
+
+
 def _model_counts(cone, pts, normals, rd):
     return cone.forward_counts(rd, pts, normals)
 
 
 def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0, tau=0.05,
                            light_from_camera=None, try_asymmetric=True, max_pixels=60000,
-                           frame="Camera"):
+                           frame="Camera", saturation_adu=16383.0, edge_margin_deg=1.0):
     """Fit the cone model to images of a flat phantom (reflectance ``rd``).
 
     Parameters
@@ -103,6 +126,11 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
     rd : phantom reflectance (transport) T
     offset_adu : dark offset subtracted from the images
     light_from_camera : optional list of 4x4 (camera -> light frame) per image
+    saturation_adu : raw count at or above which a pixel is saturated (A/D
+        ceiling, 14 bit by default); such pixels still shape the active
+        region but are left out of optimisation 2 and the ratio statistics
+    edge_margin_deg : optimisation 2 uses pixels at least this far inside the
+        cone edge of optimisation 1
 
     Returns
     -------
@@ -118,13 +146,20 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
                              field="images", value=len(images))
     if not (np.isfinite(rd) and rd > 0):
         raise FluoInputError("phantom reflectance must be > 0", field="rd", value=rd)
+    _check_plane_poses(phantom_to_camera, light_from_camera)
     bnd_pts, act = [], []
     per_image = []
+    n_saturated = 0
     for k, (img, T) in enumerate(zip(images, phantom_to_camera)):
-        img = np.asarray(img, float) - offset_adu
-        if img.shape != (camera.height, camera.width):
+        raw = np.asarray(img, float)
+        if raw.shape != (camera.height, camera.width):
             raise FluoInputError("image size differs from the camera's", field=f"images[{k}]",
-                                 value=img.shape)
+                                 value=raw.shape)
+        if not np.all(np.isfinite(raw)):
+            raise FluoInputError("image has NaN or infinite values", field=f"images[{k}]")
+        # a clipped pixel under-reports the light and would pull alpha down
+        unsat = raw < saturation_adu
+        img = raw - offset_adu
         f, active, boundary = segment_active(img, tau)
         pts, valid = ray_plane_points(camera, T)
         M = np.eye(4) if light_from_camera is None else np.asarray(light_from_camera[k], float)
@@ -133,15 +168,23 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         nrm = nrm if nrm[2] < 0 else -nrm               # plane normal towards the camera
         nrm_l = M[:3, :3] @ nrm
         b = boundary & valid
-        a = active & valid & ~boundary
+        a = active & valid & ~boundary & unsat
+        n_saturated += int((active & ~unsat).sum())
         if b.sum() < 10:
             raise FluoInputError("too few cone-boundary pixels (the cone fills the image?)",
                                  field=f"images[{k}]", value=int(b.sum()))
         bnd_pts.append(pts_l[b])
         act.append((img[a], pts_l[a], np.broadcast_to(nrm_l, (int(a.sum()), 3))))
-        per_image.append((img, pts_l, nrm_l, active & valid))
+        per_image.append((img, pts_l, nrm_l, active & valid & unsat))
     P = np.concatenate(bnd_pts)
     c, n, half, sol1 = _fit_geometry(P)
+    # identical-looking views let the apex run off to a near-cylinder; the
+    # Jacobian is then singular (measured cond ~1e9 vs 5e2-5e3 for usable sets)
+    cond = float(np.linalg.cond(sol1.jac))
+    if not (np.isfinite(cond) and cond < 1e7 and 0.5 < half < 89.5):
+        raise FluoInputError("cone apex not determined by these views (image the phantom at "
+                             "several distances or tilts)", field="phantom_to_camera",
+                             value={"half_angle_deg": half, "condition": cond})
     S = np.concatenate([x[0] for x in act])
     X = np.concatenate([x[1] for x in act])
     N = np.concatenate([x[2] for x in act])
@@ -151,7 +194,11 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
     base = dict(origin_mm=tuple(c), axis=tuple(n), half_angle_deg=half, frame=frame)
     cone0 = IlluminationCone(**base, alpha=1.0, gamma_per_mm=0.0, system_gain_adu=1.0)
     f0 = cone0.factors(X, N)
-    lit = f0.lit
+    # The model drops to zero at the cone edge (to cos^alpha(Phi), ~25 % of the
+    # peak for the endoscope): a pixel just outside the refined cone would add
+    # a residual of ~sqrt(S) and make the cost jump as the axis moves, so
+    # optimisation 2 keeps clear of the edge.
+    lit = f0.lit & (f0.theta_rad < np.deg2rad(max(half - edge_margin_deg, 0.5 * half)))
     if lit.sum() < 100:
         raise FluoInputError("the fitted cone leaves almost no active pixel lit", field="images")
     S, X, N = S[lit], X[lit], N[lit]
@@ -187,25 +234,33 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
     chosen = "axisymmetric"
     bic_asym = None
     if try_asymmetric:
-        # start from the first azimuthal harmonic of the symmetric fit's ratio:
-        # S / model - 1 ~ (theta / Phi) (A cos phi + B sin phi)
-        c2 = cone_of(sol2.x)
-        fac = c2.factors(X, N)
-        e1, e2 = c2.azimuth_basis()
-        u = (X - np.asarray(c2.origin_mm)) / np.maximum(fac.distance_mm, 1e-9)[:, None]
-        az = np.arctan2(u @ e2, u @ e1)
-        w = (fac.theta_rad / np.deg2rad(c2.half_angle_deg)) ** 2
-        m2 = c2.forward_counts(rd, X, N)
         sw = 1.0 / np.sqrt(np.maximum(S, 1.0))          # same weights as the fit
-        design = np.stack([m2 * w * np.cos(az), m2 * w * np.sin(az)], axis=1) * sw[:, None]
-        (A, B), *_ = np.linalg.lstsq(design, (S - m2) * sw, rcond=None)
-        a0 = float(np.clip(np.hypot(A, B), 0.01, 0.9))
-        # the harmonic's phase is measured in the symmetric fit's azimuth basis,
-        # which cone_of() reproduces (same axis parameters, same default reference)
-        sol3 = optimize.least_squares(lambda x: resid2(x, True),
-                                      np.r_[sol2.x, a0, float(np.arctan2(B, A))],
-                                      x_scale="jac", bounds=(lo + [0, -2 * np.pi],
-                                                             hi + [0.95, 2 * np.pi]))
+
+        def crescent_start(x):
+            # first azimuthal harmonic of the ratio to the symmetric cone x:
+            # S / model - 1 ~ (theta / Phi)^2 (A cos phi + B sin phi); its phase
+            # is measured in x's azimuth basis, which cone_of() reproduces
+            c2 = cone_of(x)
+            fac = c2.factors(X, N)
+            e1, e2 = c2.azimuth_basis()
+            u = (X - np.asarray(c2.origin_mm)) / np.maximum(fac.distance_mm, 1e-9)[:, None]
+            az = np.arctan2(u @ e2, u @ e1)
+            w = (fac.theta_rad / np.deg2rad(c2.half_angle_deg)) ** 2
+            m2 = c2.forward_counts(rd, X, N)
+            design = np.stack([m2 * w * np.cos(az), m2 * w * np.sin(az)], axis=1) * sw[:, None]
+            (A, B), *_ = np.linalg.lstsq(design, (S - m2) * sw, rcond=None)
+            return np.r_[x, float(np.clip(np.hypot(A, B), 0.01, 0.9)), float(np.arctan2(B, A))]
+
+        # Two starts: the symmetric fit tilts its axis to mimic a crescent (a
+        # local minimum the crescent fit can stay in), while the boundary axis
+        # of optimisation 1 is not biased by the intensity; keep the better.
+        sol3 = None
+        for x in (sol2.x, np.r_[sol2.x[:3], th0, ph0]):
+            s3 = optimize.least_squares(lambda x: resid2(x, True), crescent_start(x),
+                                        x_scale="jac", bounds=(lo + [0, -2 * np.pi],
+                                                               hi + [0.95, 2 * np.pi]))
+            if sol3 is None or s3.cost < sol3.cost:
+                sol3 = s3
         rss3 = float(np.sum(sol3.fun ** 2))
         bic_asym = nobs * np.log(rss3 / nobs) + 7 * np.log(nobs)
         if bic_asym < bic_sym - 10.0:
@@ -232,6 +287,7 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         "bic_crescent": None if bic_asym is None else float(bic_asym),
         "ratio_mean": float(np.mean(all_r)), "ratio_sd": float(np.std(all_r)),
         "boundary_points": int(len(P)), "active_pixels": int(nobs),
+        "saturated_pixels": n_saturated,
         "geometry_rms_mm": float(np.sqrt(np.mean(sol1.fun ** 2))),
         "ratio_images": ratios,
     }

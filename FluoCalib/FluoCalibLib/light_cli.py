@@ -77,7 +77,8 @@ def _illumination(args):
     res = calibrate_illumination(images, CameraModel.from_dict(doc["camera"]),
                                  [np.asarray(T, float) for T in doc["phantom_to_camera"]],
                                  float(doc["rd"]), float(doc.get("offset_adu", 0.0)),
-                                 try_asymmetric=not args.axisymmetric)
+                                 try_asymmetric=not args.axisymmetric,
+                                 saturation_adu=float(doc.get("saturation_adu", 16383.0)))
     ratios = res.pop("ratio_images")
     cone = res.pop("cone")
     res["cone"] = cone.to_dict()
@@ -112,12 +113,17 @@ def _laser(args):
 
 def _synth(args):
     from .camera_response import write_stack
-    from .synth_light import (synthetic_illumination, synthetic_laser, synthetic_stack,
+    from .synth_light import (synthetic_illumination, synthetic_laser,
+                              synthetic_lens_spectral_frames, synthetic_stack,
                               write_illumination_set, write_laser_set)
 
     out = Path(args.out)
     frames, truth = synthetic_stack(seed=args.seed)
-    write_stack(out / "stack", frames, {"truth": truth})
+    # plus frames at several f-numbers and wavelengths (same default camera)
+    extra, t_extra = synthetic_lens_spectral_frames(
+        radiance_w_per_mm2_sr=truth["radiance_w_per_mm2_sr"], seed=args.seed + 1)
+    frames = frames + extra
+    write_stack(out / "stack", frames, {"truth": {**truth, **t_extra}})
     imgs, t_il = synthetic_illumination(seed=args.seed)
     write_illumination_set(out / "illumination", imgs, t_il)
     limgs, t_la = synthetic_laser(seed=args.seed)

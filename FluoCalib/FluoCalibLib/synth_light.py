@@ -20,9 +20,9 @@ from .camera_response import Frame, write_stack
 from .illumination_model import IlluminationCone
 from .radiometric_model import RadiometricCamera
 
-__all__ = ["synthetic_stack", "endoscope_camera", "endoscope_cone", "plane_poses",
-           "synthetic_illumination", "synthetic_laser", "ray_plane_points",
-           "write_illumination_set", "write_laser_set"]
+__all__ = ["synthetic_stack", "synthetic_lens_spectral_frames", "endoscope_camera",
+           "endoscope_cone", "plane_poses", "synthetic_illumination", "synthetic_laser",
+           "ray_plane_points", "write_illumination_set", "write_laser_set"]
 
 
 # ----------------------------------------------------------------- camera stacks
@@ -55,6 +55,57 @@ def synthetic_stack(camera=None, shape=(260, 348), n_light=12, n_dark=6, pairs=2
             frames.append(Frame(img, float(t), "light", name=f"light_{t:07.4f}s_{p}.png"))
     truth = {"camera": cam.to_dict(), "radiance_w_per_mm2_sr": float(L),
              "nonlinearity": nonlinearity}
+    return frames, truth
+
+
+# Relative spectral QE of a front-illuminated CCD (illustrative shape; the
+# reference quotes 15 % at 760 nm only).
+DEFAULT_QE_BY_WAVELENGTH = {600.0: 0.40, 700.0: 0.25, 760.0: 0.15, 800.0: 0.11, 850.0: 0.07}
+
+
+def synthetic_lens_spectral_frames(camera=None, f_numbers=(1.4, 2.0, 2.8, 4.0, 5.6),
+                                   qe_by_wavelength=None, exposure_s=0.3, fill=0.5,
+                                   radiance_w_per_mm2_sr=None, shape=(260, 348), pairs=2,
+                                   seed=0):
+    """Extra light frames for the lens f-number exponent and the spectral
+    responsivity, to append to a ``synthetic_stack`` of the same camera.
+
+    - one radiance, one exposure, frames at each of ``f_numbers``
+      (S ~ f#^-lens_exponent); pass the stack's radiance (same light source,
+      only the aperture turned) so the frame at the stack's f-number is one
+      more point of its exposure series; by default the brightest frame
+      fills ``fill`` of the full well;
+    - one frame pair per wavelength with that wavelength's QE, each at a
+      radiance that fills ``fill`` of the full well, frames labelled with
+      ``wavelength_nm`` and ``radiance_w_per_mm2_sr``.
+
+    Returns (frames, truth) with ``lens_exponent`` and
+    ``spectral_e_per_radiance_s`` {wavelength_nm: e- / (W/mm^2/sr) / s}.
+    """
+    cam = (camera or RadiometricCamera()).with_(exposure_s=float(exposure_s))
+    qe = dict(DEFAULT_QE_BY_WAVELENGTH if qe_by_wavelength is None else qe_by_wavelength)
+    rng = np.random.default_rng(seed)
+    frames = []
+    f_min = min(f_numbers) if len(f_numbers) else cam.f_number
+    L = radiance_w_per_mm2_sr
+    if L is None:
+        L = fill * cam.full_well_e / cam.with_(f_number=f_min).electrons_per_radiance()
+    for fn in f_numbers:
+        c = cam.with_(f_number=float(fn))
+        for p in range(pairs):
+            frames.append(Frame(c.sample_counts(np.full(shape, L), rng), cam.exposure_s, "light",
+                                f_number=float(fn), name=f"lens_f{fn:04.1f}_{p}.png"))
+    spectral = {}
+    for wl, q in sorted(qe.items()):
+        c = cam.with_(wavelength_nm=float(wl), quantum_efficiency=float(q))
+        Lw = fill * cam.full_well_e / c.electrons_per_radiance()
+        spectral[float(wl)] = float(c.electrons_per_radiance() / cam.exposure_s)
+        for p in range(pairs):
+            frames.append(Frame(c.sample_counts(np.full(shape, Lw), rng), cam.exposure_s, "light",
+                                wavelength_nm=float(wl), radiance_w_per_mm2_sr=float(Lw),
+                                name=f"spectral_{wl:05.1f}nm_{p}.png"))
+    truth = {"lens_exponent": cam.lens_exponent, "lens_radiance_w_per_mm2_sr": float(L), "f_numbers": [float(f) for f in f_numbers],
+             "spectral_e_per_radiance_s": spectral}
     return frames, truth
 
 
@@ -128,8 +179,13 @@ def synthetic_illumination(camera=None, cone=None, poses=None, rd=0.5, radiometr
         el = np.minimum(photo + dark, rcam.full_well_e) + rcam.bias_e
         el += rng.normal(0.0, rcam.read_noise_e, size=e.shape)
         images.append(np.clip(np.round(el * rcam.gain_adu_per_e), 0, rcam.adc_max_adu))
+    # counts at which a pixel is clipped: the full well or the A/D ceiling,
+    # less 5 read-noise sigmas so noisy clipped pixels are caught too
+    sat = min(rcam.adc_max_adu, rcam.gain_adu_per_e * (rcam.full_well_e + rcam.bias_e)
+              - 5.0 * rcam.gain_adu_per_e * rcam.read_noise_e)
     truth = {"cone": cone.to_dict(), "camera": cam.to_dict(), "rd": rd,
-             "offset_adu": rcam.offset_adu, "phantom_to_camera": [np.asarray(T).tolist() for T in poses]}
+             "offset_adu": rcam.offset_adu, "saturation_adu": float(sat),
+             "phantom_to_camera": [np.asarray(T).tolist() for T in poses]}
     return images, truth
 
 
@@ -152,7 +208,7 @@ def write_illumination_set(folder, images, truth):
     folder = Path(folder)
     names = _write_pngs(folder, images, "illum")
     doc = {"camera": truth["camera"], "offset_adu": truth["offset_adu"], "rd": truth["rd"],
-           "images": names, "phantom_to_camera": truth["phantom_to_camera"],
+           "saturation_adu": truth["saturation_adu"], "images": names, "phantom_to_camera": truth["phantom_to_camera"],
            "truth": {"cone": truth["cone"]}}
     (folder / "illumination.json").write_text(json.dumps(doc, indent=1))
     return folder

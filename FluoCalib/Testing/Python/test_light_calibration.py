@@ -60,7 +60,7 @@ def test_bad_stacks_give_clear_errors(stack):
     dark = [f for f in frames if f.kind == "dark"]
     with pytest.raises(FluoInputError, match="dark frames at >= 2 exposures"):
         characterize(light)
-    sat = [Frame(np.full((40, 50), 16383.0), f.exposure_s, "light") for f in light]
+    sat = [Frame(np.full(dark[0].image.shape, 16383.0), f.exposure_s, "light") for f in light]
     with pytest.raises(FluoInputError, match="saturated"):
         characterize(dark + sat)
     black = [Frame(d.image.copy(), 0.1 * (1 + i // 2), "light") for i, d in enumerate(dark)]
