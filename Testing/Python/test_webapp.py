@@ -185,3 +185,13 @@ def test_calib_panel_runs_the_light_calibrations(app):
     app.state.calib_light_folder = "/nonexistent"
     app.ctrl.calib_light_run()
     assert "folder not found" in app.state.fluo_message
+
+
+def test_mesh_roi_is_validated(app):
+    app.state.tomo_mesh_roi = "1,2,3"
+    app.ctrl.tomo_build_mesh()
+    assert "ROI" in app.state.fluo_message and not app.jobs.busy
+    app.state.tomo_mesh_roi = "-10,10,-10,10,-8,0"
+    tomo = _panel(app, "FluoTomo")
+    assert tomo._roi() == (-10.0, 10.0, -10.0, 10.0, -8.0, 0.0)
+    app.state.tomo_mesh_roi = ""

@@ -37,6 +37,7 @@ class TomoPanel:
         s.tomo_segments = []
         s.tomo_regions = []
         s.tomo_mesh_size_mm = 1.0
+        s.tomo_mesh_roi = ""            # x0,x1,y0,y1,z0,z1 mm; empty = the phantom's default
         s.tomo_mesh_info = ""
         s.tomo_method = "HP"
         s.tomo_lambda = 10.0
@@ -144,6 +145,21 @@ class TomoPanel:
         self.app.start_job("mesh", job, on_done=done)
 
     def _roi(self):
+        """The ROI typed by the user, else that of the cylinder-tube reconstruction."""
+        text = str(self.app.state.tomo_mesh_roi or "").strip()
+        if text:
+            try:
+                roi = [float(v) for v in text.split(",")]
+            except ValueError:
+                raise FluoInputError("expected x0,x1,y0,y1,z0,z1 in mm", field="ROI",
+                                     value=text) from None
+            if len(roi) != 6 or any(roi[2 * k] >= roi[2 * k + 1] for k in range(3)):
+                raise FluoInputError("expected x0<x1, y0<y1, z0<z1 (six numbers, mm)",
+                                     field="ROI", value=text)
+            return tuple(roi)
+        return self._default_roi()
+
+    def _default_roi(self):
         """Region of interest of the cylinder-tube reconstruction (as in the demo)."""
         truth = mrml_io.get_json_attribute(mrml_io.get_node(self.app.scene, "CBCT"),
                                            "FluoGuide.Truth") or {}
@@ -275,6 +291,9 @@ class TomoPanel:
                      hide_details=True, id="tomo-mesh-size")
         v.VBtn("Build mesh", click=self.app.ctrl.tomo_build_mesh, block=True, classes="mt-2",
                disabled=("!tomo_has_labels || " + busy,), id="tomo-mesh")
+        v.VTextField(v_model=("tomo_mesh_roi",), label="ROI x0,x1,y0,y1,z0,z1 [mm] (empty: "
+                     "around the tube)", density="compact", hide_details=True, classes="mt-2",
+                     id="tomo-mesh-roi")
         html.Div("{{ tomo_mesh_info }}", classes="text-caption", id="tomo-mesh-info")
 
         html.Div("4. Reconstruct (simulated tracked laser scan)", classes="text-subtitle-2 mt-4")
