@@ -1,54 +1,18 @@
-"""``fluo devices`` and ``fluo track``: find trackers and cameras, track poses."""
+"""``fluo devices``, ``fluo track``, ``fluo record``, ``fluo replay``: find trackers and
+cameras, track poses, record and replay tracked frames."""
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
-import numpy as np
-
 from fluoguide.cli import add_json_flag
 from fluoguide.errors import FluoInputError
 
-# USB ids: NDI Polaris/Aurora connect through FTDI USB-serial converters (or
-# NDI's own id on newer units); UVC cameras are USB class 0x0E (video).
-NDI_USB_IDS = {(0x0403, 0x6001): "FTDI USB-serial (NDI Polaris/Aurora SCU)",
-               (0x0403, 0x6015): "FTDI USB-serial (NDI)",
-               (0x28E7, 0x0001): "NDI"}
-
-
 def _devices(args):
-    out = {"serial_ports": [], "trackers": [], "cameras": [], "notes": []}
-    try:
-        from serial.tools import list_ports
+    from .usb_devices import discover
 
-        for p in list_ports.comports():
-            entry = {"port": p.device, "description": p.description,
-                     "vid": p.vid, "pid": p.pid}
-            out["serial_ports"].append(entry)
-            if (p.vid, p.pid) in NDI_USB_IDS:
-                out["trackers"].append({**entry, "kind": NDI_USB_IDS[(p.vid, p.pid)]})
-    except Exception as exc:  # reported, not fatal
-        out["notes"].append(f"serial ports not listed: {exc}")
-    try:
-        import usb.core
-
-        for d in usb.core.find(find_all=True):
-            classes = {d.bDeviceClass}
-            try:
-                for cfg in d:
-                    classes |= {intf.bInterfaceClass for intf in cfg}
-            except Exception:
-                pass
-            if 0x0E in classes:
-                out["cameras"].append({"vid": d.idVendor, "pid": d.idProduct,
-                                       "bus": d.bus, "address": d.address})
-    except Exception as exc:  # no libusb backend, no permission
-        out["notes"].append(f"USB devices not listed ({type(exc).__name__}: {exc}); install "
-                            "libusb-1.0 for camera discovery")
-    if not out["trackers"] and not out["cameras"]:
-        out["notes"].append("no tracker or camera found (use `fluo track --sim` for the simulator)")
-    return out
+    return discover()
 
 
 def _track(args):
@@ -107,52 +71,54 @@ def _track_igtl(args):
     return out
 
 
+def _frame_source(args):
+    from . import frame_sources as fs
+
+    if args.frames:
+        return fs.ImageSequenceSource(args.frames, fps=args.fps, realtime=True)
+    if args.camera is not None:
+        return fs.OpenCVSource(args.camera, fps=args.fps)
+    return fs.SyntheticSource(fps=args.fps, width=args.width, height=args.height, seed=args.seed)
+
+
 def _record(args):
-    """Simulated tracker + synthetic camera frames -> a recording folder."""
+    """Simulated tracker + synthetic, image-sequence or camera frames -> a recording
+    folder, through the live loop (the same path the mapping takes)."""
+    from .live_loop import LiveLoop
     from .ndi_client import NDIClient
     from .ndi_simulator import Faults, NDISimulator
     from .recorder import Recorder
-    from .timesync import PoseBuffer
 
     if args.seconds <= 0 or args.fps <= 0:
         raise FluoInputError("seconds and fps must be > 0", field="--seconds/--fps",
                              value=(args.seconds, args.fps))
-    rng = np.random.default_rng(args.seed)
     sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(), seed=args.seed)
     port = sim.start()
-    buf = PoseBuffer(max_gap_s=0.05, max_age_s=0.1)
-    t_start = None
     try:
-        with NDIClient(port) as client, Recorder(args.out) as rec:
+        with NDIClient(port) as client, Recorder(args.out) as rec, _frame_source(args) as frames:
             client.initialize([b"camera tool rom " * 4])
             client.start()
-            next_frame = time.monotonic() + 0.1
-            t_end = time.monotonic() + args.seconds
-            flagged = 0
 
-            def on_pose(reply, t_host):
-                pose = reply.tools.get(1)
-                buf.add(t_host, pose.matrix() if pose is not None else None)
+            def write(image, info, poses):
+                rec.add(image, info["timestamp_s"], poses, exposure_s=info["exposure_s"],
+                        pose_valid=info["pose_valid"], pose_status=info["pose_status"])
 
-            while time.monotonic() < t_end:
-                client.track(max(0.0, next_frame - time.monotonic()), on_frame=on_pose)
-                t = next_frame - 0.5 / args.fps      # mid-exposure time of this frame
-                m, status = buf.at(t)
-                if m is None:
-                    flagged += 1
-                img = rng.poisson(200.0 + 50.0 * np.sin(t) ** 2, size=(args.height, args.width))
-                rec.add(img.astype(np.uint16), t, {"CameraToolToTracker": m}, exposure_s=0.5 / args.fps,
-                        pose_valid=m is not None, pose_status=status)
-                t_start = t_start or t
-                next_frame += 1.0 / args.fps
+            # a recording keeps every frame the camera gave (no "latest" dropping);
+            # a slow disk shows as latency, or as camera-side gaps (dropped_upstream)
+            loop = LiveLoop(frames, write, tracker=client, tools={"CameraToolToTracker": 1},
+                            camera_latency_s=0.5 / args.fps, drop_policy="none")
+            out = loop.run(seconds=args.seconds)
             client.stop()
             stats = client.stats
-            n = rec.n
     finally:
         sim.stop()
-    return {"frames": n, "frames_without_pose": flagged, "tracker_frames": stats.frames,
-            "tracker_missing": stats.missing, "crc_errors": stats.crc_errors,
-            "recovered": stats.recovered, "lost_unreported": stats.lost_unreported(),
+    return {"frames": out["delivered"], "frames_without_pose": out["pose_invalid"],
+            "pose_status": out["pose_status"], "dropped_slow": out["dropped_slow"],
+            "dropped_upstream": out["dropped_upstream"],
+            "frames_lost_unreported": out["lost_unreported"], "latency_ms": out["latency_ms"],
+            "tracker_frames": stats.frames, "tracker_missing": stats.missing,
+            "crc_errors": stats.crc_errors, "recovered": stats.recovered,
+            "lost_unreported": stats.lost_unreported(),
             "folder": str(Path(args.out).resolve())}
 
 
@@ -190,9 +156,12 @@ def register(subparsers):
     p.add_argument("--seed", type=int, default=0)
     add_json_flag(p)
     p.set_defaults(func=_track)
-    p = subparsers.add_parser("record", help="record tracked camera frames (simulated tracker and "
-                              "synthetic frames) incrementally to a folder")
+    p = subparsers.add_parser("record", help="record tracked camera frames (simulated tracker; "
+                              "synthetic, image-folder or camera frames) incrementally to a folder")
     p.add_argument("--out", required=True, help="new or empty folder")
+    cam = p.add_mutually_exclusive_group()
+    cam.add_argument("--frames", metavar="FOLDER", help="images played as a camera at --fps")
+    cam.add_argument("--camera", type=int, metavar="INDEX", help="OpenCV/UVC camera index")
     p.add_argument("--seconds", type=float, default=5.0)
     p.add_argument("--fps", type=float, default=20.0)
     p.add_argument("--width", type=int, default=348)

@@ -7,8 +7,9 @@ message time in the attribute ``FluoNav.IGTLTimestamp``.
 pyigtl keeps only the latest message per device between polls, so a slow
 poller silently loses messages.  :class:`IGTLReceiver` counts what it got and
 what it must have missed: from a ``seq`` metadata field when the sender puts
-one (FluoGuide's own senders do), otherwise from timestamp gaps larger than
-1.5 nominal periods.
+one (FluoGuide's own senders do; metadata needs OpenIGTLink header version 2,
+``msg.header_version = 2``, else pyigtl silently drops it), otherwise from
+timestamp gaps larger than 1.5 nominal periods.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ class IGTLReceiver:
         self.client = None
         self.received = {}       # device -> messages applied
         self.lost = {}           # device -> messages known to be lost
+        self.first_seq = {}      # device -> first sequence number seen (senders count from 0)
         self._last_seq = {}
         self._last_ts = {}
 
@@ -84,6 +86,7 @@ class IGTLReceiver:
         if seq is not None:
             seq = int(seq)
             last = self._last_seq.get(name)
+            self.first_seq.setdefault(name, seq)
             if last is not None and seq > last + 1:
                 self.lost[name] = self.lost.get(name, 0) + seq - last - 1
             self._last_seq[name] = seq

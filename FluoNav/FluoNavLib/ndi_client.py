@@ -36,9 +36,11 @@ class TrackingStats:
     recovered: int = 0
     duplicates: int = 0           # polls that returned an already delivered frame
     segments: list = field(default_factory=list)   # (first, last) frame per tracking session
+    open_segment: tuple = None    # (first, last) of the session still running
 
     def lost_unreported(self):
-        expected = sum(last - first + 1 for first, last in self.segments)
+        spans = self.segments + ([self.open_segment] if self.open_segment else [])
+        expected = sum(last - first + 1 for first, last in spans)
         return expected - self.frames - self.missing
 
 
@@ -140,9 +142,8 @@ class NDIClient:
         return self.handles
 
     def start(self):
+        self._close_segment()
         self._expect_okay("TSTART")
-        self._segment_first = None
-        self._last_frame = None
 
     def stop(self):
         self._close_segment()
@@ -155,6 +156,7 @@ class NDIClient:
         if self._segment_first is not None and self._last_frame is not None:
             self.stats.segments.append((self._segment_first, self._last_frame))
         self._segment_first = self._last_frame = None
+        self.stats.open_segment = None
 
     # -- tracking --------------------------------------------------------------
     def poll(self):
@@ -186,6 +188,7 @@ class NDIClient:
         if self._segment_first is None:
             self._segment_first = f
         self._last_frame = f
+        self.stats.open_segment = (self._segment_first, f)
         self.stats.frames += 1
         for p in reply.tools.values():
             if p.state == "MISSING":
@@ -231,5 +234,6 @@ class NDIClient:
             dt = period - (time.monotonic() - t0)
             if dt > 0:
                 time.sleep(dt)
-        self._close_segment()
+        # the session stays open: a later track() call continues it, so a frame
+        # skipped between two calls is still counted as missing
         return self.stats

@@ -112,6 +112,7 @@ def test_openigtlink_transforms_and_images_arrive_in_mrml():
         for k in range(40):                  # bounded: 40 messages at ~100 Hz
             m = _pose(k / 100)
             msg = pyigtl.TransformMessage(m, device_name="CameraToTracker", timestamp=1000.0 + k / 100)
+            msg.header_version = 2            # metadata travels in header v2 only
             msg.metadata = {"seq": str(k)}
             server.send_message(msg, wait=True)
             sent += 1
@@ -121,12 +122,20 @@ def test_openigtlink_transforms_and_images_arrive_in_mrml():
                                                         timestamp=1000.0 + k / 100), wait=True)
             time.sleep(0.01)
             rx.poll()
+        for k in range(40, 60):              # a burst nobody polls: pyigtl keeps the last only
+            msg = pyigtl.TransformMessage(_pose(k / 100), device_name="CameraToTracker",
+                                          timestamp=1000.0 + k / 100)
+            msg.header_version = 2
+            msg.metadata = {"seq": str(k)}
+            server.send_message(msg, wait=True)
+            sent += 1
         time.sleep(0.2)
         rx.poll()
+        assert rx.lost["CameraToTracker"] >= 10          # seen from the seq numbers
         node = mrml_io.get_node(scene, "CameraToTracker")
-        np.testing.assert_allclose(mrml_io.get_transform(scene, "CameraToTracker"), _pose(0.39),
+        np.testing.assert_allclose(mrml_io.get_transform(scene, "CameraToTracker"), _pose(0.59),
                                    atol=1e-4)
-        assert float(node.GetAttribute(TIMESTAMP_ATTRIBUTE)) == pytest.approx(1000.39)
+        assert float(node.GetAttribute(TIMESTAMP_ATTRIBUTE)) == pytest.approx(1000.59)
         vol = mrml_io.get_node(scene, "Image_Reference")
         arr = mrml_io.volume_array(vol)
         assert arr.shape == (2, 3, 4) and int(arr.max()) == 23 + 30
