@@ -203,11 +203,14 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         self.mesh = mesh
         return mesh
 
-    def prepareMesh(self, sizeMm=1.0, roi=None, labelNodeName="CBCTLabels"):
+    def prepareMesh(self, sizeMm=1.0, roi=None, labelNodeName="CBCTLabels", quality=False):
         """A job ``job(progress, cancel) -> Mesh`` of the label map (read now, meshed
-        later on any thread); hand the mesh to :meth:`storeMesh`."""
+        later on any thread); hand the mesh to :meth:`storeMesh`.  ``quality``
+        uses the fTetWild mesher (smooth conforming interfaces, tens of seconds)
+        instead of the structured one (a second)."""
         from fluoguide import mrml_io
         from fluoguide.progress import check_cancel, report
+        from FluoTomoLib.tet_mesh import mesh_labelmap_quality
         from FluoTomoLib.voxel_mesh import mesh_labelmap_structured
 
         node = mrml_io.get_node(self.scene, labelNodeName, "vtkMRMLLabelMapVolumeNode")
@@ -216,8 +219,13 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
 
         def job(progress=None, cancel=None):
             report(progress, 0.05, "meshing the label map")
-            mesh = mesh_labelmap_structured(labels, geo["spacing"], geo["origin"], sizeMm, roi=roi,
-                                            direction=geo["direction"])
+            if quality:
+                mesh = mesh_labelmap_quality(labels, geo["spacing"], geo["origin"], sizeMm, roi=roi,
+                                             direction=geo["direction"], progress=progress,
+                                             cancel=cancel)
+            else:
+                mesh = mesh_labelmap_structured(labels, geo["spacing"], geo["origin"], sizeMm,
+                                                roi=roi, direction=geo["direction"])
             check_cancel(cancel)
             report(progress, 1.0, "mesh done")
             return mesh

@@ -195,3 +195,18 @@ def test_mesh_roi_is_validated(app):
     tomo = _panel(app, "FluoTomo")
     assert tomo._roi() == (-10.0, 10.0, -10.0, 10.0, -8.0, 0.0)
     app.state.tomo_mesh_roi = ""
+
+
+@pytest.mark.slow
+def test_quality_mesher_from_the_panel(app):
+    if mrml_io.get_node(app.scene, "CBCTLabels", required=False) is None:
+        test_tomo_workflow_segment_label_mesh_in_the_app_scene(app)
+    app.state.tomo_mesh_method = "quality (fTetWild, slower)"
+    app.state.tomo_mesh_size_mm = 3.0
+    app.state.tomo_mesh_roi = "-12,12,-12,12,-12,0"
+    app.ctrl.tomo_build_mesh()
+    _wait(app.jobs, 300)
+    assert not app.jobs.state.error, app.jobs.state.error
+    assert "fTetWild" in app.state.tomo_mesh_info
+    app.state.tomo_mesh_method = "fast (structured)"
+    app.state.tomo_mesh_roi = ""

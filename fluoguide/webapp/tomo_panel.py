@@ -38,6 +38,7 @@ class TomoPanel:
         s.tomo_regions = []
         s.tomo_mesh_size_mm = 1.0
         s.tomo_mesh_roi = ""            # x0,x1,y0,y1,z0,z1 mm; empty = the phantom's default
+        s.tomo_mesh_method = "fast (structured)"
         s.tomo_mesh_info = ""
         s.tomo_method = "HP"
         s.tomo_lambda = 10.0
@@ -131,7 +132,8 @@ class TomoPanel:
         size = float(s.tomo_mesh_size_mm)
         if not 0.3 <= size <= 5.0:
             raise FluoInputError("mesh size must be within 0.3..5 mm", field="mesh size", value=size)
-        job = self.logic.prepareMesh(sizeMm=size, roi=self._roi())
+        quality = str(s.tomo_mesh_method).startswith("quality")
+        job = self.logic.prepareMesh(sizeMm=size, roi=self._roi(), quality=quality)
 
         def done(mesh):
             self.logic.storeMesh(mesh)
@@ -139,7 +141,7 @@ class TomoPanel:
             node.GetDisplayNode().SetOpacity(0.35)
             self.app.show_in_3d(node)
             s.tomo_mesh_info = (f"{mesh.n_nodes} nodes, {mesh.n_elements} tetrahedra "
-                                f"at {size:g} mm")
+                                f"at {size:g} mm ({'fTetWild' if quality else 'structured'})")
             self.app.render_all(reset_3d=True)
 
         self.app.start_job("mesh", job, on_done=done)
@@ -291,6 +293,9 @@ class TomoPanel:
                      hide_details=True, id="tomo-mesh-size")
         v.VBtn("Build mesh", click=self.app.ctrl.tomo_build_mesh, block=True, classes="mt-2",
                disabled=("!tomo_has_labels || " + busy,), id="tomo-mesh")
+        v.VSelect(v_model=("tomo_mesh_method",),
+                  items=(["fast (structured)", "quality (fTetWild, slower)"],), label="Mesher",
+                  density="compact", hide_details=True, classes="mt-2", id="tomo-mesh-method")
         v.VTextField(v_model=("tomo_mesh_roi",), label="ROI x0,x1,y0,y1,z0,z1 [mm] (empty: "
                      "around the tube)", density="compact", hide_details=True, classes="mt-2",
                      id="tomo-mesh-roi")
