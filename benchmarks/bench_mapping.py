@@ -18,15 +18,22 @@ def main(argv=None):
     args = ap.parse_args(argv)
     r = run_mapping_benchmark(args.repeats, args.binning)
     print(f"oral cavity, {r['triangles']} triangles, {r['pixels']} pixels (1392 x 1040), medians of "
-          f"{r['repeats']}:")
-    print(f"  full resolution: {r['fps_full']:.1f} frames/s (cast), {r['fps_full_with_model']:.1f} "
-          f"with the illumination model (target 30)")
+          f"repeated casts:")
+    print(f"  full resolution: {r['fps_full']:.1f} frames/s (raster cast, target 30); Embree BVH "
+          f"{r['fps_full_embree']:.1f}; raster cast + illumination model {r['fps_full_with_model']:.1f}")
     print(f"  {r['binning']}x binned ({r['pixels_binned']} pixels): {r['fps_binned']:.0f} frames/s "
-          f"(target 300); hit error vs full res median {r['binned_hit_error_mm']['median']:.2f} mm, "
-          f"p95 {r['binned_hit_error_mm']['p95']:.2f} mm")
+          f"(target 300); Embree {r['fps_binned_embree']:.0f}; hit error vs full res median "
+          f"{r['binned_hit_error_mm']['median']:.2f} mm, p95 {r['binned_hit_error_mm']['p95']:.2f} mm")
     print(f"  decimated to {r['triangles_decimated']} triangles: {r['fps_decimated']:.1f} frames/s; "
           f"hit error median {r['decimated_hit_error_mm']['median']:.3f} mm, p95 "
           f"{r['decimated_hit_error_mm']['p95']:.3f} mm")
+    for m, a in r["reference_accuracy"].items():
+        print(f"  {m} vs exact float64 brute force ({a['pixels']} random pixels): face agreement "
+              f"{a['face_agreement']:.4f}, mask agreement {a['mask_agreement']:.4f}, hit error max "
+              f"{a['hit_error_max_mm']:.1e} mm")
+    for k, a in r["distorted_lens"].items():
+        print(f"  distorted lens (k1 = -0.25), {k}: {a['fps']:.1f} frames/s; vs Embree mask agreement "
+              f"{a['mask_agreement_vs_embree']:.5f}, face agreement {a['face_agreement_vs_embree']:.5f}")
     print("  corrected transport: " + json.dumps(r["transport_accuracy"]))
     return 0
 

@@ -51,6 +51,15 @@ def view_model(hits, cone, camera_to_world, light_to_world=None):
     """Illumination factors at every visible pixel (0 elsewhere)."""
     if not isinstance(hits, PixelHits):
         raise FluoInputError("needs the PixelHits of a cast", field="hits")
+    if hits.rays_cam is not None and hits.face_normals is not None:
+        # the ray cast kept rays + distances + faces: one compiled pass
+        from .model_kernel import cone_factors_from_cast
+
+        ang, fore, dist, lit = cone_factors_from_cast(
+            hits.rays_cam, camera_to_world, hits.face, hits.distance_mm, hits.visible,
+            hits.face_normals, cone, camera_to_world if light_to_world is None else light_to_world)
+        return ViewModel(angular=ang, foreshortening=fore, distance=dist,
+                         intensity=ang * fore * dist, lit=lit)
     p, n = _to_light(hits, camera_to_world, light_to_world)
     f = cone.factors(p, n)
     lit = f.lit & hits.visible

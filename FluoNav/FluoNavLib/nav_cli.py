@@ -43,79 +43,79 @@ def _synth(args):
             "triangles": caster.n_faces, "image": [cam.width, cam.height]}
 
 
-def _correct(args):
-    from fluoguide import mrml_io
-    from FluoCalibLib import light_scene
-    from FluoCalibLib.geometry_scene import load_intrinsics
-    from FluoCalibLib.illumination_model import IlluminationCone
-    from FluoCalibLib.radiometric_model import RadiometricCamera
-
-    from . import frame_store
-    from .contour_classify import miss_rate, overlay_png
-    from .flux_map import surface_flux, transport_image, view_model
-    from .pixel_cast import SurfaceCaster, cast_camera
-
-    t0 = time.perf_counter()
-    scene = mrml_io.load_scene(args.scene)
-    img, info, poses = frame_store.read_tracked_frame(scene, args.frame)
-    tool = poses.get("CameraToolToTracker")
-    if tool is None or not info.get("pose_valid", True):
-        raise FluoInputError("frame has no valid camera pose: not mapped", field="frame",
-                             value=args.frame)
-    cam = load_intrinsics(scene)
-    if (cam.width, cam.height) != (img.shape[1], img.shape[0]):
-        raise FluoInputError("frame size differs from the camera intrinsics", field="frame",
-                             value=(img.shape, cam.width, cam.height))
-    il = light_scene.load_calibration(scene, light_scene.ILLUMINATION_KEY)
-    rad = light_scene.load_calibration(scene, light_scene.RADIOMETRY_KEY)
-    if not il or "cone" not in il:
-        raise FluoInputError("scene has no illumination calibration", field="FluoCalib.Illumination")
-    cone = IlluminationCone.from_dict(il["cone"])
-    rc = RadiometricCamera.from_dict((rad or {}).get("camera", {}))
-    world = mrml_io.get_transform(scene, "TrackerToReference") @ tool @ \
-        mrml_io.get_transform(scene, "CameraToTracker")
-    model = mrml_io.get_node(scene, "TissueSurface", "vtkMRMLModelNode")
-    caster = SurfaceCaster.from_polydata(model.GetPolyData())
-    t_cast = time.perf_counter()
-    hits = cast_camera(caster, cam, world)
-    vm = view_model(hits, cone, world)
-    t_cast = time.perf_counter() - t_cast
-    S = img.astype(float) - rc.offset_adu
-    _, valid, saturated, _ = rc.radiance_from_counts(img.astype(float), min_snr=3.0)
-    T, ok = transport_image(S, vm, cone, valid=valid)
-    J, jvalid = surface_flux(img.astype(float), rc)
-    raw_rate, raw_contour, _ = miss_rate(S, hits.visible & valid)
-    cor_rate, cor_contour, _ = miss_rate(T, ok)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    files = [overlay_png(out / "raw.png", S, raw_contour, f"raw counts, 40 % contour (miss {raw_rate:.1f} %)",
-                         hits.visible),
-             overlay_png(out / "transport.png", T, cor_contour,
-                         f"optical transport T, 40 % contour (miss {cor_rate:.1f} %)", ok)]
+def _factor_png(path, vm):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
-    for ax, (name, a) in zip(axes, (("angular", vm.angular), ("foreshortening cos(beta)", vm.foreshortening),
+    for ax, (name, a) in zip(axes, (("angular (cos theta)^alpha", vm.angular),
+                                     ("foreshortening cos(beta)", vm.foreshortening),
                                      ("distance 1/(1+gamma d)^2", vm.distance))):
         im = ax.imshow(np.where(vm.lit, a, np.nan), cmap="viridis")
         ax.set_title(name, fontsize=9)
         ax.axis("off")
         fig.colorbar(im, ax=ax, shrink=0.7)
-    fig.savefig(out / "factors.png", dpi=100, bbox_inches="tight")
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
-    files.append(str(out / "factors.png"))
-    np.save(out / "transport.npy", np.where(ok, T, np.nan))
-    np.save(out / "surface_flux_w_per_mm2.npy", np.where(jvalid, J, np.nan))
-    return {"frame": int(args.frame), "pixels": int(img.size), "visible": int(hits.visible.sum()),
-            "mapped": int(ok.sum()), "saturated": int(saturated.sum()),
-            "transport_median": float(np.median(T[ok])) if ok.any() else None,
-            "transport_iqr": [float(np.percentile(T[ok], 25)), float(np.percentile(T[ok], 75))] if ok.any() else None,
-            "surface_flux_median_w_per_mm2": float(np.median(J[jvalid & hits.visible])) if (jvalid & hits.visible).any() else None,
-            "miss_rate_raw_pct": raw_rate, "miss_rate_corrected_pct": cor_rate,
-            "cast_seconds": t_cast, "seconds": time.perf_counter() - t0, "files": files}
+    return str(path)
+
+
+def _correct(args):
+    from fluoguide import mrml_io
+
+    from . import frame_store
+    from .contour_classify import miss_rate, overlay_png
+    from .flux_scene import write_frame_images, write_surface_flux
+    from .nav_correct import correct_frame, load_context, map_frames_to_surface
+
+    t0 = time.perf_counter()
+    scene = mrml_io.load_scene(args.scene)
+    ctx = load_context(scene)
+    t1 = time.perf_counter()
+    r = correct_frame(scene, ctx, args.frame)
+    t_frame = time.perf_counter() - t1
+    results = [r]
+    skipped = []
+    if args.all_frames:
+        for n in range(frame_store.number_of_frames(scene)):
+            if n == args.frame:
+                continue
+            try:
+                results.append(correct_frame(scene, ctx, n))
+            except FluoInputError as exc:          # no valid pose: not mapped, say so
+                skipped.append({"frame": n, "reason": exc.problem})
+    T_face, J_face, w_face, views = map_frames_to_surface(ctx, results)
+    write_surface_flux(scene, ctx.polydata, T_face, J_face, w_face, views)
+    S = r.counts - ctx.radiometric.offset_adu
+    numbers = dict(r.numbers)
+    write_frame_images(scene, r.transport, r.mapped, S, numbers)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    if r.mapped.any():
+        _, raw_contour, _ = miss_rate(S, r.hits.visible & r.flux_valid)
+        _, cor_contour, _ = miss_rate(r.transport, r.mapped)
+        files += [overlay_png(out / "raw.png", S, raw_contour,
+                              f"raw counts above offset, 40 % contour (miss "
+                              f"{numbers['miss_rate_raw_pct']:.1f} %)", r.hits.visible),
+                  overlay_png(out / "transport.png", r.transport, cor_contour,
+                              f"optical transport T, 40 % contour (miss "
+                              f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped)]
+    files.append(_factor_png(out / "factors.png", r.vm))
+    np.save(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
+    np.save(out / "surface_flux_w_per_mm2.npy", np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
+    scene_path = mrml_io.save_scene(scene, out / "scene.mrml")
+    seen = w_face > 0
+    numbers.update({
+        "frames_on_surface": [x.frame for x in results], "frames_skipped": skipped,
+        "faces_seen": int(seen.sum()), "faces": int(len(w_face)),
+        "surface_transport_median": float(np.median(T_face[seen])) if seen.any() else None,
+        "frame_seconds": t_frame, "seconds": time.perf_counter() - t0,
+        "scene": str(scene_path), "files": files + [str(out / "transport.npy"),
+                                                    str(out / "surface_flux_w_per_mm2.npy")]})
+    return numbers
 
 
 def _bench(args):
@@ -139,7 +139,9 @@ def register(subparsers):
                        "tracked frame")
     p.add_argument("--scene", required=True)
     p.add_argument("--frame", type=int, default=0)
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="folder for the PNGs, arrays and the updated scene")
+    p.add_argument("--all-frames", action="store_true",
+                   help="map every frame with a valid pose onto the surface (view-weighted)")
     add_json_flag(p)
     p.set_defaults(func=_correct)
     bench = cli_group(subparsers, "bench", "benchmarks printed as JSON")
