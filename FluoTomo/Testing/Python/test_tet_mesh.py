@@ -105,7 +105,9 @@ def test_local_refinement_makes_smaller_elements():
     m = mesh_labelmap_quality(lab, (1, 1, 1), (0, 0, 0), 4.0, refine=spec)
     c = np.linalg.norm(m.nodes_mm[m.elements].mean(axis=1) - 5.0, axis=1)
     edge = m.measures ** (1 / 3)
-    assert np.median(edge[c < 3]) < 0.6 * np.median(edge[c > 12])
+    # measured (fTetWild varies run to run): 0.52-0.69 with refinement, 1.19-1.36
+    # for the same mesh without it; 0.8 separates the two with margin
+    assert np.median(edge[c < 3]) < 0.8 * np.median(edge[c > 12])
     assert m.meta["refine"][0] == "sphere"
     with pytest.raises(FluoInputError, match="refine"):
         mesh_labelmap_quality(lab, (1, 1, 1), (0, 0, 0), 4.0, refine=("cube", 1, 2))
