@@ -417,6 +417,39 @@ def _hit(pc, tris, f, dx, dy, dz):
     return t if t > 0.0 else -1.0
 
 
+@njit(cache=True, inline="always")
+def _nearest_in_3x3(buf, ci, cj, w, h, skip, best_f, best_t, pc, tris, dx, dy, dz):
+    """Nearest exact hit among the faces stored in the 3 x 3 cells of ``buf``
+    (a w x h face buffer) around (ci, cj), starting from (best_f, best_t);
+    ``skip`` is a face already tried."""
+    for jj in range(max(cj - 1, 0), min(cj + 2, h)):
+        for ii in range(max(ci - 1, 0), min(ci + 2, w)):
+            f = buf[jj * w + ii]
+            if f < 0 or f == skip or f == best_f:
+                continue
+            t = _hit(pc, tris, f, dx, dy, dz)
+            if t > 0.0 and t < best_t:
+                best_f, best_t = f, t
+    return best_f, best_t
+
+
+@njit(cache=True, inline="always")
+def _classify(p, f, t, n_cam, dx, dy, dz, cos_graze, out_face, out_t, out_cos, out_reason,
+              out_visible):
+    """Write pixel p's result for its nearest hit (face f at distance t)."""
+    c = -(n_cam[f, 0] * dx + n_cam[f, 1] * dy + n_cam[f, 2] * dz)
+    if c <= 0.0:
+        out_reason[p] = 2          # back face: the camera is inside the tissue
+    elif c < cos_graze:
+        out_reason[p] = 3          # grazing
+    else:
+        out_reason[p] = 0
+        out_visible[p] = True
+        out_face[p] = f
+        out_t[p] = t
+        out_cos[p] = c
+
+
 @njit(cache=True, parallel=True)
 def _resolve(cell, rays, pc, tris, n_cam, plane_d, face_buf, gw, gh, exact, cos_graze,
              out_face, out_t, out_cos, out_reason, out_visible):
@@ -450,31 +483,12 @@ def _resolve(cell, rays, pc, tris, n_cam, plane_d, face_buf, gw, gh, exact, cos_
                 continue
             best_f, best_t = f, t
         else:
-            ci = k % gw
-            cj = k // gw
-            last = -1
-            for jj in range(max(cj - 1, 0), min(cj + 2, gh)):
-                for ii in range(max(ci - 1, 0), min(ci + 2, gw)):
-                    f = face_buf[jj * gw + ii]
-                    if f < 0 or f == last or f == best_f:
-                        continue
-                    last = f
-                    t = _hit(pc, tris, f, dx, dy, dz)
-                    if t > 0.0 and t < best_t:
-                        best_f, best_t = f, t
+            best_f, best_t = _nearest_in_3x3(face_buf, k % gw, k // gw, gw, gh, -1, best_f, best_t,
+                                             pc, tris, dx, dy, dz)
             if best_f < 0:
                 continue
-        c = -(n_cam[best_f, 0] * dx + n_cam[best_f, 1] * dy + n_cam[best_f, 2] * dz)
-        if c <= 0.0:
-            out_reason[p] = 2          # back face: the camera is inside the tissue
-        elif c < cos_graze:
-            out_reason[p] = 3          # grazing
-        else:
-            out_reason[p] = 0
-            out_visible[p] = True
-            out_face[p] = best_f
-            out_t[p] = best_t
-            out_cos[p] = c
+        _classify(p, best_f, best_t, n_cam, dx, dy, dz, cos_graze, out_face, out_t, out_cos,
+                  out_reason, out_visible)
 
 
 @njit(cache=True, parallel=True)
@@ -501,39 +515,14 @@ def _resolve_pixels(cell, rays, pc, tris, n_cam, pface_buf, pw, ph, face_buf, gw
             if t > 0.0:
                 best_f, best_t = f0, t
         if best_f < 0:
-            ci = p % pw
-            cj = p // pw
-            for jj in range(max(cj - 1, 0), min(cj + 2, ph)):
-                for ii in range(max(ci - 1, 0), min(ci + 2, pw)):
-                    f = pface_buf[jj * pw + ii]
-                    if f < 0 or f == f0 or f == best_f:
-                        continue
-                    t = _hit(pc, tris, f, dx, dy, dz)
-                    if t > 0.0 and t < best_t:
-                        best_f, best_t = f, t
-        ci = k % gw
-        cj = k // gw
-        for jj in range(max(cj - 1, 0), min(cj + 2, gh)):
-            for ii in range(max(ci - 1, 0), min(ci + 2, gw)):
-                f = face_buf[jj * gw + ii]
-                if f < 0 or f == best_f:
-                    continue
-                t = _hit(pc, tris, f, dx, dy, dz)
-                if t > 0.0 and t < best_t:
-                    best_f, best_t = f, t
+            best_f, best_t = _nearest_in_3x3(pface_buf, p % pw, p // pw, pw, ph, f0, best_f, best_t,
+                                             pc, tris, dx, dy, dz)
+        best_f, best_t = _nearest_in_3x3(face_buf, k % gw, k // gw, gw, gh, -1, best_f, best_t,
+                                         pc, tris, dx, dy, dz)
         if best_f < 0:
             continue
-        c = -(n_cam[best_f, 0] * dx + n_cam[best_f, 1] * dy + n_cam[best_f, 2] * dz)
-        if c <= 0.0:
-            out_reason[p] = 2
-        elif c < cos_graze:
-            out_reason[p] = 3
-        else:
-            out_reason[p] = 0
-            out_visible[p] = True
-            out_face[p] = best_f
-            out_t[p] = best_t
-            out_cos[p] = c
+        _classify(p, best_f, best_t, n_cam, dx, dy, dz, cos_graze, out_face, out_t, out_cos,
+                  out_reason, out_visible)
 
 
 def raster_cast(grid, points_mm, triangles, valid_face, face_normals, camera_to_world,
