@@ -104,6 +104,11 @@ def test_tomo_workflow_segment_label_mesh_in_the_app_scene(app):
     app.ctrl.tomo_threshold_segment()      # liquid (-500..3000 HU)
     app.ctrl.tomo_threshold_segment()      # tube (60..3000 HU)
     assert s.tomo_segments == ["liquid", "tube"]
+    # segment colours are fixed and cool: a warm one would read as fluorescence
+    seg = app.slicer_app.segmentation_editor.active_segmentation_node.GetSegmentation()
+    for k in range(seg.GetNumberOfSegments()):
+        r, g, b = seg.GetNthSegment(k).GetColor()
+        assert b > r or g > r, (seg.GetNthSegment(k).GetName(), (r, g, b))
     s.tomo_seg_name, s.tomo_seg_min, s.tomo_seg_max = "nothing", 5000, 6000
     app.ctrl.tomo_threshold_segment()
     assert "no voxel" in s.fluo_message and s.tomo_segments == ["liquid", "tube"]

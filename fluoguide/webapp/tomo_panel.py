@@ -19,6 +19,12 @@ __all__ = ["TomoPanel"]
 # (390 vs 407 mm^3; 75 HU gives 312).
 DEFAULT_SEGMENTS = [("liquid", -500.0, 3000.0), ("tube", 60.0, 3000.0)]
 
+# Segment colours are cool (blue, green, cyan, violet): the yield overlay uses the
+# warm Iron colour map, and a randomly coloured red or orange segment would be
+# mistaken for fluorescence.  Cycled in order of creation.
+SEGMENT_COLORS_RGB = [(0.62, 0.62, 0.92), (0.35, 0.85, 0.45), (0.30, 0.75, 0.85),
+                      (0.60, 0.45, 0.85), (0.25, 0.50, 0.90), (0.45, 0.80, 0.70)]
+
 
 class TomoPanel:
     key = "FluoTomo"
@@ -93,7 +99,8 @@ class TomoPanel:
         if editor.active_segmentation_node is None:
             raise FluoInputError("load a CBCT first", field="CBCT")
         name = str(s.tomo_seg_name or f"segment {editor.n_segments + 1}")
-        sid = editor.add_empty_segment(segment_name=name)
+        color = SEGMENT_COLORS_RGB[editor.n_segments % len(SEGMENT_COLORS_RGB)]
+        sid = editor.add_empty_segment(segment_name=name, segment_color=list(color))
         editor.set_active_segment_id(sid)
         effect = editor.set_active_effect_type(SegmentationEffectThreshold)
         effect.set_threshold_min_max_values((lo, hi))
