@@ -73,3 +73,18 @@ def non_fluorescent_optics(mua_per_mm, musp_per_mm, n):
         "yield_per_mm": 0.0,
         "n": float(n),
     }
+
+
+def icg_absorption_per_yield():
+    """Absorption ICG adds per unit fluorescence yield, at excitation and at
+    emission: (d mua_x / d yield, d mua_m / d yield), dimensionless.
+
+    Yield = eta * mua_f_x, so 1 /mm of yield is 1 / (eta * mua_f_x per ug/mL)
+    ug/mL of ICG; the table's slopes give what that concentration absorbs
+    (about 25 at 780 nm and 7.3 at 830 nm).  A reconstruction uses these to
+    feed a target's own absorption back into its forward model.
+    """
+    lo, hi = ICG_TABLE[0.0], ICG_TABLE[2.0]
+    per_conc = [(hi[i] - lo[i]) / 2.0 for i in range(5)]   # per ug/mL
+    conc_per_yield = 1.0 / (ICG_QUANTUM_YIELD * per_conc[2])
+    return per_conc[0] * conc_per_yield, per_conc[3] * conc_per_yield

@@ -21,16 +21,20 @@ import time
 import numpy as np
 
 from fluoguide.errors import FluoInputError
+from fluoguide.optics_table import icg_absorption_per_yield
 from fluoguide.progress import check_cancel, report
 
 from .forward import FluorescenceModel
 from .noncontact import (boundary_fluence_to_counts, counts_to_boundary_fluence, detector_mask,
                          virtual_detectors)
 from .optics import robin_A
+from .partial_volume import PartialVolumePrior, node_region_fractions
+from .self_absorption import reconstruct_self_absorbing
 from .profile_metrics import depth_profile, peak_and_centroid
 from .recon import RegionPrior, reconstruct
 from .tracked_scan import TrackingError, raster_scan
-from .voxel_mesh import mesh_labelmap_structured, node_regions_volume_preserving
+from .voxel_mesh import (mesh_labelmap_structured, node_regions_volume_preserving,
+                         region_centroid_mm, target_refinement)
 
 
 def _nodal_optics(mesh_nodes_region, optics):
@@ -53,7 +57,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                              roi_half_mm=(15.0, 25.0), methods=("NP", "SP", "HP"),
                              lam=10.0, laser_power_w=0.01, camera_gain=None, camera_offset_adu=100.0,
                              camera_read_noise_adu=2.0, tracking=TrackingError(), seed=0,
-                             progress=None, cancel=None, recon_labels=None):
+                             progress=None, cancel=None, recon_labels=None, anchor_target=True,
+                             refine_target=True, partial_volume=True, self_absorption=("HP",)):
     """Run one tube depth through acquisition simulation and NP/SP/HP reconstruction.
 
     ``fine_mm`` is the element size of the simulation (forward) mesh, ``coarse_mm``
@@ -70,6 +75,15 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     reconstruction mesh and the priors come from (e.g. the user's segmentation
     of the CBCT in the app); by default the phantom's own labels.  The
     measurement is always simulated on the phantom's truth.
+    ``anchor_target``: anchor the reconstruction grid at the centre of the
+    smallest segmented region (see mesh_labelmap_structured's ``anchor_mm``).
+    ``partial_volume``: the hard prior's region basis is each node's partial
+    volume of every region (partial_volume.py), not 0/1 node labels.
+    ``self_absorption``: the methods ("SP", "HP") that feed the absorption of
+    the reconstructed ICG back into their forward model (self_absorption.py).
+    HP only by default: it took HP's mean |yield error| over the five tube
+    depths from 23 % to 5 %, while SP, whose smoother field spreads the
+    absorption, went from 10.5 % to 13.7 % at 6-9 s more per case.
     """
     t_all = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -94,8 +108,19 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                                     fine_mm, roi=roi, name="forward")
     r_labels, r_spacing, r_origin = recon_labels or (phantom.labels, phantom.spacing_mm,
                                                      phantom.origin_mm)
-    coarse = mesh_labelmap_structured(r_labels, r_spacing, r_origin,
-                                      coarse_mm, roi=roi, name="reconstruction")
+    # The reconstruction grid passes through the segmented target's centre
+    # depth, so its nodes sample the target symmetrically: on an unanchored 1 mm grid the
+    # tube's 50 %-of-peak region was off by up to half a cell (0.3 mm, 11 % of
+    # the 2.7 mm depth).  The surface stays a node layer (the roi's top face).
+    # Laterally the grid keeps x = y = 0, the line the depth profile is read on.
+    anchor = refine = None
+    if anchor_target:
+        anchor = np.array([0.0, 0.0, region_centroid_mm(r_labels, r_spacing, r_origin)[2]])
+        if refine_target:
+            refine = target_refinement(r_labels, r_spacing, r_origin, roi, 0.5 * coarse_mm,
+                                       margin_mm=2.0 * coarse_mm)
+    coarse = mesh_labelmap_structured(r_labels, r_spacing, r_origin, coarse_mm, roi=roi,
+                                      anchor_mm=anchor, refine=refine, name="reconstruction")
     timings["meshing"] = time.perf_counter() - t0
     check_cancel(cancel)
 
@@ -163,11 +188,23 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                                "n": n}, src_rep, det_rep)
     J = model.jacobian_yield()[mask.ravel()]
     timings["jacobian"] = time.perf_counter() - t0
+
+    def make_model(mua_x_nodes, mua_m_nodes):
+        """The reconstruction model with the dye's absorption (self_absorption.py)."""
+        return FluorescenceModel(coarse, {"mua_per_mm": mua_x_nodes,
+                                          "musp_per_mm": bg["musp_x_per_mm"], "n": n},
+                                 {"mua_per_mm": mua_m_nodes,
+                                  "musp_per_mm": bg["musp_m_per_mm"], "n": n}, src_rep, det_rep)
     y = y_meas[mask]
     # prior: CBCT regions on the reconstruction nodes, each region's nodes
     # carrying its label-map volume (see node_regions_volume_preserving)
     node_region = node_regions_volume_preserving(coarse, r_labels, r_spacing, r_origin)
-    prior = RegionPrior(node_region)
+    if partial_volume:
+        prior = PartialVolumePrior(node_region, *node_region_fractions(
+            coarse.nodes_mm, r_labels, r_spacing, r_origin, coarse_mm,
+            edges_mm=coarse.meta.get("edges_mm")))
+    else:
+        prior = RegionPrior(node_region)
 
     # --- truth on the profile line
     depth = float(geo["tube_depth_mm"])
@@ -179,7 +216,16 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     for i, method in enumerate(methods):
         check_cancel(cancel)
         report(progress, 0.5 + 0.45 * i / len(methods), f"reconstruction {method}")
-        res = reconstruct(J, y, method=method, lam=lam, prior=prior)
+        t_m = time.perf_counter()
+        passes = []
+        if method in tuple(self_absorption or ()):
+            res, passes = reconstruct_self_absorbing(
+                method, J, y, mask, prior, make_model,
+                (bg["mua_x_per_mm"], bg["mua_m_per_mm"]), bg["yield_per_mm"],
+                icg_absorption_per_yield(), lam=lam, cancel=cancel)
+        else:
+            res = reconstruct(J, y, method=method, lam=lam, prior=prior)
+        res.seconds = time.perf_counter() - t_m
         z, prof = depth_profile(coarse, res.yield_per_mm, (0.0, 0.0))
         peak, centroid = peak_and_centroid(z, prof)
         profiles[method] = prof
@@ -189,6 +235,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
             "true_centroid_mm": depth, "centroid_mm": centroid,
             "centroid_error_pct": 100.0 * (centroid - depth) / depth,
             **res.summary(), "yield": res.yield_per_mm,
+            "self_absorption_peaks": passes,
         }
     timings["reconstruction"] = sum(r["seconds"] for r in results.values())
     timings["total"] = time.perf_counter() - t_all
