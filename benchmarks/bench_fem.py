@@ -127,7 +127,12 @@ def main(argv=None):
             rbt.append(t)
         rmed = {k: float(np.median([t[k] for t in rbt])) for k in rbt[0]}
         racc = _accuracy(rdata, src, det)
-        print("redbirdpy: " + ", ".join(f"{k} {v:.2f}" for k, v in rmed.items()))
+        try:    # redbirdpy switches its Jacobian to numba when it can import it
+            import numba  # noqa: F401
+            build = "with numba"
+        except ImportError:
+            build = "pure Python"
+        print(f"redbirdpy ({build}): " + ", ".join(f"{k} {v:.2f}" for k, v in rmed.items()))
         print(f"  vs exact Robin half-space: median |err| {racc['median_abs_err_pct']:.2f} %, "
               f"max {racc['max_abs_err_pct']:.2f} %")
         ratio = rmed["forward_plus_jacobian_s"] / med["forward_plus_jacobian_s"]

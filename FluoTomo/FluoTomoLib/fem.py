@@ -64,10 +64,20 @@ class _Geometry:
         Jinv = _inverse_3x3(J) if d == 3 else np.linalg.inv(J)  # rows: grad xi_k
         G = np.concatenate([-Jinv.sum(axis=1, keepdims=True), Jinv], axis=1)  # (M, d+1, d)
         self.vol = mesh.measures
-        self.GGt = np.einsum("mik,mjk->mij", G, G) * self.vol[:, None, None]
+        # G G^T as d rank-one products of contiguous columns: ~2x faster than
+        # einsum or a batched matmul on (M, 4, 3) stacks
+        Gt = np.ascontiguousarray(G.transpose(2, 0, 1))          # (d, M, d+1)
+        GGt = Gt[0][:, :, None] * Gt[0][:, None, :]
+        for k in range(1, d):
+            GGt += Gt[k][:, :, None] * Gt[k][:, None, :]
+        GGt *= self.vol[:, None, None]
+        self.GGt = GGt
         nl = d + 1
-        self.rows = np.repeat(el, nl, axis=1).ravel()
-        self.cols = np.tile(el, (1, nl)).ravel()
+        # 32-bit indices where they fit: scipy's COO -> CSR conversion (every
+        # assembly) runs about 2x faster on them (0.27 vs 0.61 s, 5.3 M entries)
+        idx = el.astype(np.int32) if mesh.n_nodes < 2 ** 31 - 1 else el
+        self.rows = np.repeat(idx, nl, axis=1).ravel()
+        self.cols = np.tile(idx, (1, nl)).ravel()
         self.n = mesh.n_nodes
         self.dim = d
         # exact integral of a product of three P1 functions: |e| d! a!b!c!/(d+a+b+c)!
@@ -82,8 +92,9 @@ class _Geometry:
         # fluence oscillate negative.  Lumping keeps it positive at O(h^2) cost.
         local = np.eye(k) / k
         self._facet_vals = fm[:, None, None] * local[None]
-        self._facet_rows = np.repeat(f, k, axis=1)
-        self._facet_cols = np.tile(f, (1, k))
+        fi = f.astype(idx.dtype)
+        self._facet_rows = np.repeat(fi, k, axis=1)
+        self._facet_cols = np.tile(fi, (1, k))
         self.boundary_mass = self.boundary_mass_on(None)
         self.elements = el
 
@@ -154,6 +165,15 @@ class _PardisoFactor:
         self.Ku = sp.triu(K, format="csr")
         self.solver = pypardiso.PyPardisoSolver()
         self.solver.set_matrix_type(2)
+        # Our own iparm (iparm(1) = 1; pypardiso's zeros mean "all defaults",
+        # which include two iterative-refinement steps per solve).  Measured on
+        # the 60k-node benchmark slab, medians of 3: factorisation 1.13 -> 0.92 s
+        # with OpenMP nested dissection (iparm(2) = 3), 16 solves 0.38 -> 0.19 s
+        # with one refinement step; residual 8e-13 relative, against 3e-14.
+        self.solver.set_iparm(1, 1)
+        self.solver.set_iparm(2, 3)
+        self.solver.set_iparm(8, 1)
+        self.solver.set_iparm(10, 8)
         self.solver.factorize(self.Ku)
 
     def __call__(self, B):
