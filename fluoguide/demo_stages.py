@@ -132,7 +132,7 @@ def _tomo_figures(ctx, runs):
     panels = [("forward model (truth)", run["fine"], run["true_yield_fine"])]
     panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in methods]
     vmax = max(float(np.max(v)) for _, _, v in panels)
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
+    fig, axes = plt.subplots(1, 4, figsize=(14, 3.0), constrained_layout=True)
     for ax, (title, mesh, values) in zip(axes, panels):
         P = locator(mesh).interpolation_matrix(pts, outside="nan")
         img = (P @ values).reshape(yy.shape)
@@ -141,12 +141,29 @@ def _tomo_figures(ctx, runs):
         ax.set_title(title)
         ax.set_xlabel("y [mm]")
     axes[0].set_ylabel("z [mm]")
-    fig.colorbar(im, ax=axes, shrink=0.85, label="yield [1e-3 / mm]")
+    fig.colorbar(im, ax=axes, shrink=0.9, fraction=0.02, label="yield [1e-3 / mm]")
     fig.savefig(ctx.out / "tomo_sections.png", dpi=90)
     plt.close(fig)
     ctx.figure("tomography", "tomo_sections.png",
                f"Cross-section through the tube at {d:.1f} mm (x = 0): truth | NP | SP | HP, "
                "same colour scale.")
+
+    # one rendered camera frame (laser at the middle of the raster), log counts
+    frame = run["frame_example"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.6))
+    im = ax.imshow(np.log10(np.maximum(frame, 1.0)), cmap="gray")
+    fig.colorbar(im, ax=ax, label="log10 counts [ADU]")
+    ax.set_title(f"camera frame, laser at source {run['frame_example_source'] + 1} "
+                 f"(tube at {d:.1f} mm)")
+    ax.set_xlabel("x [px, 4x4 binned]")
+    ax.set_ylabel("y [px]")
+    fig.tight_layout()
+    fig.savefig(ctx.out / "tomo_frame.png", dpi=90)
+    plt.close(fig)
+    ctx.figure("tomography", "tomo_frame.png",
+               "A rendered fluorescence frame (every pixel ray-cast onto the surface, emission "
+               "exitance from the FEM field, shot and read noise); the bright spot is the laser "
+               "position, the detectors are ~1 mm^2 ROIs of such frames.")
 
 
 def stage_tomography(ctx):
@@ -181,11 +198,16 @@ def stage_tomography(ctx):
         "mean source position error from tracking [mm]": float(
             np.mean([runs[d]["source_error_mm"] for d in depths])),
         "solver": r0["solver"],
-        "simulated acquisition per case [s] (median)": float(np.median(
-            [runs[d]["timings"]["forward_simulation"] for d in depths])),
+        "camera pose error from tracking [mm] (mean)": float(
+            np.mean([runs[d]["camera_pose_error_mm"] for d in depths])),
+        "pixels per detector ROI (median)": float(
+            np.median([runs[d]["roi_pixels_median"] for d in depths])),
+        "simulated acquisition per case [s] (median): FEM fields + rendered frames": float(
+            np.median([runs[d]["timings"]["forward_simulation"]
+                       + runs[d]["timings"]["camera_frames"] for d in depths])),
         "processing per case [s] (median): meshing + Jacobian + NP/SP/HP": float(np.median(
             [runs[d]["timings"]["total"] - runs[d]["timings"]["forward_simulation"]
-             for d in depths])),
+             - runs[d]["timings"]["camera_frames"] for d in depths])),
         "thesis FEM processing per case [s]": "300-600",
     })
     summary["speed-up vs thesis (300 s, median case)"] = 300.0 / summary[

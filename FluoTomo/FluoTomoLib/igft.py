@@ -3,8 +3,9 @@
 Simulation (what the operating room would give):
   CBCT label map -> fine forward mesh -> tracked laser raster (true beam) ->
   FEM excitation and emission fields with the true optical properties (tube
-  absorbs and fluoresces) -> tracked camera frames of the emission exitance,
-  through the camera's radiometric model with shot/read noise.
+  absorbs and fluoresces) -> tracked camera frames of the emission exitance
+  (every pixel ray-cast onto the surface), through the camera's radiometric
+  model with shot/read noise.
 Reconstruction (what the software does with it):
   reported (tracked, noisy) laser poses -> virtual sources on the CBCT surface;
   virtual detectors at the source positions and between them, excluding
@@ -25,8 +26,9 @@ from fluoguide.optics_table import icg_absorption_per_yield
 from fluoguide.progress import check_cancel, report
 
 from .forward import FluorescenceModel
-from .noncontact import (boundary_fluence_to_counts, counts_to_boundary_fluence, detector_mask,
-                         virtual_detectors)
+from .camera_frames import (camera_pose_above, cast, detector_counts, expose, frame_radiance,
+                            surface_caster, tomography_camera)
+from .noncontact import counts_to_boundary_fluence, detector_mask, virtual_detectors
 from .optics import robin_A
 from .partial_volume import PartialVolumePrior, node_region_fractions
 from .self_absorption import reconstruct_self_absorbing
@@ -56,6 +58,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                              source_spacing_mm=2.5, detector_factor=2, exclude_mm=3.0,
                              roi_half_mm=(15.0, 25.0), methods=("NP", "SP", "HP"),
                              lam=10.0, laser_power_w=0.01, camera_gain=None, camera_offset_adu=100.0,
+                             camera_binning=4, camera_distance_mm=150.0,
                              camera_read_noise_adu=2.0, tracking=TrackingError(), seed=0,
                              progress=None, cancel=None, recon_labels=None, anchor_target=True,
                              refine_target=True, partial_volume=True, self_absorption=("HP",)):
@@ -144,9 +147,6 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                              field="laser pose", value=int(np.flatnonzero(scan["miss"])[0]))
     src_true, src_rep = scan["true_points_mm"], scan["reported_points_mm"]
     det_rep = virtual_detectors(src_rep, factor=detector_factor)
-    # the camera maps pixels to the surface with its own tracking error
-    cam_err = rng.normal(0.0, tracking.translation_sd_mm, 3) * np.array([1, 1, 0])
-    det_true = det_rep + cam_err
     mask = detector_mask(src_rep, det_rep, exclude_mm)
 
     # --- simulated measurement: true properties, true geometry
@@ -156,26 +156,43 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
                                    "musp_per_mm": true_props["musp_x_per_mm"], "n": n},
                             {"mua_per_mm": true_props["mua_m_per_mm"],
                              "musp_per_mm": true_props["musp_m_per_mm"], "n": n},
-                            src_true, det_true)
-    phi_m = sim.emission_data(true_props["yield_per_mm"])       # (S, D) per W
+                            src_true, det_rep)
+    fields = sim.emission_fields(true_props["yield_per_mm"])     # (N, S) per W
     timings["forward_simulation"] = time.perf_counter() - t0
     check_cancel(cancel)
 
-    # --- camera: ROI counts with shot and read noise (physics.md section 5)
+    # --- the tracked camera records one frame per laser position: every pixel
+    # cast onto the surface from the *true* pose and given the radiance of the
+    # emission exitance there (camera_frames.py), with shot and read noise; the
+    # software maps pixels to the CBCT surface with the *reported* pose and
+    # averages ~1 mm^2 ROIs at the virtual detectors
+    report(progress, 0.27, "camera frames")
+    t0 = time.perf_counter()
+    camera = tomography_camera(camera_binning)
+    cam_true = camera_pose_above((0.0, 0.0, 0.0), camera_distance_mm)
+    cam_rep = cam_true @ tracking.perturb(np.eye(4), rng)
+    caster, facets = surface_caster(fine, top)
+    hits_true = cast(caster, camera, cam_true)
+    hits_rep = cast(caster, camera, cam_rep)
+    radiance = frame_radiance(hits_true, facets, fine.nodes_mm, fields, A, laser_power_w)
     if camera_gain is None:
-        peak_radiance = float(phi_m[mask].max()) * laser_power_w / (2 * A) / np.pi
-        camera_gain = 0.6 * 16383 / peak_radiance
-    expected = boundary_fluence_to_counts(phi_m, camera_offset_adu, camera_gain, A, laser_power_w)
-    signal = np.clip(expected - camera_offset_adu, 0, None)
-    # ROI of ~1 mm^2 averages many pixels: noise of the ROI mean, gain 1 e-/ADU
-    pixels_per_roi = 25
-    sd = np.sqrt(signal + camera_read_noise_adu ** 2) / np.sqrt(pixels_per_roi)
-    counts = expected + rng.normal(0.0, 1.0, expected.shape) * sd
-    saturated = counts > 16383
-    if np.any(saturated & mask):
-        raise FluoInputError("detector ROIs saturate: lower the exposure", field="camera_gain",
-                             value=camera_gain)
-    y_meas = counts_to_boundary_fluence(counts, camera_offset_adu, camera_gain, A, laser_power_w)
+        # exposure: the brightest pixel outside the excluded disc around the
+        # active source at ~60 % of 14 bits (what a user sets with the exposure)
+        pts = hits_true.point_mm
+        far = np.linalg.norm(pts[None] - src_true[:, None, None, :], axis=-1) > exclude_mm
+        peak = float(np.max(np.where(far & hits_true.visible[None], radiance, 0.0)))
+        camera_gain = 0.6 * 16383 / peak
+    frames, saturated = expose(radiance, camera_gain, camera_offset_adu,
+                               camera_read_noise_adu, rng)
+    counts, roi_pixels = detector_counts(frames, saturated, hits_rep, det_rep)
+    lost = mask & ~np.isfinite(counts)
+    if np.any(lost):
+        raise FluoInputError(f"{int(lost.sum())} detector ROIs have too few unsaturated pixels: "
+                             "lower the exposure", field="camera_gain", value=camera_gain)
+    mask &= np.isfinite(counts)
+    y_meas = np.where(mask, counts_to_boundary_fluence(np.nan_to_num(counts), camera_offset_adu,
+                                                       camera_gain, A, laser_power_w), 0.0)
+    timings["camera_frames"] = time.perf_counter() - t0
 
     # --- reconstruction model: background properties, reported geometry,
     # Jacobian on the reconstruction mesh
@@ -247,6 +264,9 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
         "source_error_mm": float(np.mean(np.linalg.norm(src_true - src_rep, axis=1))),
         "measurements": int(mask.sum()), "camera_gain": float(camera_gain),
         "counts_range": [float(counts[mask].min()), float(counts[mask].max())],
+        "roi_pixels_median": float(np.median(roi_pixels[mask])),
+        "frame_example": frames[n_sources // 2], "frame_example_source": n_sources // 2,
+        "camera_pose_error_mm": float(np.linalg.norm(cam_rep[:3, 3] - cam_true[:3, 3])),
         "timings": timings, "solver": model.solver_name,
         "mesh_nodes": {"forward": fine.n_nodes, "reconstruction": coarse.n_nodes},
         "mesh_elements": {"forward": fine.n_elements, "reconstruction": coarse.n_elements},
