@@ -22,29 +22,13 @@ import time
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.optics_table import icg_absorption_per_yield
 from fluoguide.progress import check_cancel, report
 
-from .forward import FluorescenceModel
-from .camera_frames import (camera_pose_above, cast, detector_counts, expose, frame_radiance,
-                            surface_caster, tomography_camera)
-from .noncontact import counts_to_boundary_fluence, detector_mask, virtual_detectors
+from .igft_steps import acquire, nodal_optics, reconstruct_methods, reconstruction_model
 from .optics import robin_A
-from .partial_volume import PartialVolumePrior, node_region_fractions
-from .self_absorption import reconstruct_self_absorbing
 from .profile_metrics import depth_profile, peak_and_centroid
-from .recon import RegionPrior, reconstruct
 from .tracked_scan import TrackingError, raster_scan
-from .voxel_mesh import (mesh_labelmap_structured, node_regions_volume_preserving,
-                         region_centroid_mm, target_refinement)
-
-
-def _nodal_optics(mesh_nodes_region, optics):
-    """Nodal property arrays from per-region optics dicts (labels as keys)."""
-    out = {}
-    for key in ("mua_x_per_mm", "musp_x_per_mm", "mua_m_per_mm", "musp_m_per_mm", "yield_per_mm"):
-        out[key] = np.array([optics[int(r)][key] for r in mesh_nodes_region])
-    return out
+from .voxel_mesh import mesh_labelmap_structured, region_centroid_mm, target_refinement
 
 
 def _tube_indicator(points_mm, geometry):
@@ -130,7 +114,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     # --- true optical properties on the fine mesh: the analytic tube, not its voxels
     in_tube = _tube_indicator(fine.nodes_mm, geo)
     node_label = np.where(in_tube, 2, 1)
-    true_props = _nodal_optics(node_label, optics)
+    true_props = nodal_optics(node_label, optics)
     n = optics[1]["n"]
     A = float(robin_A(n))
 
@@ -146,82 +130,23 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
         raise FluoInputError("a reported laser beam misses the CBCT surface",
                              field="laser pose", value=int(np.flatnonzero(scan["miss"])[0]))
     src_true, src_rep = scan["true_points_mm"], scan["reported_points_mm"]
-    det_rep = virtual_detectors(src_rep, factor=detector_factor)
-    mask = detector_mask(src_rep, det_rep, exclude_mm)
-
-    # --- simulated measurement: true properties, true geometry
-    report(progress, 0.2, "forward simulation (true tissue)")
-    t0 = time.perf_counter()
-    sim = FluorescenceModel(fine, {"mua_per_mm": true_props["mua_x_per_mm"],
-                                   "musp_per_mm": true_props["musp_x_per_mm"], "n": n},
-                            {"mua_per_mm": true_props["mua_m_per_mm"],
-                             "musp_per_mm": true_props["musp_m_per_mm"], "n": n},
-                            src_true, det_rep)
-    fields = sim.emission_fields(true_props["yield_per_mm"])     # (N, S) per W
-    timings["forward_simulation"] = time.perf_counter() - t0
-    check_cancel(cancel)
-
-    # --- the tracked camera records one frame per laser position: every pixel
-    # cast onto the surface from the *true* pose and given the radiance of the
-    # emission exitance there (camera_frames.py), with shot and read noise; the
-    # software maps pixels to the CBCT surface with the *reported* pose and
-    # averages ~1 mm^2 ROIs at the virtual detectors
-    report(progress, 0.27, "camera frames")
-    t0 = time.perf_counter()
-    camera = tomography_camera(camera_binning)
-    cam_true = camera_pose_above((0.0, 0.0, 0.0), camera_distance_mm)
-    cam_rep = cam_true @ tracking.perturb(np.eye(4), rng)
-    caster, facets = surface_caster(fine, top)
-    hits_true = cast(caster, camera, cam_true)
-    hits_rep = cast(caster, camera, cam_rep)
-    radiance = frame_radiance(hits_true, facets, fine.nodes_mm, fields, A, laser_power_w)
-    if camera_gain is None:
-        # exposure: the brightest pixel outside the excluded disc around the
-        # active source at ~60 % of 14 bits (what a user sets with the exposure)
-        pts = hits_true.point_mm
-        far = np.linalg.norm(pts[None] - src_true[:, None, None, :], axis=-1) > exclude_mm
-        peak = float(np.max(np.where(far & hits_true.visible[None], radiance, 0.0)))
-        camera_gain = 0.6 * 16383 / peak
-    frames, saturated = expose(radiance, camera_gain, camera_offset_adu,
-                               camera_read_noise_adu, rng)
-    counts, roi_pixels = detector_counts(frames, saturated, hits_rep, det_rep)
-    lost = mask & ~np.isfinite(counts)
-    if np.any(lost):
-        raise FluoInputError(f"{int(lost.sum())} detector ROIs have too few unsaturated pixels: "
-                             "lower the exposure", field="camera_gain", value=camera_gain)
-    mask &= np.isfinite(counts)
-    y_meas = np.where(mask, counts_to_boundary_fluence(np.nan_to_num(counts), camera_offset_adu,
-                                                       camera_gain, A, laser_power_w), 0.0)
-    timings["camera_frames"] = time.perf_counter() - t0
+    acq = acquire(fine, true_props, n, A, src_true, src_rep, top, (0.0, 0.0, 0.0), tracking, rng,
+                  detector_factor=detector_factor, exclude_mm=exclude_mm,
+                  laser_power_w=laser_power_w, camera_gain=camera_gain,
+                  camera_offset_adu=camera_offset_adu,
+                  camera_read_noise_adu=camera_read_noise_adu, camera_binning=camera_binning,
+                  camera_distance_mm=camera_distance_mm, timings=timings, progress=progress,
+                  cancel=cancel)
+    det_rep, mask = acq["detectors_mm"], acq["mask"]
 
     # --- reconstruction model: background properties, reported geometry,
-    # Jacobian on the reconstruction mesh
+    # Jacobian on the reconstruction mesh, priors from the CBCT labels
     report(progress, 0.35, "Jacobian")
-    t0 = time.perf_counter()
     bg = optics[1]
-    model = FluorescenceModel(coarse, {"mua_per_mm": bg["mua_x_per_mm"],
-                                       "musp_per_mm": bg["musp_x_per_mm"], "n": n},
-                              {"mua_per_mm": bg["mua_m_per_mm"], "musp_per_mm": bg["musp_m_per_mm"],
-                               "n": n}, src_rep, det_rep)
-    J = model.jacobian_yield()[mask.ravel()]
-    timings["jacobian"] = time.perf_counter() - t0
-
-    def make_model(mua_x_nodes, mua_m_nodes):
-        """The reconstruction model with the dye's absorption (self_absorption.py)."""
-        return FluorescenceModel(coarse, {"mua_per_mm": mua_x_nodes,
-                                          "musp_per_mm": bg["musp_x_per_mm"], "n": n},
-                                 {"mua_per_mm": mua_m_nodes,
-                                  "musp_per_mm": bg["musp_m_per_mm"], "n": n}, src_rep, det_rep)
-    y = y_meas[mask]
-    # prior: CBCT regions on the reconstruction nodes, each region's nodes
-    # carrying its label-map volume (see node_regions_volume_preserving)
-    node_region = node_regions_volume_preserving(coarse, r_labels, r_spacing, r_origin)
-    if partial_volume:
-        prior = PartialVolumePrior(node_region, *node_region_fractions(
-            coarse.nodes_mm, r_labels, r_spacing, r_origin, coarse_mm,
-            edges_mm=coarse.meta.get("edges_mm")))
-    else:
-        prior = RegionPrior(node_region)
+    J, model, make_model, prior = reconstruction_model(
+        coarse, bg, n, src_rep, det_rep, mask, r_labels, r_spacing, r_origin, coarse_mm,
+        partial_volume=partial_volume, timings=timings)
+    y = acq["y"][mask]
 
     # --- truth on the profile line
     depth = float(geo["tube_depth_mm"])
@@ -230,19 +155,9 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     profiles = {}
     zc, truth_profile = depth_profile(fine, true_props["yield_per_mm"], (0.0, 0.0))
     profiles["truth"] = truth_profile
-    for i, method in enumerate(methods):
-        check_cancel(cancel)
-        report(progress, 0.5 + 0.45 * i / len(methods), f"reconstruction {method}")
-        t_m = time.perf_counter()
-        passes = []
-        if method in tuple(self_absorption or ()):
-            res, passes = reconstruct_self_absorbing(
-                method, J, y, mask, prior, make_model,
-                (bg["mua_x_per_mm"], bg["mua_m_per_mm"]), bg["yield_per_mm"],
-                icg_absorption_per_yield(), lam=lam, cancel=cancel)
-        else:
-            res = reconstruct(J, y, method=method, lam=lam, prior=prior)
-        res.seconds = time.perf_counter() - t_m
+    solved = reconstruct_methods(J, y, mask, prior, make_model, bg, methods, lam,
+                                 self_absorption, progress, cancel)
+    for method, (res, passes, _) in solved.items():
         z, prof = depth_profile(coarse, res.yield_per_mm, (0.0, 0.0))
         peak, centroid = peak_and_centroid(z, prof)
         profiles[method] = prof
@@ -262,11 +177,12 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
         "fine": fine, "coarse": coarse, "true_yield_fine": true_props["yield_per_mm"],
         "sources_true_mm": src_true, "sources_reported_mm": src_rep, "detectors_mm": det_rep,
         "source_error_mm": float(np.mean(np.linalg.norm(src_true - src_rep, axis=1))),
-        "measurements": int(mask.sum()), "camera_gain": float(camera_gain),
-        "counts_range": [float(counts[mask].min()), float(counts[mask].max())],
-        "roi_pixels_median": float(np.median(roi_pixels[mask])),
-        "frame_example": frames[n_sources // 2], "frame_example_source": n_sources // 2,
-        "camera_pose_error_mm": float(np.linalg.norm(cam_rep[:3, 3] - cam_true[:3, 3])),
+        "measurements": int(mask.sum()), "camera_gain": acq["camera_gain"],
+        "counts_range": [float(acq["counts"][mask].min()), float(acq["counts"][mask].max())],
+        "roi_pixels_median": float(np.median(acq["roi_pixels"][mask])),
+        "frame_example": acq["frames"][n_sources // 2], "frame_example_source": n_sources // 2,
+        "camera_pose_error_mm": float(np.linalg.norm(acq["camera_reported"][:3, 3]
+                                                     - acq["camera_true"][:3, 3])),
         "timings": timings, "solver": model.solver_name,
         "mesh_nodes": {"forward": fine.n_nodes, "reconstruction": coarse.n_nodes},
         "mesh_elements": {"forward": fine.n_elements, "reconstruction": coarse.n_elements},

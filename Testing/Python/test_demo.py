@@ -58,6 +58,12 @@ def test_quick_demo_end_to_end(tmp_path):
     assert light["illumination: axis error [deg]"] < 0.5
     assert light["laser: direction error [deg]"] < 0.3
     assert (tmp_path / "q" / "illumination_ratio.png").is_file()
+    # the tube cases read rendered frames; the oral cavity runs through the same steps
+    assert (tmp_path / "q" / "tomo_frame.png").is_file()
+    assert metrics["tomography"]["pixels per detector ROI (median)"] >= 4
+    oral = metrics["oral_tomography"]
+    assert abs(oral["HP tongue yield error %"]) < abs(oral["NP tongue yield error %"])
+    assert (tmp_path / "q" / "oral_sections.png").is_file()
     mapping = metrics["surface_mapping"]
     assert min(mapping["visible pixels with transport within 5 % (per view)"]) >= 0.9
     assert max(mapping["miss rate corrected % (per view)"]) < 5
