@@ -35,10 +35,14 @@ from .voxel_mesh import mesh_labelmap_structured, nodal_volumes
 ORAL_ROI_MM = (-20.0, 20.0, -16.0, 26.0, -40.0, -8.0)
 
 
-def tissue_air_facets(mesh, labels_kji, spacing_mm, origin_mm, probe_mm=0.6):
+def tissue_air_facets(mesh, labels_kji, spacing_mm, origin_mm, probe_mm=None):
     """Boundary facets of a cropped mesh that face air in the label map (the
     real tissue surface), not the faces where the region of interest cut the
-    tissue: the label ``probe_mm`` outside each facet's centre is 0."""
+    tissue: the label ``probe_mm`` outside each facet's centre is 0 (default
+    0.75 element: a structured mesh's surface lies up to half a cell off the
+    label map's)."""
+    if probe_mm is None:
+        probe_mm = 0.75 * float(mesh.meta.get("size_mm", 1.0))
     f = mesh.boundary_facets
     c = mesh.nodes_mm[f].mean(axis=1) + probe_mm * mesh.boundary_normals
     ijk = np.round((c - np.asarray(origin_mm, float)) / np.asarray(spacing_mm, float)).astype(int)
