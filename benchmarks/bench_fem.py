@@ -100,10 +100,35 @@ def run_redbird(mesh, src, det):
                           "forward_plus_jacobian_s": t_prep + t_fwd + t_jac}
 
 
+def _redbird_pure_python(h, repeats):
+    """redbirdpy's timings with numba hidden (in a child process): the build the
+    speed target was first measured against, for the record next to the
+    numba one."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parent
+    code = ("import sys, json; sys.modules['numba'] = None; "
+            f"sys.path[:0] = [{str(here)!r}, {str(here.parent)!r}, {str(here.parent / 'FluoTomo')!r}]; "
+            "from bench_fem import run_redbird, _slab, _optodes; src, det = _optodes(); "
+            f"print('RESULT ' + json.dumps([run_redbird(_slab({h}), src, det)[2] "
+            f"for _ in range({int(repeats)})]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=1800)
+    line = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
+    if out.returncode or not line:
+        raise RuntimeError(f"pure-Python redbird run failed: {out.stderr[-500:]}")
+    return json.loads(line[-1][7:])
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m benchmarks fem")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--skip-redbird", action="store_true")
+    ap.add_argument("--pure-repeats", type=int, default=1,
+                    help="also time redbirdpy with numba hidden (0: skip; ~30 s each)")
     ap.add_argument("--h", type=float, default=1.2, help="lateral element size of the main slab [mm]")
     args = ap.parse_args(argv)
     src, det = _optodes()
@@ -137,8 +162,16 @@ def main(argv=None):
               f"max {racc['max_abs_err_pct']:.2f} %")
         ratio = rmed["forward_plus_jacobian_s"] / med["forward_plus_jacobian_s"]
         agree = np.median(np.abs(data / rdata - 1)) * 100
-        print(f"speed-up forward+Jacobian (median): {ratio:.2f}x; median |FluoGuide/redbird - 1| "
-              f"{agree:.2f} %")
+        print(f"speed-up forward+Jacobian (median): {ratio:.2f}x vs redbirdpy ({build}); "
+              f"median |FluoGuide/redbird - 1| {agree:.2f} %")
+        if build == "with numba" and args.pure_repeats > 0:
+            pure = _redbird_pure_python(args.h, args.pure_repeats)
+            pmed = {k: float(np.median([t[k] for t in pure])) for k in pure[0]}
+            print("redbirdpy (pure Python, numba hidden): "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in pmed.items()))
+            print(f"speed-up forward+Jacobian (median): "
+                  f"{pmed['forward_plus_jacobian_s'] / med['forward_plus_jacobian_s']:.2f}x vs "
+                  "redbirdpy (pure Python)")
     print("\nmesh size vs error vs time (FluoGuide, forward + Jacobian):")
     print(f"{'h_xy mm':>8} {'nodes':>8} {'median err %':>13} {'max err %':>10} {'seconds':>8}")
     for h in (3.0, 2.0, 1.5, 1.2, 1.0):
