@@ -122,28 +122,9 @@ def _tomo_figures(ctx, runs):
     plt.close(fig)
     ctx.figure("tomography", "tomo_errors.png", "Yield and centroid errors vs tube depth (NP, SP, HP).")
 
-    # y-z section at x = 0 on a regular grid, same colour scale for all panels
-    from FluoTomoLib.locate import locator
-
     d = depths[0]
     run = runs[d]
-    yy, zz = np.meshgrid(np.linspace(-8, 8, 321), np.linspace(0, -10, 201))
-    pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
-    panels = [("forward model (truth)", run["fine"], run["true_yield_fine"])]
-    panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in methods]
-    vmax = max(float(np.max(v)) for _, _, v in panels)
-    fig, axes = plt.subplots(1, 4, figsize=(14, 3.0), constrained_layout=True)
-    for ax, (title, mesh, values) in zip(axes, panels):
-        P = locator(mesh).interpolation_matrix(pts, outside="nan")
-        img = (P @ values).reshape(yy.shape)
-        im = ax.imshow(1e3 * img, extent=(-8, 8, -10, 0), origin="upper", cmap="inferno",
-                       vmin=0, vmax=1e3 * vmax, aspect="equal")
-        ax.set_title(title)
-        ax.set_xlabel("y [mm]")
-    axes[0].set_ylabel("z [mm]")
-    fig.colorbar(im, ax=axes, shrink=0.9, fraction=0.02, label="yield [1e-3 / mm]")
-    fig.savefig(ctx.out / "tomo_sections.png", dpi=90)
-    plt.close(fig)
+    _section_figure(ctx.out / "tomo_sections.png", run, (-8, 8), (0, -10))
     ctx.figure("tomography", "tomo_sections.png",
                f"Cross-section through the tube at {d:.1f} mm (x = 0): truth | NP | SP | HP, "
                "same colour scale.")
@@ -164,6 +145,37 @@ def _tomo_figures(ctx, runs):
                "A rendered fluorescence frame (every pixel ray-cast onto the surface, emission "
                "exitance from the FEM field, shot and read noise); the bright spot is the laser "
                "position, the detectors are ~1 mm^2 ROIs of such frames.")
+
+
+def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8):
+    """y-z section at x = 0 of truth | NP | SP | HP on one colour scale (blank
+    where there is no tissue); ``sources``: mark where the laser entered."""
+    from FluoTomoLib.locate import locator
+
+    plt = _plt()
+    ny = int(abs(y_mm[1] - y_mm[0]) * px_per_mm) + 1
+    nz = int(abs(z_mm[1] - z_mm[0]) * px_per_mm) + 1
+    yy, zz = np.meshgrid(np.linspace(*y_mm, ny), np.linspace(*z_mm, nz))
+    pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
+    panels = [("forward model (truth)", run["fine"], run["true_yield_fine"])]
+    panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in ("NP", "SP", "HP")]
+    vmax = max(float(np.max(v)) for _, _, v in panels)
+    cmap = plt.get_cmap("inferno").with_extremes(bad="white")
+    fig, axes = plt.subplots(1, 4, figsize=(14, 3.4), constrained_layout=True)
+    for ax, (title, mesh, values) in zip(axes, panels):
+        P = locator(mesh).interpolation_matrix(pts, outside="nan")
+        inside = np.asarray(P.sum(axis=1)).ravel() > 0.5     # rows outside the mesh are empty
+        img = np.where(inside, P @ values, np.nan).reshape(yy.shape)
+        im = ax.imshow(1e3 * img, extent=(*y_mm, min(z_mm), max(z_mm)), origin="upper",
+                       cmap=cmap, vmin=0, vmax=1e3 * vmax, aspect="equal")
+        if sources:
+            ax.plot(run["sources_true_mm"][:, 1], run["sources_true_mm"][:, 2], "c.", ms=3)
+        ax.set_title(title)
+        ax.set_xlabel("y [mm]")
+    axes[0].set_ylabel("z [mm]")
+    fig.colorbar(im, ax=axes, shrink=0.9, fraction=0.02, label="yield [1e-3 / mm]")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def stage_tomography(ctx):
@@ -417,9 +429,10 @@ def stage_oral_tomography(ctx):
     """The same acquisition and reconstruction on the oral cavity: a curved surface,
     beams and camera looking into the cavity, the ICG-rich tongue as the target."""
     from FluoTomoLib.igft_oral import simulate_and_reconstruct_oral
-    from FluoTomoLib.locate import locator
 
     ph = ctx.state["phantoms"]["oral-cavity"]
+    # the same meshes in quick mode: at 2 mm the tongue's 0.7 mm decay length is
+    # not resolved (measured: HP's agar value ran away)
     run = simulate_and_reconstruct_oral(ph, seed=ctx.seed)
     methods = ["NP", "SP", "HP"]
     out = {}
@@ -434,26 +447,7 @@ def stage_oral_tomography(ctx):
                 "stage times [s]": {k: round(v, 2) for k, v in run["timings"].items()}})
     ctx.metrics["oral_tomography"] = out
 
-    plt = _plt()
-    yy, zz = np.meshgrid(np.linspace(-16, 26, 337), np.linspace(-8, -40, 257))
-    pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
-    panels = [("forward model (truth)", run["fine"], run["true_yield_fine"])]
-    panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in methods]
-    vmax = max(float(np.max(v)) for _, _, v in panels)
-    cmap = plt.get_cmap("inferno").copy()
-    cmap.set_bad("white")                      # the cavity: no tissue, no mesh
-    fig, axes = plt.subplots(1, 4, figsize=(14, 3.4), constrained_layout=True)
-    for ax, (title, mesh, values) in zip(axes, panels):
-        img = (locator(mesh).interpolation_matrix(pts, outside="nan") @ values).reshape(yy.shape)
-        im = ax.imshow(1e3 * img, extent=(-16, 26, -40, -8), origin="upper", cmap=cmap,
-                       vmin=0, vmax=1e3 * vmax, aspect="equal")
-        ax.plot(run["sources_true_mm"][:, 1], run["sources_true_mm"][:, 2], "c.", ms=3)
-        ax.set_title(title)
-        ax.set_xlabel("y [mm]")
-    axes[0].set_ylabel("z [mm]")
-    fig.colorbar(im, ax=axes, shrink=0.9, fraction=0.02, label="yield [1e-3 / mm]")
-    fig.savefig(ctx.out / "oral_sections.png", dpi=90)
-    plt.close(fig)
+    _section_figure(ctx.out / "oral_sections.png", run, (-16, 26), (-8, -40), sources=True)
     ctx.figure("oral_tomography", "oral_sections.png",
                "Oral cavity, section x = 0 through the tongue (the cavity is white: not tissue): "
                "truth | NP | SP | HP, same colour scale; cyan dots: where the laser entered.")

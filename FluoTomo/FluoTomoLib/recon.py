@@ -132,26 +132,189 @@ def _chol_solve(L, b):
     return solve_triangular(L.T, solve_triangular(L, b, lower=True), lower=False)
 
 
+def region_jacobian(J_forward, forward_region, labels):
+    """Hard-prior Jacobian built at the forward-mesh resolution, J_hp = J_f K_f.
+
+    A hard prior is a piecewise-constant field from the segmentation, so its
+    basis can live on the forward mesh, where the data were simulated (or the
+    labels are finest).  Mapping a 0/1 basis from the coarser reconstruction
+    mesh through the interpolation P (J_r = J_f P K) smears its staircase
+    boundary, and the region value must then compensate by an amount that
+    depends on how the target sits on the coarse grid (study B: -0.7 / -10 %
+    alternating with depth; -1.1 to -1.6 % with this basis).
+
+    Parameters
+    ----------
+    J_forward : (M, N_f) Jacobian d(data)/d(yield) on the forward mesh
+        [data units per (1/mm)]
+    forward_region : (N_f,) int region label of every forward-mesh node
+    labels : (R,) region labels, in the order of the unknowns (``prior.labels``
+        of the reconstruction mesh's RegionPrior)
+
+    Returns
+    -------
+    (M, R) sensitivity of the data to each region's yield, for
+    ``reconstruct(..., region_jacobian=...)``.
+    """
+    region = np.asarray(forward_region).ravel()
+    J_forward = np.asarray(J_forward, float)
+    if J_forward.ndim != 2 or len(region) != J_forward.shape[1]:
+        raise FluoInputError("one region label per forward-mesh node (Jacobian column)",
+                             field="forward_region", value=(len(region), np.shape(J_forward)))
+    missing = [int(v) for v in labels if not np.any(region == v)]
+    if missing:
+        raise FluoInputError("a region of the prior has no node on the forward mesh",
+                             field="forward_region", value=missing)
+    return np.stack([J_forward[:, region == v].sum(axis=1) for v in labels], axis=1)
+
+
+def _linearise(A, y, x, log_data):
+    """Residual and Jacobian of the data model at ``x``.
+
+    Linear data: r = y - A x, Jacobian A.  Log data (NIRFAST's fluorescence
+    reconstruction fits ln of the amplitude): r = ln y - ln(A x), Jacobian
+    diag(1 / A x) A.  With relative measurement noise the log residuals have
+    equal variance, so every source-detector pair weighs the same instead of
+    the near-source pairs (which see only the surface) dominating.
+    """
+    F = A @ x
+    if not log_data:
+        return y - F, A
+    # non-negative yields keep F >= 0; the floor only guards an all-zero column set
+    F = np.maximum(F, np.finfo(float).tiny)
+    return np.log(y) - np.log(F), A / F[:, None]
+
+
+def _initial_guess(A, y, x0, K, counts, log_data, positive):
+    """Starting unknowns.  ``x0``: None, a scalar (homogeneous yield [1/mm]) or
+    nodal values.  None with a scheme that needs positive values (log data,
+    normalised Jacobian) starts from the homogeneous yield that fits the data
+    best (in the log sense for log data): a zero start gives no signal to take
+    the log of and no column scale."""
+    n = A.shape[1]
+    if x0 is None:
+        if not positive:
+            return np.zeros(n)
+        one = A.sum(axis=1)
+        c = (float(np.exp(np.mean(np.log(y) - np.log(one)))) if log_data
+             else float(one @ y / (one @ one)))
+        return np.full(n, c)
+    if np.ndim(x0) == 0:
+        return np.full(n, float(x0))
+    x0 = np.asarray(x0, float)
+    return K.T @ x0 / counts if K is not None else x0.copy()
+
+
+def _inverse_regulariser(method, prior, Jm, lam_k):
+    """R^-1 as a function of X (N,) or (N, k), for the current linearisation ``Jm``.
+
+    NP: R = lambda' I; SP: R = lambda' L^T L, lambda' = lambda * max(diag(Jm^T Jm));
+    HP: Marquardt's R = lambda diag(Jm^T Jm): regions differ in size by orders of
+    magnitude and one scalar damping scaled by the largest region would freeze a
+    small target's value.
+    """
+    jtj_diag = np.einsum("ij,ij->j", Jm, Jm)
+    scale = float(np.max(jtj_diag))
+    if scale <= 0:
+        raise FluoInputError("the Jacobian is zero: detectors are insensitive to every node",
+                             field="J")
+    if method == "SP":
+        return lambda X: prior.apply_LtL_inv(X) / (lam_k * scale)
+    d = lam_k * (np.maximum(jtj_diag, 1e-300 * scale) if method == "HP"
+                 else np.full(Jm.shape[1], scale))
+    return lambda X: (np.asarray(X).T / d).T
+
+
 def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
-                nonneg=True, lambda_decay=None, progress=None, cancel=None):
+                nonneg=True, lambda_decay=None, log_data=False, normalise=False,
+                region_jacobian=None, progress=None, cancel=None):
     """Reconstruct nodal yield from data ``y`` with sensitivity ``J``.
 
     Parameters
     ----------
     J : (M, N) Jacobian d(data)/d(yield) on the reconstruction mesh
+        [data units per (1/mm)]
     y : (M,) measured boundary fluence (same units as J @ yield)
     method : "NP", "SP" or "HP"
     lam : lambda of the reference (lambda' = lambda * max(diag(J^T J)))
     prior : RegionPrior, required for SP and HP
+    x0 : starting yield [1/mm]: None (zero; with ``log_data`` or ``normalise``
+        the best-fitting homogeneous yield), a scalar (homogeneous) or nodal values
     lambda_decay : lambda is divided by this after every iteration.  Default:
         1 (fixed, as the reference states, so the damping also regularises)
         for NP and SP; 10^0.25 (NIRFAST's schedule) for HP, whose few region
         unknowns are well determined and need damping only for the first steps
+    log_data : fit ln y (NIRFAST's fluorescence reconstruction, reconstruct_fl*.m):
+        the residual is ln y - ln(J x) and the Jacobian's rows are divided by
+        J x, so the problem is re-linearised every iteration.  Needs y > 0.
+    normalise : scale the Jacobian's columns by the current yield (NIRFAST's
+        J diag(gamma)) and multiply the step by it: the damping then acts on
+        relative changes, so nodes that have grown are damped less.
+    region_jacobian : (M, n_regions) HP only: the data's sensitivity to each
+        region's yield (columns in ``prior.labels`` order), e.g. built on the
+        forward mesh with :func:`region_jacobian`; default J @ prior.K()
+
+    Returns
+    -------
+    ReconResult with the nodal yield [1/mm] on the reconstruction mesh.
     """
     t0 = time.perf_counter()
     J = np.asarray(J, float)
     y = np.asarray(y, float).ravel()
     method = str(method).upper()
+    _check_inputs(J, y, method, lam, prior, log_data)
+
+    K = prior.K() if method == "HP" else None
+    A = J if K is None else _region_matrix(J, K, region_jacobian, prior)
+    nonlinear = bool(log_data or normalise)
+    counts = prior.counts if K is not None else None
+    x = _initial_guess(A, y, x0, K, counts, log_data, nonlinear)
+    if nonlinear and not np.any(x > 0):
+        raise FluoInputError("the starting yield must be positive for log data or a "
+                             "normalised Jacobian", field="x0")
+    resid, Jm = _linearise(A, y, x, log_data)
+    history = [float(resid @ resid)]
+    stop = "max_iter"
+    clipped = 0.0
+    lam_k = float(lam)
+    if lambda_decay is None:
+        lambda_decay = 10 ** 0.25 if method == "HP" else 1.0
+    cached_lam = None
+    col = None
+    for it in range(1, max_iter + 1):
+        check_cancel(cancel)
+        # J is fixed for linear data and no normalisation: refactor only when
+        # lambda changes; otherwise the linearisation moves every iteration
+        if nonlinear or lam_k != cached_lam:
+            col = x.copy() if normalise else None
+            Jc = Jm * col if normalise else Jm
+            Rinv = _inverse_regulariser(method, prior, Jc, lam_k)
+            RJt = Rinv(Jc.T)
+            S = Jc @ RJt
+            S[np.diag_indices_from(S)] += 1.0
+            S_factor = np.linalg.cholesky(S)
+            cached_lam = lam_k
+        step = RJt @ _chol_solve(S_factor, resid)
+        x = x + (step * col if normalise else step)
+        if nonneg:
+            neg = x < 0
+            clipped = float(np.mean(neg))
+            x[neg] = 0.0
+        resid, Jm = _linearise(A, y, x, log_data)
+        history.append(float(resid @ resid))
+        report(progress, it / max_iter, f"{method} iteration {it}: residual {history[-1]:.3g}")
+        if history[-2] > 0 and abs(history[-2] - history[-1]) / history[-2] < rel_tol:
+            stop = "residual change < {:.0%}".format(rel_tol)
+            break
+        lam_k /= lambda_decay
+    x_nodes = K @ x if K is not None else x
+    conf = _region_confidence(Jc, Rinv, S, resid, prior, x_nodes, method, col)
+    return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
+                       conf, clipped, stop)
+
+
+def _check_inputs(J, y, method, lam, prior, log_data):
+    """Explain bad input before any work (FluoInputError)."""
     if method not in ("NP", "SP", "HP"):
         raise FluoInputError("method must be NP, SP or HP", field="method", value=method)
     if J.ndim != 2 or J.shape[0] != len(y):
@@ -162,6 +325,9 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     if not np.any(y != 0):
         raise FluoInputError("all data are zero: nothing to reconstruct (no fluorescence "
                              "detected, or the detectors saw no light)", field="y")
+    if log_data and np.any(y <= 0):
+        raise FluoInputError("log data need every measurement > 0: leave out the detectors "
+                             "that saw no light", field="y", value=int(np.sum(y <= 0)))
     if not (np.isfinite(lam) and lam > 0):
         raise FluoInputError("lambda must be a positive number", field="lambda", value=lam)
     if method in ("SP", "HP") and prior is None:
@@ -171,75 +337,26 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         raise FluoInputError("prior has a different number of nodes than the Jacobian",
                              field="prior", value=(len(prior.node_region), J.shape[1]))
 
-    if method == "HP":
-        K = prior.K()
-        A = J @ K
-    else:
-        K = None
-        A = J
-    jtj_diag = np.einsum("ij,ij->j", A, A)
-    scale = float(np.max(jtj_diag))
-    if scale <= 0:
-        raise FluoInputError("the Jacobian is zero: detectors are insensitive to every node",
-                             field="J")
-    if method == "HP":
-        # Regions differ in size by orders of magnitude; one scalar damping scaled
-        # by the largest region would freeze a small target's value, so HP uses
-        # Marquardt's diagonal scaling (each region damped by its own J^T J).
-        damping = np.maximum(jtj_diag, 1e-300 * scale)
-    else:
-        damping = np.full(A.shape[1], scale)
 
-    def make_rinv(lam_k):
-        if method == "SP":
-            return lambda X: prior.apply_LtL_inv(X) / (lam_k * scale)
-        d = lam_k * damping
-        return lambda X: (np.asarray(X).T / d).T
-
-    n_unknown = A.shape[1]
-    x = np.zeros(n_unknown) if x0 is None else (K.T @ x0 / prior.counts if K is not None
-                                                 else np.asarray(x0, float).copy())
-    resid = y - A @ x
-    history = [float(resid @ resid)]
-    stop = "max_iter"
-    clipped = 0.0
-    lam_k = float(lam)
-    if lambda_decay is None:
-        lambda_decay = 10 ** 0.25 if method == "HP" else 1.0
-    cached_lam = None
-    for it in range(1, max_iter + 1):
-        check_cancel(cancel)
-        if lam_k != cached_lam:  # J is fixed: refactor only when lambda changes
-            Rinv = make_rinv(lam_k)
-            RJt = Rinv(A.T)
-            S = A @ RJt
-            S[np.diag_indices_from(S)] += 1.0
-            S_factor = np.linalg.cholesky(S)
-            cached_lam = lam_k
-        step = RJt @ _chol_solve(S_factor, resid)
-        x = x + step
-        if nonneg:
-            neg = x < 0
-            clipped = float(np.mean(neg))
-            x[neg] = 0.0
-        resid = y - A @ x
-        history.append(float(resid @ resid))
-        report(progress, it / max_iter, f"{method} iteration {it}: residual {history[-1]:.3g}")
-        if history[-2] > 0 and abs(history[-2] - history[-1]) / history[-2] < rel_tol:
-            stop = "residual change < {:.0%}".format(rel_tol)
-            break
-        lam_k /= lambda_decay
-    x_nodes = K @ x if K is not None else x
-    conf = _region_confidence(A, Rinv, S, resid, prior, x_nodes, method)
-    return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
-                       conf, clipped, stop)
+def _region_matrix(J, K, region_jacobian, prior):
+    """HP's unknowns are one yield per region: J K, or the caller's finer basis."""
+    if region_jacobian is None:
+        return J @ K
+    A = np.asarray(region_jacobian, float)
+    if A.shape != (J.shape[0], len(prior.labels)) or not np.all(np.isfinite(A)):
+        raise FluoInputError("region_jacobian must be finite, (measurements, regions)",
+                             field="region_jacobian",
+                             value=(np.shape(region_jacobian), (J.shape[0], len(prior.labels))))
+    return A
 
 
-def _region_confidence(A, Rinv, S, resid, prior, x_nodes, method):
+def _region_confidence(A, Rinv, S, resid, prior, x_nodes, method, col=None):
     """Per-region mean yield and its standard deviation from the regularised
     Hessian H = J^T J + R:  var(w^T x) = sigma^2 w^T H^-1 w, sigma^2 = residual
     variance, w = region-averaging weights.  Cheap: Woodbury in data space,
-    w^T H^-1 w = w^T R^-1 w - (J R^-1 w)^T S^-1 (J R^-1 w)."""
+    w^T H^-1 w = w^T R^-1 w - (J R^-1 w)^T S^-1 (J R^-1 w).  ``col``: the
+    column scaling of a normalised Jacobian (the unknowns are x / col, so the
+    weights become w * col)."""
     if prior is None:
         return {}
     m = len(resid)
@@ -252,6 +369,8 @@ def _region_confidence(A, Rinv, S, resid, prior, x_nodes, method):
             w[r] = 1.0
         else:
             w = (prior.index == r).astype(float) / prior.counts[r]
+        if col is not None:
+            w = w * col
         Rinv_w = Rinv(w)
         JRw = A @ Rinv_w
         var = float(w @ Rinv_w - JRw @ np.linalg.solve(S, JRw)) * sigma2

@@ -15,6 +15,14 @@ Jacobian is computed on the forward mesh and mapped to the reconstruction
 mesh (J_r = J_f P), as in the thesis.  Priors come from the target shape
 (study C: a filled disc while the truth is an annulus) with volume-preserving
 node regions.
+
+Reconstruction scheme (``scheme``): "nirfast" (default) is what the thesis ran,
+NIRFAST's fluorescence reconstruction: log-amplitude data, the Jacobian
+normalised by the current yield, fixed lambda for NP and SP, started from the
+known background yield.  "reference" is the literal update of physics.md
+(linear data, zero start), kept for comparison.  HP's region basis
+(``hp_basis``) is built on the forward mesh by default, where the data live
+(NIRFAST's reconstruct_fl_region also works on the forward mesh).
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ from fluoguide.progress import check_cancel, report
 from .forward import FluorescenceModel
 from .locate import locator
 from .profile_metrics import depth_profile, peak_and_centroid
-from .recon import RegionPrior, reconstruct
+from .recon import RegionPrior, reconstruct, region_jacobian
 from .structured_mesh import box_mesh, rectangle_mesh
 
 WIDTH_MM, DEPTH_MM = 50.0, 30.0
@@ -104,6 +112,13 @@ def node_regions_from_shape(mesh, inside, supersample=8):
     return region
 
 
+# reconstruct() options per scheme; "start": the initial yield [1/mm] (None: zero)
+SCHEMES = {
+    "nirfast": dict(log_data=True, normalise=True, start=YIELD_BG),
+    "reference": dict(log_data=False, normalise=False, start=None),
+}
+HP_BASES = ("forward", "reconstruction")
+
 _CACHE = {}
 
 
@@ -124,10 +139,29 @@ def _forward_setup(fine, coarse):
     return _CACHE[key]
 
 
+def _recon_options(scheme, hp_basis):
+    """reconstruct() keyword arguments for a scheme name (both names validated)."""
+    if scheme not in SCHEMES:
+        raise FluoInputError(f"scheme must be one of {', '.join(SCHEMES)}", field="scheme",
+                             value=scheme)
+    if hp_basis not in HP_BASES:
+        raise FluoInputError(f"HP basis must be one of {', '.join(HP_BASES)}",
+                             field="hp_basis", value=hp_basis)
+    opts = dict(SCHEMES[scheme])
+    opts["x0"] = opts.pop("start")
+    return opts
+
+
 def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diameter_mm=None,
              methods=("NP", "SP", "HP"), lambdas=None, seed=0, noise_pct=1.0, meshes=None,
-             progress=None, cancel=None):
-    """One target through NP/SP/HP; returns (rows, figure data)."""
+             scheme="nirfast", hp_basis="forward", progress=None, cancel=None):
+    """One target through NP/SP/HP; returns (rows, figure data).
+
+    ``scheme``: "nirfast" or "reference" (module docstring); ``hp_basis``:
+    "forward" (HP's region Jacobian J_f K_f from node regions of the forward
+    mesh) or "reconstruction" (J_f P K from those of the reconstruction mesh).
+    """
+    opts = _recon_options(scheme, hp_basis)
     fine, coarse = meshes or study_meshes()
     depth_max = (DEPTH_MM if fine.dim == 2 else SLAB_DEPTH_MM) - 2
     if not (0 < diameter_mm < depth_max) or top_depth_mm < 0 or top_depth_mm + diameter_mm > depth_max:
@@ -143,6 +177,8 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
     y = y_clean * (1.0 + rng.normal(0.0, noise_pct / 300.0, y_clean.shape))
     prior_shape, _ = disc(prior_diameter_mm or diameter_mm, top_depth_mm)
     prior = RegionPrior(node_regions_from_shape(coarse, prior_shape))
+    J_hp = (region_jacobian(J_f, node_regions_from_shape(fine, prior_shape), prior.labels)
+            if hp_basis == "forward" else None)
     z_true, prof_true = depth_profile(fine, truth_f, line, 0.0, bottom)
     rows, fields = [], {"truth": (fine, truth_f)}
     for method in methods:
@@ -150,7 +186,8 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
             check_cancel(cancel)
             report(progress, 0.5, f"{case}: {method} lambda {lam:g}")
             t0 = time.perf_counter()
-            res = reconstruct(J, y, method, lam=lam, prior=prior)
+            res = reconstruct(J, y, method, lam=lam, prior=prior,
+                              region_jacobian=J_hp if method == "HP" else None, **opts)
             sec = time.perf_counter() - t0
             z, prof = depth_profile(coarse, res.yield_per_mm, line, 0.0, bottom)
             peak, centroid = peak_and_centroid(z, prof)
@@ -177,9 +214,12 @@ STUDIES = {
 }
 
 
-def run_study(name, seed=0, target=None, out_dir=None, dim=2, progress=None, cancel=None):
+def run_study(name, seed=0, target=None, out_dir=None, dim=2, scheme="nirfast",
+              hp_basis="forward", progress=None, cancel=None):
     """Run study A, B or C (or one custom ``target`` = (diameter, top depth)), in 2D
-    (discs in a 50 x 30 mm section) or 3D (spheres in a 50 x 30 x 20 mm slab)."""
+    (discs in a 50 x 30 mm section) or 3D (spheres in a 50 x 30 x 20 mm slab),
+    with a reconstruction ``scheme`` and ``hp_basis`` as in :func:`run_case`."""
+    _recon_options(scheme, hp_basis)      # bad names fail before any mesh is built
     if target is not None:
         cases = [(f"custom: {target[0]:g} mm disc, top {target[1]:g} mm",
                   dict(diameter_mm=target[0], top_depth_mm=target[1]))]
@@ -194,7 +234,8 @@ def run_study(name, seed=0, target=None, out_dir=None, dim=2, progress=None, can
     rows, figures = [], []
     for i, (case, kw) in enumerate(cases):
         report(progress, i / len(cases), case)
-        r, fields = run_case(case, seed=seed, meshes=meshes, cancel=cancel, **kw)
+        r, fields = run_case(case, seed=seed, meshes=meshes, scheme=scheme, hp_basis=hp_basis,
+                             cancel=cancel, **kw)
         rows += r
         if out_dir is not None:
             from .study_plots import plot_case
@@ -205,7 +246,8 @@ def run_study(name, seed=0, target=None, out_dir=None, dim=2, progress=None, can
             "figures": figures,
             "forward_mesh": [meshes[0].n_nodes, meshes[0].n_elements],
             "reconstruction_mesh": [meshes[1].n_nodes, meshes[1].n_elements],
-            "measurements": 240, "noise": "Gaussian, sigma = 1/3 % relative (max ~1 %)"}
+            "measurements": 240, "noise": "Gaussian, sigma = 1/3 % relative (max ~1 %)",
+            "scheme": scheme, "hp_basis": hp_basis}
 
 
 SWEEPS = {
@@ -215,7 +257,8 @@ SWEEPS = {
 }
 
 
-def run_sweep(kind, target=(6.0, 3.5), dim=2, seed=0, progress=None, cancel=None):
+def run_sweep(kind, target=(6.0, 3.5), dim=2, seed=0, scheme="nirfast", hp_basis="forward",
+              progress=None, cancel=None):
     """Error against time for one target as lambda, noise [% max amplitude] or the
     reconstruction mesh size [mm] varies: the speed/accuracy trade a user makes."""
     if kind not in SWEEPS:
@@ -225,7 +268,8 @@ def run_sweep(kind, target=(6.0, 3.5), dim=2, seed=0, progress=None, cancel=None
     base = study_meshes(dim=dim)
     for i, value in enumerate(SWEEPS[kind]):
         report(progress, i / len(SWEEPS[kind]), f"{kind} = {value:g}")
-        kw = dict(diameter_mm=target[0], top_depth_mm=target[1], seed=seed, cancel=cancel)
+        kw = dict(diameter_mm=target[0], top_depth_mm=target[1], seed=seed, scheme=scheme,
+                  hp_basis=hp_basis, cancel=cancel)
         if kind == "lambda":
             kw["lambdas"] = {m: [value] for m in ("NP", "SP", "HP")}
             meshes = base
@@ -243,4 +287,5 @@ def run_sweep(kind, target=(6.0, 3.5), dim=2, seed=0, progress=None, cancel=None
             row["value"] = value
             row["case_seconds_including_jacobian"] = elapsed
         rows += r
-    return {"sweep": kind, "dim": dim, "target": list(target), "rows": rows}
+    return {"sweep": kind, "dim": dim, "target": list(target), "rows": rows, "scheme": scheme,
+            "hp_basis": hp_basis}

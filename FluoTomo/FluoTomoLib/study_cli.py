@@ -27,10 +27,12 @@ def _handler(args):
     with TqdmProgress(f"study {args.study}", force=not args.json) as bar:
         if args.sweep:
             out = run_sweep(args.sweep, target=target or (6.0, 3.5), dim=args.dim,
-                            seed=args.seed, progress=bar)
+                            seed=args.seed, scheme=args.scheme, hp_basis=args.hp_basis,
+                            progress=bar)
         else:
             out = run_study(args.study, seed=args.seed, target=target, out_dir=args.out,
-                            dim=args.dim, progress=bar)
+                            dim=args.dim, scheme=args.scheme, hp_basis=args.hp_basis,
+                            progress=bar)
     out["seconds"] = time.perf_counter() - t0
     if args.out:
         import json
@@ -56,6 +58,13 @@ def register(sub):
     p.add_argument("--sweep", choices=["lambda", "noise", "mesh"], default=None,
                    help="error against time for one target (--target, default 6,3.5) as "
                    "lambda, noise or the reconstruction mesh size varies")
+    p.add_argument("--scheme", choices=["nirfast", "reference"], default="nirfast",
+                   help="nirfast (default): the thesis's NIRFAST fluorescence reconstruction "
+                   "(log-amplitude data, Jacobian normalised by the current yield, start at the "
+                   "background); reference: the literal update of physics.md (linear data)")
+    p.add_argument("--hp-basis", choices=["forward", "reconstruction"], default="forward",
+                   help="mesh on which HP's region basis is built (default forward: where the "
+                   "data were simulated)")
     p.add_argument("--out", default=None, help="folder for study.json and PNG figures")
     add_json_flag(p)
     p.set_defaults(func=_handler)

@@ -6,7 +6,7 @@ import pytest
 from fluoguide.errors import FluoInputError
 from FluoTomoLib.forward import FluorescenceModel
 from FluoTomoLib.profile_metrics import depth_profile, peak_and_centroid
-from FluoTomoLib.recon import RegionPrior, reconstruct
+from FluoTomoLib.recon import RegionPrior, reconstruct, region_jacobian
 from FluoTomoLib.structured_mesh import rectangle_mesh
 
 
@@ -89,3 +89,101 @@ def test_bad_input_is_explained(problem):
         reconstruct(J, y, "HP", prior=RegionPrior(region[:-1]))
     with pytest.warns(UserWarning, match="single node"):
         RegionPrior(np.r_[np.ones(10, int), 2])
+
+
+def test_region_jacobian_from_same_labels_matches_default(problem):
+    m, J, y, truth, region = problem
+    prior = RegionPrior(region)
+    A = region_jacobian(J, region, prior.labels)
+    np.testing.assert_allclose(A, J @ prior.K(), rtol=1e-12, atol=0)
+    a = reconstruct(J, y, "HP", prior=prior)
+    b = reconstruct(J, y, "HP", prior=prior, region_jacobian=A)
+    np.testing.assert_allclose(a.yield_per_mm, b.yield_per_mm, rtol=1e-10)
+
+
+def test_forward_level_hard_prior_basis_removes_the_interpolation_bias():
+    """Data on a 0.5 mm mesh; HP on a 1 mm mesh.  The coarse 0/1 basis mapped through
+    the interpolation (J_f P K) cannot represent the fine disc; J_f K_f can."""
+    from FluoTomoLib.locate import locator
+
+    fine = rectangle_mesh(np.linspace(-20, 20, 81), np.linspace(-16, 0, 33))
+    coarse = rectangle_mesh(np.linspace(-20, 20, 41), np.linspace(-16, 0, 17))
+    src = np.stack([(np.arange(16) - 7.5) * 2.5, np.zeros(16)], axis=1)
+    p = dict(mua_per_mm=0.032, musp_per_mm=1.0, n=1.33)
+    J_f = FluorescenceModel(fine, p, p, src, src).jacobian_yield()
+    keep = np.linalg.norm(src[:, None] - src[None], axis=2).ravel() > 3.0
+    J_f = J_f[keep]
+    P = locator(coarse).interpolation_matrix(fine.nodes_mm)
+    J_c = np.asarray((P.T @ J_f.T).T)
+    # a disc whose edge falls between coarse nodes (centre at half a coarse cell)
+    in_f = np.linalg.norm(fine.nodes_mm - [0.0, -5.5], axis=1) <= 2.3
+    in_c = np.linalg.norm(coarse.nodes_mm - [0.0, -5.5], axis=1) <= 2.3
+    y = J_f @ np.where(in_f, 1.2e-3, 1.2e-4)
+    prior = RegionPrior(np.where(in_c, 2, 1))
+    coarse_basis = reconstruct(J_c, y, "HP", prior=prior).region_confidence[2]
+    fine_basis = reconstruct(J_c, y, "HP", prior=prior, region_jacobian=region_jacobian(
+        J_f, np.where(in_f, 2, 1), prior.labels)).region_confidence[2]
+    assert fine_basis["mean_yield_per_mm"] == pytest.approx(1.2e-3, rel=1e-3)
+    assert abs(coarse_basis["mean_yield_per_mm"] / 1.2e-3 - 1) > 0.02
+
+
+@pytest.mark.parametrize("method", ["NP", "SP", "HP"])
+def test_log_data_normalised_scheme(problem, method):
+    """NIRFAST's scheme: log data, Jacobian scaled by the current yield, started from
+    the background; stays non-negative and finite, residual goes down."""
+    m, J, y, truth, region = problem
+    prior = RegionPrior(region)
+    res = reconstruct(J, y, method, prior=prior, log_data=True, normalise=True, x0=1.2e-4)
+    assert np.all(np.isfinite(res.yield_per_mm)) and np.all(res.yield_per_mm >= 0)
+    assert res.residual < 0.1 * res.residual_history[0]
+    conf = res.region_confidence[2]
+    assert np.isfinite(conf["sd_yield_per_mm"]) and conf["sd_yield_per_mm"] > 0
+    if method == "HP":        # noise-free, exact regions: the log-LS fit is exact
+        assert conf["mean_yield_per_mm"] == pytest.approx(1.2e-3, rel=1e-3)
+    if method == "SP":
+        z, prof = depth_profile(m, res.yield_per_mm, 0.0, z_bottom_mm=-15.0)
+        assert peak_and_centroid(z, prof)[0] == pytest.approx(1.2e-3, rel=0.1)
+
+
+def test_log_data_weights_deep_targets_more_for_soft_prior():
+    """SP at depth: with linear data the damping lambda' = lambda max(diag(J^T J)) is set
+    by the near-source surface nodes, and a deep target's constant barely moves before
+    the 2 % rule stops; log data equalise the pairs and recover it."""
+    m = rectangle_mesh(np.linspace(-20, 20, 41), np.linspace(-20, 0, 21))
+    src = np.stack([(np.arange(16) - 7.5) * 2.5, np.zeros(16)], axis=1)
+    p = dict(mua_per_mm=0.032, musp_per_mm=1.0, n=1.33)
+    J = FluorescenceModel(m, p, p, src, src).jacobian_yield()
+    J = J[~np.eye(16, dtype=bool).ravel()]
+    in_disc = np.linalg.norm(m.nodes_mm - [0.0, -9.5], axis=1) <= 3.0
+    y = J @ np.where(in_disc, 1.2e-3, 1.2e-4)
+    prior = RegionPrior(np.where(in_disc, 2, 1))
+    err = {}
+    for log in (False, True):
+        res = reconstruct(J, y, "SP", prior=prior, log_data=log, normalise=log,
+                          x0=1.2e-4 if log else None)
+        err[log] = abs(res.region_confidence[2]["mean_yield_per_mm"] / 1.2e-3 - 1)
+    assert err[True] < 0.1 < err[False]
+
+
+def test_default_start_for_log_data_is_the_homogeneous_fit(problem):
+    m, J, y, truth, region = problem
+    res = reconstruct(J, y, "NP", log_data=True, max_iter=1)
+    # one step from the homogeneous fit: a positive field, not the zero start
+    assert np.all(res.yield_per_mm > 0)
+
+
+def test_new_options_explain_bad_input(problem):
+    m, J, y, truth, region = problem
+    prior = RegionPrior(region)
+    y_bad = y.copy()
+    y_bad[0] = 0.0
+    with pytest.raises(FluoInputError, match="log data"):
+        reconstruct(J, y_bad, "NP", log_data=True)
+    with pytest.raises(FluoInputError, match="region_jacobian"):
+        reconstruct(J, y, "HP", prior=prior, region_jacobian=np.ones((len(y), 3)))
+    with pytest.raises(FluoInputError, match="no node"):
+        region_jacobian(J, np.ones(J.shape[1], int), prior.labels)
+    with pytest.raises(FluoInputError, match="one region label"):
+        region_jacobian(J, region[:-1], prior.labels)
+    with pytest.raises(FluoInputError, match="positive"):
+        reconstruct(J, y, "NP", normalise=True, x0=0.0)
