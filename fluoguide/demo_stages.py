@@ -319,7 +319,6 @@ def stage_light_calibration(ctx):
     out.update({"linearity R^2": rad["linearity_r2"], "nonlinearity %": rad["nonlinearity_pct"],
                 "dynamic range": rad["dynamic_range"]})
     import shutil
-    from pathlib import Path
 
     for src, name in zip(plot_radiometry(rad, ctx.out / "light-plots"),
                          ("radiometry_ptc.png", "radiometry_linearity.png", "radiometry_dark.png")):

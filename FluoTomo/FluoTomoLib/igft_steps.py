@@ -24,10 +24,6 @@ from .recon import RegionPrior, reconstruct
 from .self_absorption import reconstruct_self_absorbing
 from .voxel_mesh import node_regions_volume_preserving
 
-CAMERA_DEFAULTS = dict(camera_gain=None, camera_offset_adu=100.0, camera_read_noise_adu=2.0,
-                       camera_binning=4, camera_distance_mm=150.0)
-
-
 def nodal_optics(node_region, optics):
     """Nodal property arrays from per-region optics dicts (labels as keys)."""
     out = {}

@@ -10,8 +10,8 @@ from fluoguide.phantoms import make_phantom
 from FluoTomoLib.partial_volume import PartialVolumePrior, dual_cells, node_region_fractions
 from FluoTomoLib.self_absorption import _aitken, absorbing_mua
 from FluoTomoLib.voxel_mesh import (_axis_edges, labelmap_region_volumes,
-                                    mesh_labelmap_structured, nodal_volumes,
-                                    region_centroid_mm, target_refinement)
+                                    mesh_labelmap_structured, region_centroid_mm,
+                                    target_refinement)
 
 ROI = (-9.0, 9.0, -12.0, 12.0, -12.0, 0.0)
 
