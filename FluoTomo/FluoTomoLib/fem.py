@@ -7,11 +7,14 @@ Phi + 2 A D dPhi/dn = 0 (physics.md sections 1-2):
 
 K: stiffness with element-mean D (exact for nodal, linearly varying D),
 M_mua: mass matrix weighted by nodal mua (exact P1 triple products),
-B: boundary-facet mass, b: point-source load (barycentric weights).
+B: boundary-facet mass (row-sum lumped), b: point-source load (barycentric
+weights).
 
 What is expensive is computed once per mesh and cached on it (gradients,
-sparsity pattern, boundary mass); a new set of optical properties only
-rebuilds the values, and one factorisation serves every source and adjoint.
+the upper-triangle sparsity pattern and each element's place in it, boundary
+weights); a new set of optical properties only refills the values (compiled
+loops, assembly_kernels.py), and one Cholesky factorisation (MKL PARDISO,
+pardiso.py) serves every source and adjoint.
 """
 
 from __future__ import annotations
@@ -25,30 +28,20 @@ import scipy.sparse.linalg as spla
 
 from fluoguide.errors import FluoInputError
 
+from .assembly_kernels import element_gradients, upper_pattern, upper_values
+from .jacobian_kernels import node_elements
 from .locate import boundary_locator, locator
 from .optics import check_properties, diffusion_coefficient, robin_A
+from .ordering import geometric_nested_dissection
+from .pardiso import PardisoCholesky, PardisoPattern, mkl_pardiso
 
 
 # ---------------------------------------------------------------- geometry cache
 
-def _inverse_3x3(J):
-    """Inverses of a stack of 3x3 matrices by the adjugate (4x faster than
-    np.linalg.inv's batched LU for 10^5-10^6 tetrahedra; the elements were
-    checked non-degenerate before)."""
-    a, b, c = J[:, 0, 0], J[:, 0, 1], J[:, 0, 2]
-    d, e, f = J[:, 1, 0], J[:, 1, 1], J[:, 1, 2]
-    g, h, i = J[:, 2, 0], J[:, 2, 1], J[:, 2, 2]
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * A + b * B + c * C
-    inv = np.empty_like(J)
-    inv[:, 0, 0], inv[:, 1, 0], inv[:, 2, 0] = A, B, C
-    inv[:, 0, 1], inv[:, 1, 1], inv[:, 2, 1] = c * h - b * i, a * i - c * g, b * g - a * h
-    inv[:, 0, 2], inv[:, 1, 2], inv[:, 2, 2] = b * f - c * e, c * d - a * f, a * e - b * d
-    return inv / det[:, None, None]
-
-
 class _Geometry:
-    """Per-mesh quantities that do not depend on optical properties."""
+    """Per-mesh quantities that do not depend on optical properties: basis
+    gradients, measures, the upper-triangle CSR pattern with each element's
+    positions in it, and the lumped boundary mass per node."""
 
     def __init__(self, mesh):
         mesh.check_elements()
@@ -58,52 +51,76 @@ class _Geometry:
                 "orient the mesh (Mesh.oriented()) before solving",
                 field=f"{mesh.name}.elements[{int(np.flatnonzero(mesh.signed_measures < 0)[0])}]")
         d = mesh.dim
-        el = mesh.elements
-        p = mesh.nodes_mm[el]
-        J = (p[:, 1:, :] - p[:, :1, :]).transpose(0, 2, 1)      # x = p0 + J xi
-        Jinv = _inverse_3x3(J) if d == 3 else np.linalg.inv(J)  # rows: grad xi_k
-        G = np.concatenate([-Jinv.sum(axis=1, keepdims=True), Jinv], axis=1)  # (M, d+1, d)
+        # int32 element indices: half the memory traffic in every element loop
+        el = np.ascontiguousarray(mesh.elements, dtype=np.int32 if mesh.n_nodes < 2 ** 31 - 1
+                                  else np.int64)
+        self.elements = el
+        self.grad, _ = element_gradients(np.ascontiguousarray(mesh.nodes_mm, dtype=float), el)
         self.vol = mesh.measures
-        # G G^T as d rank-one products of contiguous columns: ~2x faster than
-        # einsum or a batched matmul on (M, 4, 3) stacks
-        Gt = np.ascontiguousarray(G.transpose(2, 0, 1))          # (d, M, d+1)
-        GGt = Gt[0][:, :, None] * Gt[0][:, None, :]
-        for k in range(1, d):
-            GGt += Gt[k][:, :, None] * Gt[k][:, None, :]
-        GGt *= self.vol[:, None, None]
-        self.GGt = GGt
-        nl = d + 1
-        # 32-bit indices where they fit: scipy's COO -> CSR conversion (every
-        # assembly) runs about 2x faster on them (0.27 vs 0.61 s, 5.3 M entries)
-        idx = el.astype(np.int32) if mesh.n_nodes < 2 ** 31 - 1 else el
-        self.rows = np.repeat(idx, nl, axis=1).ravel()
-        self.cols = np.tile(idx, (1, nl)).ravel()
         self.n = mesh.n_nodes
         self.dim = d
         # exact integral of a product of three P1 functions: |e| d! a!b!c!/(d+a+b+c)!
         self.c3 = factorial(d) / factorial(d + 3)
-        # boundary facet mass (facets are (d-1)-simplices)
-        f = mesh.boundary_facets
-        fm = mesh.boundary_facet_measures
-        k = d  # nodes per facet
-        # Row-sum lumped facet mass: the consistent one has positive off-diagonal
-        # terms that outweigh the (negative) stiffness couplings when D is small
-        # (musp ~ 100/mm), which breaks the M-matrix property and makes boundary
-        # fluence oscillate negative.  Lumping keeps it positive at O(h^2) cost.
-        local = np.eye(k) / k
-        self._facet_vals = fm[:, None, None] * local[None]
-        fi = f.astype(idx.dtype)
-        self._facet_rows = np.repeat(fi, k, axis=1)
-        self._facet_cols = np.tile(fi, (1, k))
-        self.boundary_mass = self.boundary_mass_on(None)
-        self.elements = el
+        # elements around each node: the CSR pattern and the Jacobians use it
+        self.adjacency = node_elements(el, self.n)
+        self.indptr, self.indices, self.pos, self.diag = upper_pattern(el, self.n, *self.adjacency)
+        self._mesh = mesh
+        self._boundary_weight = None
+        self._pardiso_pattern = None
 
-    def boundary_mass_on(self, facet_mask):
-        """Boundary mass over the facets where ``facet_mask`` is True (all if None)."""
-        sel = slice(None) if facet_mask is None else np.asarray(facet_mask, bool)
-        return sp.csr_matrix((self._facet_vals[sel].ravel(),
-                              (self._facet_rows[sel].ravel(), self._facet_cols[sel].ravel())),
-                             shape=(self.n, self.n))
+    def pardiso_pattern(self):
+        """The PARDISO analysis of this mesh's pattern, shared by its operators.
+
+        Meshes on a grid (structured_mesh, voxel_mesh: meta "method" =
+        "structured") are ordered by geometric nested dissection (0.02 s, fill
+        within 2-8 % of METIS, 0.15-0.25 s less analysis on 60-86k nodes);
+        others by PARDISO's METIS, which gave a third of the geometric
+        ordering's factorisation time on an fTetWild mesh (docs/fem.md).
+        """
+        if self._pardiso_pattern is None:
+            order = None
+            if self._mesh.meta.get("method") == "structured":
+                order = geometric_nested_dissection(self._mesh.nodes_mm, self.indptr,
+                                                    self.indices)
+            self._pardiso_pattern = PardisoPattern(self.indptr, self.indices, slots=4,
+                                                   name=f"{self._mesh.name}.K", order=order)
+        return self._pardiso_pattern
+
+    def boundary_weight(self, facet_mask=None):
+        """Lumped boundary mass per node over the facets where ``facet_mask`` is
+        True (all if None): each facet gives a 1/d share of its measure to each
+        of its nodes.
+
+        Row-sum lumping: the consistent facet mass has positive off-diagonal
+        terms that outweigh the (negative) stiffness couplings when D is small
+        (musp ~ 100/mm), which breaks the M-matrix property and makes boundary
+        fluence oscillate negative.  Lumping keeps it positive at O(h^2) cost.
+        """
+        if facet_mask is None and self._boundary_weight is not None:
+            return self._boundary_weight
+        f = self._mesh.boundary_facets
+        fm = self._mesh.boundary_facet_measures
+        if facet_mask is not None:
+            sel = np.asarray(facet_mask, bool)
+            f, fm = f[sel], fm[sel]
+        w = np.bincount(f.ravel(), weights=np.repeat(fm / self.dim, self.dim), minlength=self.n)
+        if facet_mask is None:
+            self._boundary_weight = w
+        return w
+
+    def upper(self, D_nodal, w_nodal, diag_add=None):
+        """Upper triangle (CSR, sorted) of K(D) + M(w) [+ diag(diag_add)]."""
+        data = upper_values(self.elements, self.pos, self.grad, self.vol, self.c3,
+                            np.ascontiguousarray(D_nodal, dtype=float),
+                            np.ascontiguousarray(w_nodal, dtype=float), len(self.indices))
+        if diag_add is not None:
+            data[self.diag] += diag_add
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+    @property
+    def boundary_mass(self):
+        """Lumped boundary mass over every boundary facet (diagonal, CSR)."""
+        return sp.diags(self.boundary_weight(), format="csr")
 
 
 def geometry(mesh):
@@ -120,65 +137,29 @@ def _nodal(mesh, value, name):
     return v
 
 
+def symmetric_from_upper(U):
+    """Full symmetric CSR from its upper triangle."""
+    return (U + sp.triu(U, k=1, format="csr").T).tocsr()
+
+
 def weighted_mass(mesh, w_nodal):
     """Mass matrix weighted by a nodal field w: M_ij = integral w phi_i phi_j (exact)."""
     g = geometry(mesh)
     w = _nodal(mesh, w_nodal, "weight")
-    we = w[g.elements]                                      # (M, d+1)
-    S = we.sum(axis=1)
-    nl = g.dim + 1
-    eye = np.eye(nl)
-    # sum_k w_k c_ijk = S (1 + d_ij) + w_i + w_j + 2 d_ij w_i
-    local = (S[:, None, None] * (1 + eye)[None] + we[:, :, None] + we[:, None, :]
-             + 2 * eye[None] * we[:, :, None])
-    vals = (local * (g.vol * g.c3)[:, None, None]).ravel()
-    return sp.csr_matrix((vals, (g.rows, g.cols)), shape=(g.n, g.n))
+    return symmetric_from_upper(g.upper(np.zeros(g.n), w))
 
 
 def stiffness(mesh, D_nodal):
+    """Stiffness K_ij = integral D_e grad phi_i . grad phi_j (element-mean D)."""
     g = geometry(mesh)
     D = _nodal(mesh, D_nodal, "D")
-    De = D[g.elements].mean(axis=1)
-    vals = (g.GGt * De[:, None, None]).ravel()
-    return sp.csr_matrix((vals, (g.rows, g.cols)), shape=(g.n, g.n))
+    return symmetric_from_upper(g.upper(D, np.zeros(g.n)))
 
 
 # ---------------------------------------------------------------- solver
 
-def _pardiso():
-    try:
-        import pypardiso
-
-        return pypardiso
-    except Exception:  # not installed, or MKL cannot load on this CPU
-        return None
-
-
-class _PardisoFactor:
-    """MKL PARDISO, real symmetric positive definite (mtype 2), upper triangle.
-
-    Measured on this 2-core machine (33k-node slab): factorisation 0.7 s and
-    32 solves 0.3 s, against 6.6 s and 0.6 s for SuperLU (docs/fem.md).
-    """
-
-    def __init__(self, K, pypardiso):
-        self.Ku = sp.triu(K, format="csr")
-        self.solver = pypardiso.PyPardisoSolver()
-        self.solver.set_matrix_type(2)
-        # Our own iparm (iparm(1) = 1; pypardiso's zeros mean "all defaults",
-        # which include two iterative-refinement steps per solve).  Measured on
-        # the 60k-node benchmark slab, medians of 3: factorisation 1.13 -> 0.92 s
-        # with OpenMP nested dissection (iparm(2) = 3), 16 solves 0.38 -> 0.19 s
-        # with one refinement step; residual 8e-13 relative, against 3e-14.
-        self.solver.set_iparm(1, 1)
-        self.solver.set_iparm(2, 3)
-        self.solver.set_iparm(8, 1)
-        self.solver.set_iparm(10, 8)
-        self.solver.factorize(self.Ku)
-
-    def __call__(self, B):
-        X = self.solver.solve(self.Ku, np.ascontiguousarray(B))
-        return X.reshape(B.shape)
+def _pardiso_available():
+    return mkl_pardiso() is not None
 
 
 class MeshResolutionWarning(UserWarning):
@@ -221,6 +202,7 @@ class DiffusionOperator:
         check_properties(mua, musp, n, where=name)
         _check_resolution(mesh, mua, musp, name)
         self.mesh = mesh
+        self.name = name
         self.mua = mua
         self.musp = musp
         self.n = float(n)
@@ -228,15 +210,24 @@ class DiffusionOperator:
         self.D = diffusion_coefficient(mua, musp)
         t0 = time.perf_counter()
         g = geometry(mesh)
-        self.K = (stiffness(mesh, self.D) + weighted_mass(mesh, mua)
-                  + (g.boundary_mass if robin_facets is None else g.boundary_mass_on(robin_facets))
-                  * (1.0 / (2.0 * self.A))).tocsc()
+        self.robin_facets = robin_facets
+        # assembled as the upper triangle PARDISO factorises; the full matrix
+        # (K) is built only when asked for (SuperLU, AMG, matrix products)
+        self.K_upper = g.upper(self.D, mua, g.boundary_weight(robin_facets) * (1.0 / (2.0 * self.A)))
+        self._K = None
         self.assembly_seconds = time.perf_counter() - t0
         self.factor_seconds = 0.0
         self._solver_request = solver
         self._solve = None
         self.solver_name = None
         self.n_solves = 0
+
+    @property
+    def K(self):
+        """The full symmetric system matrix (CSC)."""
+        if self._K is None:
+            self._K = symmetric_from_upper(self.K_upper).tocsc()
+        return self._K
 
     def factorize(self):
         if self._solve is not None:
@@ -246,12 +237,12 @@ class DiffusionOperator:
         if req not in ("auto", "pardiso", "splu", "amg"):
             raise FluoInputError("unknown solver; use auto, pardiso, splu or amg", field="solver",
                                  value=req)
-        pardiso = _pardiso() if req in ("auto", "pardiso") else None
-        if req == "pardiso" and pardiso is None:
-            raise FluoInputError("PARDISO (pypardiso/MKL) is not available", field="solver",
-                                 value=req)
-        if pardiso is not None:
-            self._solve = _PardisoFactor(self.K, pardiso)
+        pardiso = req in ("auto", "pardiso") and _pardiso_available()
+        if req == "pardiso" and not pardiso:
+            raise FluoInputError("PARDISO (MKL) is not available", field="solver", value=req)
+        if pardiso:
+            self._solve = PardisoCholesky(self.K_upper, name=f"{self.name}.K",
+                                          pattern=geometry(self.mesh).pardiso_pattern())
             self.solver_name = "pardiso"
         elif req == "amg":
             import pyamg

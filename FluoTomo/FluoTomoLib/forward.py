@@ -21,6 +21,7 @@ from fluoguide.errors import FluoInputError
 
 from .fem import (DiffusionOperator, _nodal, check_properties, detector_operator, geometry,
                   point_source_rhs, source_positions, weighted_mass)
+from .jacobian_kernels import pair_jacobian
 
 
 def _props(mesh, props, name):
@@ -30,165 +31,32 @@ def _props(mesh, props, name):
         raise FluoInputError("needs keys mua_per_mm, musp_per_mm and n", field=name) from None
 
 
-def _chunk_size(S, D, budget=2.0e6):
-    """Elements per chunk so one (C, S, D) block holds ~``budget`` doubles (16 MB).
+def triple_product_jacobian(mesh, G, F, scale=1.0):
+    """J[(s, d), k] = scale * integral G_d F_s phi_k for nodal fields G (N, D), F (N, S).
 
-    Each chunk's contribution is added only into the rows of the nodes its
-    elements touch (:func:`_scatter_rows`), so chunks can stay small enough
-    for the allocator to reuse their memory: blocks above glibc's 32 MB mmap
-    threshold are returned to the OS and page-faulted in again every time,
-    which cost more than the arithmetic.
-    """
-    return max(1, int(budget // (S * D)))
-
-
-def _scatter_rows(incidence, c0, c1, cache):
-    """(rows, block) of the incidence columns c0:c1 restricted to the touched rows."""
-    key = (c0, c1)
-    hit = cache.get(key)
-    if hit is None:
-        blk = incidence[:, c0:c1]
-        rows = np.unique(blk.indices)
-        sub = blk.tocsr()[rows]
-        if rows[-1] - rows[0] + 1 == len(rows):  # contiguous (ordered meshes): a slice
-            rows = slice(int(rows[0]), int(rows[-1]) + 1)     # adds in place, no gather
-        hit = (rows, sub)
-        cache[key] = hit
-    return hit
-
-
-def _jacobian_threads():
-    """Worker threads for the Jacobian's element loop (batched matmuls and sparse
-    products release the GIL; the adds into the result stay on one thread)."""
-    import os
-
-    return max(1, min(2, os.cpu_count() or 1))
-
-
-def _accumulate(out, n_el, size, block, incidence, cache):
-    """out[rows(chunk)] += incidence[rows, chunk] @ block(c0, c1) over element chunks.
-
-    ``block(c0, c1)`` returns the (C, S*D) per-element values; chunks are
-    computed on worker threads and added here in order.
-    """
-    from concurrent.futures import ThreadPoolExecutor
-
-    def work(c0):
-        c1 = min(c0 + size, n_el)
-        rows, blk = _scatter_rows(incidence, c0, c1, cache)
-        return rows, blk @ block(c0, c1)
-
-    starts = range(0, n_el, size)
-    threads = _jacobian_threads()
-    if threads == 1 or len(starts) < 3:
-        for c0 in starts:
-            rows, r = work(c0)
-            out[rows] += r
-        return out
-    with ThreadPoolExecutor(threads) as pool:
-        for rows, r in pool.map(work, starts):
-            out[rows] += r
-    return out
-
-
-def _incidence_of(elements, n_nodes, weights):
-    """(N, M) CSC matrix, entry (k, e) = weights[e] if node k belongs to element e.
-
-    CSC so that column (element) chunks slice cheaply.
-    """
-    nl = elements.shape[1]
-    return sp.csc_matrix((np.repeat(np.asarray(weights, float), nl),
-                          (elements.ravel(), np.repeat(np.arange(len(elements)), nl))),
-                         shape=(n_nodes, len(elements)))
-
-
-def _jacobian_operators(mesh):
-    """Mesh-only operators of the Jacobian assembly, cached on the mesh's FEM
-    geometry so repeated Jacobians (Newton iterations) build them once.
-
-    Elements are taken in order of their lowest node index, so a chunk of
-    consecutive elements touches a compact range of nodes and its
-    contribution is added into a slice of the result rather than gathered
-    and scattered over the whole mesh (6-7x fewer row updates on the
-    structured meshes, whose natural order interleaves the Kuhn tetrahedra).
+    Exact P1 triple products, summed per element in compiled code
+    (:func:`jacobian_kernels.pair_jacobian`).  Returns a (S * D, N) array (a
+    transposed view of a C-ordered (N, S * D) block), row index s * D + d.
     """
     geo = geometry(mesh)
-    ops = getattr(geo, "_jacobian_ops", None)
-    if ops is None:
-        nl = mesh.dim + 1
-        order = np.argsort(geo.elements.min(axis=1), kind="stable")
-        el = np.ascontiguousarray(geo.elements[order])
-        n_el = len(el)
-        Ew = _incidence_of(el, mesh.n_nodes, (geo.vol * geo.c3)[order])   # triple-product weights
-        Mw = (Ew @ _incidence_of(el, mesh.n_nodes, np.ones(n_el)).T).tocsr()
-        ops = {"elements": el, "GGt": np.ascontiguousarray(geo.GGt[order]),
-               "Ew": Ew, "Mw": Mw, "W": np.asarray(Ew.sum(axis=1)).ravel(),
-               "E_mean": _incidence_of(el, mesh.n_nodes, np.full(n_el, 1.0 / nl))}
-        geo._jacobian_ops = ops
-    return ops
+    out = pair_jacobian(geo.elements, geo.vol * (geo.c3 * scale), F, G, adjacency=geo.adjacency)
+    return out.reshape(mesh.n_nodes, -1).T
 
 
-def triple_product_jacobian(mesh, G, F):
-    """J[(s, d), k] = integral G_d F_s phi_k for nodal fields G (N, D) and F (N, S).
+def mua_jacobian(mesh, G, F, D_nodal):
+    """d(G_d^T K F_s)/d(mua_k) for K with nodal mua and D = 1/(3 (mua + musp)), negated:
+    the Jacobian of the data P_d K^-1 q_s with respect to nodal mua.
 
-    Exact P1 triple products.  Per element e with weight w = |e| d!/(d+3)!,
-    the contribution to node k of e is
-    w [sum_ij (1 + delta_ij) f_j g_i + g_k Fs + f_k Gs + 2 g_k f_k]
-    (Fs, Gs: sums over the element's nodes).  The last three terms factor into
-    node-level products with the sparse pattern matrix Mw[k, j] = sum of w over
-    the elements containing k and j, so only the first needs per-element work:
-    one batched matmul F_e^T (G_e + Gs) per chunk, scattered with a sparse
-    incidence product.  Returns a dense (S * D, N) array, row index s * D + d.
+    Both ways absorption acts are included: the absorption term (exact P1
+    triple products) and, through dD/dmua = -3 D^2, the diffusion term
+    (K uses the element-mean D, so node k's D enters each of its elements'
+    gradient products with weight 1/(d+1)).  (S * D, N), row s * D + d.
     """
-    S, D = F.shape[1], G.shape[1]
-    F = np.ascontiguousarray(F, dtype=float)
-    G = np.ascontiguousarray(G, dtype=float)
-    ops = _jacobian_operators(mesh)
-    el = ops["elements"]
-    Ew, W = ops["Ew"], ops["W"]
-    HF, HG = ops["Mw"] @ F, ops["Mw"] @ G
-    T = HG + 2.0 * W[:, None] * G
-    out = np.empty((mesh.n_nodes, S, D))
-    step = max(1, _chunk_size(S, D) // 2)  # row blocks: small temporaries the allocator reuses
-    for a in range(0, mesh.n_nodes, step):
-        b = a + step
-        np.multiply(HF[a:b, :, None], G[a:b, None, :], out=out[a:b])
-        out[a:b] += F[a:b, :, None] * T[a:b, None, :]
-    out = out.reshape(-1, S * D)
-    size = _chunk_size(S, D)
-
-    def block(c0, c1):
-        e = el[c0:c1]
-        Ge = G[e]
-        base = np.matmul(F[e].transpose(0, 2, 1), Ge + Ge.sum(axis=1, keepdims=True))
-        return base.reshape(len(e), S * D)
-
-    _accumulate(out, len(el), size, block, Ew, ops.setdefault(("Ew_rows", size), {}))
-    return out.T
-
-
-def gradient_product_jacobian(mesh, G, F):
-    """J[(s, d), k] = sum over elements e containing k of |e|/(d+1) grad G_d . grad F_s.
-
-    The derivative of G^T K F with respect to nodal D when K uses the
-    element-mean D (fem.stiffness).  Dense (S * D, N), row s * D + d.
-    """
-    S, D = F.shape[1], G.shape[1]
-    F = np.ascontiguousarray(F, dtype=float)
-    G = np.ascontiguousarray(G, dtype=float)
-    ops = _jacobian_operators(mesh)
-    el, GGt = ops["elements"], ops["GGt"]
-    E = ops["E_mean"]
-    out = np.zeros((mesh.n_nodes, S * D))
-    size = _chunk_size(S, D)
-
-    def block(c0, c1):
-        e = el[c0:c1]
-        KF = np.matmul(GGt[c0:c1], F[e])                 # (C, nl, S): |e| grad_i . grad F_s
-        return np.matmul(KF.transpose(0, 2, 1), G[e]).reshape(len(e), S * D)   # (C, S*D)
-
-    _accumulate(out, len(el), size, block, E, ops.setdefault(("E_mean_rows", size), {}))
-    return out.T
+    geo = geometry(mesh)
+    out = pair_jacobian(geo.elements, -geo.vol * geo.c3, F, G, grad=geo.grad,
+                        grad_weight=geo.vol / (mesh.dim + 1),
+                        node_coef=3.0 * np.asarray(D_nodal, float) ** 2, adjacency=geo.adjacency)
+    return out.reshape(mesh.n_nodes, -1).T
 
 
 class FluorescenceModel:
@@ -309,13 +177,7 @@ class FluorescenceModel:
         Includes both ways absorption acts: the absorption term itself and,
         through D = 1/(3 (mua + musp)), the diffusion coefficient.
         """
-        g, f = self.adjoint_x, self.phi_x
-        J = triple_product_jacobian(self.mesh, g, f)               # (S*D, N) views, in place:
-        grad = gradient_product_jacobian(self.mesh, g, f)          # no extra 100 MB temporaries
-        grad *= (-3.0 * self.op_x.D ** 2)[None, :]                 # dD/dmua
-        J += grad
-        np.negative(J, out=J)
-        return J
+        return mua_jacobian(self.mesh, self.adjoint_x, self.phi_x, self.op_x.D)
 
 
 def safe_log(data, floor=1e-300):

@@ -8,6 +8,7 @@ barycentric coordinates decide.  Built once per mesh and cached on it.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from fluoguide.errors import FluoInputError
@@ -32,19 +33,35 @@ class PointLocator:
     k : candidates checked per point before falling back to a wider search
     """
 
-    def __init__(self, mesh, k=16):
+    def __init__(self, mesh, k=16, scan_max=64):
         self.mesh = mesh
         self.k = int(min(k, mesh.n_elements))
-        centroids = mesh.nodes_mm[mesh.elements].mean(axis=1)
-        self.tree = cKDTree(centroids)
+        self.scan_max = int(scan_max)
+        self._tree = None
+
+    def _build(self):
+        centroids = self.mesh.nodes_mm[self.mesh.elements].mean(axis=1)
+        self._tree = cKDTree(centroids)
         # the farthest a node is from its element centroid bounds the search radius
         self.max_radius = float(np.max(np.linalg.norm(
-            mesh.nodes_mm[mesh.elements] - centroids[:, None, :], axis=2)))
+            self.mesh.nodes_mm[self.mesh.elements] - centroids[:, None, :], axis=2)))
+
+    @property
+    def tree(self):
+        if self._tree is None:
+            self._build()
+        return self._tree
 
     def locate(self, points, tol=1e-9):
         """Element id (or -1 outside the mesh) and barycentric coordinates per point."""
         pts = np.atleast_2d(np.asarray(points, float))
         n = len(pts)
+        if self._tree is None and n <= self.scan_max:
+            # a few points (sources, detectors) on a mesh with no tree yet: one
+            # compiled pass over the elements (5 ms for 330k tetrahedra) beats
+            # building the KD-tree (0.26 s)
+            return _scan_locate(np.ascontiguousarray(self.mesh.nodes_mm, dtype=float),
+                                np.ascontiguousarray(self.mesh.elements), pts, tol)
         elem = np.full(n, -1, dtype=np.int64)
         bary = np.full((n, self.mesh.dim + 1), np.nan)
         _, cand = self.tree.query(pts, k=self.k)
@@ -83,6 +100,65 @@ class PointLocator:
         cols = self.mesh.elements[np.maximum(elem, 0)].ravel()
         vals = np.where(elem[:, None] >= 0, bary, 0.0).ravel()
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(elem), self.mesh.n_nodes))
+
+
+@njit(cache=True)
+def _scan_locate(nodes, el, pts, tol):
+    """First element (lowest index) containing each point, and its barycentric
+    coordinates; -1 and NaN for points outside every element."""
+    M, nl = el.shape
+    d = nl - 1
+    P = pts.shape[0]
+    elem = np.full(P, -1, np.int64)
+    bary = np.full((P, nl), np.nan)
+    lo = np.empty(d)
+    hi = np.empty(d)
+    T = np.empty((d, d))
+    lam = np.empty(nl)
+    left = P
+    for e in range(M):
+        if left == 0:
+            break
+        for x in range(d):
+            lo[x] = nodes[el[e, 0], x]
+            hi[x] = lo[x]
+            for a in range(1, nl):
+                v = nodes[el[e, a], x]
+                lo[x] = min(lo[x], v)
+                hi[x] = max(hi[x], v)
+        for p in range(P):
+            if elem[p] >= 0:
+                continue
+            inside = True
+            for x in range(d):
+                pad = 1e-9 * (hi[x] - lo[x]) + 1e-12
+                if pts[p, x] < lo[x] - pad or pts[p, x] > hi[x] + pad:
+                    inside = False
+                    break
+            if not inside:
+                continue
+            for x in range(d):
+                for k in range(d):
+                    T[x, k] = nodes[el[e, k + 1], x] - nodes[el[e, 0], x]
+            r = np.empty(d)
+            for x in range(d):
+                r[x] = pts[p, x] - nodes[el[e, 0], x]
+            sol = np.linalg.solve(T, r)
+            s = 0.0
+            for k in range(d):
+                lam[k + 1] = sol[k]
+                s += sol[k]
+            lam[0] = 1.0 - s
+            ok = True
+            for a in range(nl):
+                if lam[a] < -tol:
+                    ok = False
+            if ok:
+                elem[p] = e
+                for a in range(nl):
+                    bary[p, a] = lam[a]
+                left -= 1
+    return elem, bary
 
 
 def locator(mesh):

@@ -288,6 +288,10 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
                              "normalised Jacobian", field="x0")
     resid, Jm = _linearise(A, y, x, log_data)
     history = [float(resid @ resid)]
+    # data fitted to rounding: the residual only jitters from here on (relative
+    # changes of any size), so stop instead of running to max_iter
+    fitted = np.log(np.maximum(y, np.finfo(float).tiny)) if log_data else y
+    floor = (64 * np.finfo(float).eps) ** 2 * float(np.dot(fitted, fitted))
     stop = "max_iter"
     clipped = 0.0
     lam_k = float(lam)
@@ -317,6 +321,9 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         resid, Jm = _linearise(A, y, x, log_data)
         history.append(float(resid @ resid))
         report(progress, it / max_iter, f"{method} iteration {it}: residual {history[-1]:.3g}")
+        if history[-1] <= floor:
+            stop = "residual at rounding level"
+            break
         if history[-2] > 0 and abs(history[-2] - history[-1]) / history[-2] < rel_tol:
             stop = "residual change < {:.0%}".format(rel_tol)
             break

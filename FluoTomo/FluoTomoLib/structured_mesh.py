@@ -55,7 +55,9 @@ def rectangle_mesh(x, y, name="rectangle"):
     t1 = np.where(flip[..., None], np.stack([a, b, c], -1), np.stack([a, b, d], -1))
     t2 = np.where(flip[..., None], np.stack([a, c, d], -1), np.stack([b, c, d], -1))
     tris = np.concatenate([t1.reshape(-1, 3), t2.reshape(-1, 3)])
-    return Mesh(nodes, tris, name=name).oriented()
+    mesh = Mesh(nodes, tris, name=name).oriented()
+    mesh.meta["method"] = "structured"      # grid nodes: geometric ordering (ordering.py)
+    return mesh
 
 
 def kuhn_paths():
@@ -83,7 +85,9 @@ def box_mesh(x, y, z, name="box"):
     i, j, k = (a.ravel() for a in np.meshgrid(*(np.arange(n - 1) for n in shape), indexing="ij"))
     corner = {c: idx[i + c[0], j + c[1], k + c[2]] for c in itertools.product((0, 1), repeat=3)}
     tets = [np.stack([corner[c] for c in path], axis=1) for path in kuhn_paths()]
-    return Mesh(nodes, np.concatenate(tets), name=name).oriented()
+    mesh = Mesh(nodes, np.concatenate(tets), name=name).oriented()
+    mesh.meta["method"] = "structured"      # grid nodes: geometric ordering (ordering.py)
+    return mesh
 
 
 def slab_mesh(size_xy_mm, depth_mm, step_mm, fine_mm=None, fine_until_mm=5.0, name="slab"):

@@ -1,0 +1,174 @@
+"""Fill-reducing ordering of FEM matrices from the node coordinates.
+
+Geometric nested dissection: split the nodes at the median of their longest
+extent, take the nodes of one half that couple to the other half as the
+separator, order both halves recursively and the separator last.  Finite
+element meshes have small geometric separators (a plane of nodes cuts a
+tetrahedral mesh), so this matches a graph partitioner's fill without the
+graph partitioning: on the 60k-node benchmark slab 21.0 M entries in the
+Cholesky factor against 20.2 M with METIS, in 0.03 s instead of the 0.15 s
+METIS takes inside PARDISO's analysis (docs/fem.md has both and the
+fTetWild meshes).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _full_adjacency(indptr, indices, n):
+    """Symmetric adjacency (without the diagonal) from an upper-triangle CSR."""
+    deg = np.zeros(n + 1, np.int64)
+    for i in range(n):
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            if j != i:
+                deg[i + 1] += 1
+                deg[j + 1] += 1
+    for i in range(n):
+        deg[i + 1] += deg[i]
+    fill = deg[:-1].copy()
+    adj = np.empty(deg[n], np.int32)
+    for i in range(n):
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            if j != i:
+                adj[fill[i]] = j
+                fill[i] += 1
+                adj[fill[j]] = i
+                fill[j] += 1
+    return deg, adj
+
+
+@njit(cache=True)
+def _nested_dissection(x, start, adj, leaf):
+    n, dim = x.shape
+    idx = np.arange(n)
+    order = np.empty(n, np.int64)
+    side = np.zeros(n, np.int8)          # 1: right half of the segment being split
+    buf = np.empty(n, np.int64)
+    # a stack of segments: idx[lo:hi] is ordered into order[lo:hi]
+    stack = np.empty((2 * 64 + 2 * n // max(leaf, 1) + 8, 2), np.int64)
+    top = 0
+    stack[0, 0], stack[0, 1] = 0, n
+    top = 1
+    coord = np.empty(n)
+    seg = np.full(n, -1, np.int64)       # segment stamp of each node being split
+    stamp = 0
+    while top > 0:
+        top -= 1
+        lo, hi = stack[top, 0], stack[top, 1]
+        m = hi - lo
+        if m <= leaf:
+            for t in range(lo, hi):
+                order[t] = idx[t]
+            continue
+        stamp += 1
+        for t in range(lo, hi):
+            seg[idx[t]] = stamp
+        # longest extent of the segment
+        best, ax = -1.0, 0
+        for a in range(dim):
+            mn, mx = np.inf, -np.inf
+            for t in range(lo, hi):
+                v = x[idx[t], a]
+                mn = min(mn, v)
+                mx = max(mx, v)
+            if mx - mn > best:
+                best, ax = mx - mn, a
+        for t in range(lo, hi):
+            coord[t - lo] = x[idx[t], ax]
+        med = np.median(coord[:m])
+        nl = 0
+        for t in range(lo, hi):
+            if coord[t - lo] <= med:
+                nl += 1
+        if nl == m or nl == 0:           # all on the median: split by position
+            srt = np.argsort(coord[:m])
+            for t in range(m):
+                side[idx[lo + srt[t]]] = 0 if t < m // 2 else 1
+        else:
+            for t in range(lo, hi):
+                side[idx[t]] = 0 if coord[t - lo] <= med else 1
+        # separator: left nodes with a neighbour in the right half; the right
+        # half's marks are cleared below, so neighbours outside the segment
+        # (already separated) never count
+        nL, nR, nS = 0, 0, 0
+        for t in range(lo, hi):
+            v = idx[t]
+            if side[v] == 1:
+                nR += 1
+        # the cut's nodes on each side; the smaller set is the separator
+        cutL = np.zeros(m, np.bool_)
+        cutR = np.zeros(m, np.bool_)
+        nCL, nCR = 0, 0
+        for t in range(lo, hi):
+            v = idx[t]
+            sv = side[v]
+            for p in range(start[v], start[v + 1]):
+                u = adj[p]
+                if seg[u] == stamp and side[u] != sv:
+                    if sv == 0:
+                        cutL[t - lo] = True
+                        nCL += 1
+                    else:
+                        cutR[t - lo] = True
+                        nCR += 1
+                    break
+        sep_flag = cutL if nCL <= nCR else cutR
+        if nCL > nCR:
+            nR -= nCR
+        # partition idx[lo:hi] into left | right | separator
+        for t in range(lo, hi):
+            v = idx[t]
+            if side[v] == 0 and not sep_flag[t - lo]:
+                buf[lo + nL] = v
+                nL += 1
+        pr = lo + nL
+        for t in range(lo, hi):
+            v = idx[t]
+            if side[v] == 1 and not sep_flag[t - lo]:
+                buf[pr] = v
+                pr += 1
+        ps = pr
+        for t in range(lo, hi):
+            if sep_flag[t - lo]:
+                buf[ps] = idx[t]
+                ps += 1
+                nS += 1
+        for t in range(lo, hi):
+            idx[t] = buf[t]
+            side[buf[t]] = 0
+            seg[buf[t]] = -1
+        sep0 = lo + nL + nR
+        for t in range(sep0, hi):          # separator last
+            order[t] = idx[t]
+        if nL > 0:
+            stack[top, 0], stack[top, 1] = lo, lo + nL
+            top += 1
+        if nR > 0:
+            stack[top, 0], stack[top, 1] = lo + nL, sep0
+            top += 1
+    return order
+
+
+def geometric_nested_dissection(nodes_mm, indptr, indices, leaf=32):
+    """Elimination order of a symmetric FEM matrix from its node coordinates.
+
+    Parameters
+    ----------
+    nodes_mm : (N, d) node coordinates
+    indptr, indices : upper-triangle CSR pattern of the matrix (N x N)
+    leaf : segments this small are not split further
+
+    Returns
+    -------
+    (N,) int32: ``order[k]`` is the node eliminated k-th (PARDISO's user
+    permutation, iparm(5) = 1, zero-based).
+    """
+    x = np.ascontiguousarray(nodes_mm, dtype=np.float64)
+    n = len(x)
+    start, adj = _full_adjacency(np.asarray(indptr), np.asarray(indices), n)
+    return _nested_dissection(x, start, adj, int(leaf)).astype(np.int32)
