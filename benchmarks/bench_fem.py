@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from functools import partial
 
 import numpy as np
 
@@ -26,6 +27,38 @@ def _slab(h_xy, half=30.0, depth=30.0):
     x = np.linspace(-half, half, int(round(2 * half / h_xy)) + 1)
     z = graded_axis(-depth, 0.0, min(0.5, h_xy / 2), 2.5, 3.0)
     return box_mesh(x, x, z, name="slab")
+
+
+def _refined_axis(half, centres, fine, fine_half, coarse, grow=1.2):
+    """Coordinates on [-half, half], symmetric about 0: ``fine`` steps within
+    ``fine_half`` of each centre (and its mirror), growing by ``grow`` per step
+    away from them up to ``coarse``."""
+    pts = []
+    for c in centres:
+        for sign in (1.0, -1.0):
+            a, step = [c], fine
+            while (a[-1] < half) if sign > 0 else (a[-1] > 0.0):
+                if abs(a[-1] - c) >= fine_half:
+                    step = min(step * grow, coarse)
+                a.append(min(half, max(0.0, a[-1] + sign * step)))
+            pts.extend(a)
+    pos = np.unique(np.round(pts, 9))
+    # where marches from two centres meet, drop points closer than half a fine step
+    keep = np.concatenate([[True], np.diff(pos) > 0.5 * fine])
+    pos = pos[keep]
+    return np.unique(np.concatenate([pos, -pos]))
+
+
+def _optode_slab():
+    """The same slab refined where the optodes are: 0.4 mm across the source and
+    detector rows (y = -3, +3), 1.0 mm along them (|x| <= 25 mm), growing to
+    2.5 mm away from them; depth graded as in _slab, to 3 mm deep."""
+    from FluoTomoLib.structured_mesh import box_mesh, graded_axis
+
+    x = _refined_axis(30.0, [0.0], 1.0, 25.0, 2.5)
+    y = _refined_axis(30.0, [3.0], 0.4, 1.5, 2.5)
+    z = graded_axis(-30.0, 0.0, 0.5, 3.0, 3.0)
+    return box_mesh(x, y, z, name="optode-slab")
 
 
 def _optodes():
@@ -100,7 +133,7 @@ def run_redbird(mesh, src, det):
                           "forward_plus_jacobian_s": t_prep + t_fwd + t_jac}
 
 
-def _redbird_pure_python(h, repeats):
+def _redbird_pure_python(make, repeats):
     """redbirdpy's timings with numba hidden (in a child process): the build the
     speed target was first measured against, for the record next to the
     numba one."""
@@ -114,8 +147,9 @@ def _redbird_pure_python(h, repeats):
     # hide numba from redbirdpy (imported afterwards, inside run_redbird)
     code = ("import sys, json; "
             f"sys.path[:0] = [{str(here)!r}, {str(here.parent)!r}, {str(here.parent / 'FluoTomo')!r}]; "
-            "from bench_fem import run_redbird, _slab, _optodes; src, det = _optodes(); "
-            f"meshes = [_slab({h}) for _ in range({int(repeats)})]; "
+            f"from bench_fem import run_redbird, _optodes, {make.func.__name__}; "
+            "src, det = _optodes(); "
+            f"meshes = [{make.func.__name__}(*{make.args!r}) for _ in range({int(repeats)})]; "
             "sys.modules['numba'] = None; "
             "print('RESULT ' + json.dumps([run_redbird(m, src, det)[2] for m in meshes]))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -124,6 +158,50 @@ def _redbird_pure_python(h, repeats):
     if out.returncode or not line:
         raise RuntimeError(f"pure-Python redbird run failed: {out.stderr[-500:]}")
     return json.loads(line[-1][7:])
+
+
+def _compare(title, make, src, det, repeats, skip_redbird, pure_repeats):
+    """Both codes on fresh copies of one mesh: times (medians) and accuracy."""
+    mesh = make()
+    print(f"\n== {title}: 60 x 60 x 30 mm, {mesh.n_nodes} nodes, {mesh.n_elements} tets")
+    run_ours(make(), src, det)
+    ours = []
+    for _ in range(repeats):
+        data, J, t = run_ours(make(), src, det)  # fresh mesh: no cached geometry
+        ours.append(t)
+    acc = _accuracy(data, src, det)
+    med = {k: float(np.median([t[k] for t in ours])) for k in ours[0] if k != "solver"}
+    print(f"FluoGuide ({ours[0]['solver']}): " + ", ".join(f"{k} {v:.2f}" for k, v in med.items()))
+    print(f"  vs exact Robin half-space (3-25 mm, {acc['pairs']} pairs): median |err| "
+          f"{acc['median_abs_err_pct']:.2f} %, max {acc['max_abs_err_pct']:.2f} %")
+    if skip_redbird:
+        return
+    run_redbird(make(), src, det)
+    rbt = []
+    for _ in range(repeats):
+        rdata, rJ, t = run_redbird(make(), src, det)
+        rbt.append(t)
+    rmed = {k: float(np.median([t[k] for t in rbt])) for k in rbt[0]}
+    racc = _accuracy(rdata, src, det)
+    # redbirdpy switches its Jacobian to numba when it can import it
+    import importlib.util
+
+    build = "with numba" if importlib.util.find_spec("numba") else "pure Python"
+    print(f"redbirdpy ({build}): " + ", ".join(f"{k} {v:.2f}" for k, v in rmed.items()))
+    print(f"  vs exact Robin half-space: median |err| {racc['median_abs_err_pct']:.2f} %, "
+          f"max {racc['max_abs_err_pct']:.2f} %")
+    ratio = rmed["forward_plus_jacobian_s"] / med["forward_plus_jacobian_s"]
+    agree = np.median(np.abs(data / rdata - 1)) * 100
+    print(f"speed-up forward+Jacobian (median): {ratio:.2f}x vs redbirdpy ({build}); "
+          f"median |FluoGuide/redbird - 1| {agree:.2f} %")
+    if build == "with numba" and pure_repeats > 0:
+        pure = _redbird_pure_python(make, pure_repeats)
+        pmed = {k: float(np.median([t[k] for t in pure])) for k in pure[0]}
+        print("redbirdpy (pure Python, numba hidden): "
+              + ", ".join(f"{k} {v:.2f}" for k, v in pmed.items()))
+        print(f"speed-up forward+Jacobian (median): "
+              f"{pmed['forward_plus_jacobian_s'] / med['forward_plus_jacobian_s']:.2f}x vs "
+              "redbirdpy (pure Python)")
 
 
 def main(argv=None):
@@ -135,51 +213,15 @@ def main(argv=None):
     ap.add_argument("--h", type=float, default=1.2, help="lateral element size of the main slab [mm]")
     args = ap.parse_args(argv)
     src, det = _optodes()
-    mesh = _slab(args.h)
-    print(f"slab 60 x 60 x 30 mm: {mesh.n_nodes} nodes, {mesh.n_elements} tets; "
-          f"mua {MUA}, musp {MUSP}, n {N}; 16 sources x 16 detectors")
+    print(f"mua {MUA}, musp {MUSP}, n {N}; 16 sources x 16 detectors; medians of "
+          f"{args.repeats} repeats, each on a fresh mesh, after one untimed run of each code")
     # one untimed run each first: both codes compile numba kernels on first use
     # (ours load them from numba's cache), which is not what a user waits for
     # on the second mesh
-    run_ours(_slab(args.h), src, det)
-    ours = []
-    for _ in range(args.repeats):
-        mesh = _slab(args.h)  # fresh mesh: no cached geometry between repeats
-        data, J, t = run_ours(mesh, src, det)
-        ours.append(t)
-    acc = _accuracy(data, src, det)
-    med = {k: float(np.median([t[k] for t in ours])) for k in ours[0] if k != "solver"}
-    print(f"FluoGuide ({ours[0]['solver']}): " + ", ".join(f"{k} {v:.2f}" for k, v in med.items()))
-    print(f"  vs exact Robin half-space (3-25 mm, {acc['pairs']} pairs): median |err| "
-          f"{acc['median_abs_err_pct']:.2f} %, max {acc['max_abs_err_pct']:.2f} %")
-    if not args.skip_redbird:
-        run_redbird(_slab(args.h), src, det)
-        rbt = []
-        for _ in range(args.repeats):
-            rdata, rJ, t = run_redbird(_slab(args.h), src, det)
-            rbt.append(t)
-        rmed = {k: float(np.median([t[k] for t in rbt])) for k in rbt[0]}
-        racc = _accuracy(rdata, src, det)
-        try:    # redbirdpy switches its Jacobian to numba when it can import it
-            import numba  # noqa: F401
-            build = "with numba"
-        except ImportError:
-            build = "pure Python"
-        print(f"redbirdpy ({build}): " + ", ".join(f"{k} {v:.2f}" for k, v in rmed.items()))
-        print(f"  vs exact Robin half-space: median |err| {racc['median_abs_err_pct']:.2f} %, "
-              f"max {racc['max_abs_err_pct']:.2f} %")
-        ratio = rmed["forward_plus_jacobian_s"] / med["forward_plus_jacobian_s"]
-        agree = np.median(np.abs(data / rdata - 1)) * 100
-        print(f"speed-up forward+Jacobian (median): {ratio:.2f}x vs redbirdpy ({build}); "
-              f"median |FluoGuide/redbird - 1| {agree:.2f} %")
-        if build == "with numba" and args.pure_repeats > 0:
-            pure = _redbird_pure_python(args.h, args.pure_repeats)
-            pmed = {k: float(np.median([t[k] for t in pure])) for k in pure[0]}
-            print("redbirdpy (pure Python, numba hidden): "
-                  + ", ".join(f"{k} {v:.2f}" for k, v in pmed.items()))
-            print(f"speed-up forward+Jacobian (median): "
-                  f"{pmed['forward_plus_jacobian_s'] / med['forward_plus_jacobian_s']:.2f}x vs "
-                  "redbirdpy (pure Python)")
+    configs = [(f"uniform slab, lateral h {args.h} mm", partial(_slab, args.h), args.pure_repeats),
+               ("optode-refined slab", partial(_optode_slab), 0)]
+    for title, make, pure_repeats in configs:
+        _compare(title, make, src, det, args.repeats, args.skip_redbird, pure_repeats)
     print("\nmesh size vs error vs time (FluoGuide, forward + Jacobian):")
     print(f"{'h_xy mm':>8} {'nodes':>8} {'median err %':>13} {'max err %':>10} {'seconds':>8}")
     for h in (3.0, 2.0, 1.5, 1.2, 1.0):
@@ -188,6 +230,11 @@ def main(argv=None):
         a = _accuracy(d, src, det)
         print(f"{h:8.1f} {m.n_nodes:8d} {a['median_abs_err_pct']:13.2f} {a['max_abs_err_pct']:10.2f} "
               f"{t['forward_plus_jacobian_s']:8.2f}", flush=True)
+    m = _optode_slab()
+    d, _, t = run_ours(m, src, det)
+    a = _accuracy(d, src, det)
+    print(f"{'optodes':>8} {m.n_nodes:8d} {a['median_abs_err_pct']:13.2f} {a['max_abs_err_pct']:10.2f} "
+          f"{t['forward_plus_jacobian_s']:8.2f}   (1.0 x 0.4 mm at the optode rows)", flush=True)
     return 0
 
 
