@@ -161,14 +161,24 @@ def _redbird_pure_python(make, repeats):
 
 
 def _compare(title, make, src, det, repeats, skip_redbird, pure_repeats):
-    """Both codes on fresh copies of one mesh: times (medians) and accuracy."""
+    """Both codes on fresh copies of one mesh: times (medians) and accuracy.
+
+    Repeats alternate between the codes (ours, redbird, ours, ...) so that both
+    see the same machine: on this shared 2-core VM the speed drifts by 10-20 %
+    over minutes, which biased the ratio when one code's repeats all ran first.
+    """
     mesh = make()
     print(f"\n== {title}: 60 x 60 x 30 mm, {mesh.n_nodes} nodes, {mesh.n_elements} tets")
     run_ours(make(), src, det)
-    ours = []
+    if not skip_redbird:
+        run_redbird(make(), src, det)
+    ours, rbt = [], []
     for _ in range(repeats):
         data, J, t = run_ours(make(), src, det)  # fresh mesh: no cached geometry
         ours.append(t)
+        if not skip_redbird:
+            rdata, rJ, t = run_redbird(make(), src, det)
+            rbt.append(t)
     acc = _accuracy(data, src, det)
     med = {k: float(np.median([t[k] for t in ours])) for k in ours[0] if k != "solver"}
     print(f"FluoGuide ({ours[0]['solver']}): " + ", ".join(f"{k} {v:.2f}" for k, v in med.items()))
@@ -176,11 +186,6 @@ def _compare(title, make, src, det, repeats, skip_redbird, pure_repeats):
           f"{acc['median_abs_err_pct']:.2f} %, max {acc['max_abs_err_pct']:.2f} %")
     if skip_redbird:
         return
-    run_redbird(make(), src, det)
-    rbt = []
-    for _ in range(repeats):
-        rdata, rJ, t = run_redbird(make(), src, det)
-        rbt.append(t)
     rmed = {k: float(np.median([t[k] for t in rbt])) for k in rbt[0]}
     racc = _accuracy(rdata, src, det)
     # redbirdpy switches its Jacobian to numba when it can import it
@@ -191,8 +196,10 @@ def _compare(title, make, src, det, repeats, skip_redbird, pure_repeats):
     print(f"  vs exact Robin half-space: median |err| {racc['median_abs_err_pct']:.2f} %, "
           f"max {racc['max_abs_err_pct']:.2f} %")
     ratio = rmed["forward_plus_jacobian_s"] / med["forward_plus_jacobian_s"]
+    paired = [r["forward_plus_jacobian_s"] / o["forward_plus_jacobian_s"] for o, r in zip(ours, rbt)]
     agree = np.median(np.abs(data / rdata - 1)) * 100
     print(f"speed-up forward+Jacobian (median): {ratio:.2f}x vs redbirdpy ({build}); "
+          f"paired repeats {min(paired):.2f}-{max(paired):.2f}x; "
           f"median |FluoGuide/redbird - 1| {agree:.2f} %")
     if build == "with numba" and pure_repeats > 0:
         pure = _redbird_pure_python(make, pure_repeats)
@@ -215,9 +222,9 @@ def main(argv=None):
     src, det = _optodes()
     print(f"mua {MUA}, musp {MUSP}, n {N}; 16 sources x 16 detectors; medians of "
           f"{args.repeats} repeats, each on a fresh mesh, after one untimed run of each code")
-    # one untimed run each first: both codes compile numba kernels on first use
-    # (ours load them from numba's cache), which is not what a user waits for
-    # on the second mesh
+    # _compare runs each code once untimed first: both compile numba kernels on
+    # first use (ours load them from numba's cache), which is not what a user
+    # waits for on the second mesh
     configs = [(f"uniform slab, lateral h {args.h} mm", partial(_slab, args.h), args.pure_repeats),
                ("optode-refined slab", partial(_optode_slab), 0)]
     for title, make, pure_repeats in configs:
