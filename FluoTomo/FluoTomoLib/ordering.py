@@ -49,9 +49,9 @@ def _nested_dissection(x, start, adj, leaf):
     order = np.empty(n, np.int64)
     side = np.zeros(n, np.int8)          # 1: right half of the segment being split
     buf = np.empty(n, np.int64)
-    # a stack of segments: idx[lo:hi] is ordered into order[lo:hi]
-    stack = np.empty((2 * 64 + 2 * n // max(leaf, 1) + 8, 2), np.int64)
-    top = 0
+    # a stack of segments: idx[lo:hi] is ordered into order[lo:hi]; every split
+    # removes at least one node, so n + 1 entries always suffice
+    stack = np.empty((n + 1, 2), np.int64)
     stack[0, 0], stack[0, 1] = 0, n
     top = 1
     coord = np.empty(n)
@@ -95,7 +95,7 @@ def _nested_dissection(x, start, adj, leaf):
         # separator: left nodes with a neighbour in the right half; the right
         # half's marks are cleared below, so neighbours outside the segment
         # (already separated) never count
-        nL, nR, nS = 0, 0, 0
+        nL, nR = 0, 0
         for t in range(lo, hi):
             v = idx[t]
             if side[v] == 1:
@@ -137,7 +137,6 @@ def _nested_dissection(x, start, adj, leaf):
             if sep_flag[t - lo]:
                 buf[ps] = idx[t]
                 ps += 1
-                nS += 1
         for t in range(lo, hi):
             idx[t] = buf[t]
             side[buf[t]] = 0

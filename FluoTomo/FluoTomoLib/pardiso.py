@@ -19,6 +19,7 @@ import glob
 import os
 import site
 import sys
+import time
 
 import numpy as np
 
@@ -146,8 +147,6 @@ class PardisoPattern:
             return None
         z = np.zeros((self.n, 1))
         if not self._analysed:
-            import time
-
             t0 = time.perf_counter()
             self._call(11, 1, a, z, z, name)
             self._analysed = True
