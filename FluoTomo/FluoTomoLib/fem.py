@@ -72,8 +72,9 @@ class _Geometry:
         """The PARDISO analysis of this mesh's pattern, shared by its operators.
 
         Meshes on a grid (structured_mesh, voxel_mesh: meta "method" =
-        "structured") are ordered by geometric nested dissection (0.02 s, fill
-        within 2-8 % of METIS, 0.15-0.25 s less analysis on 60-86k nodes);
+        "structured") are ordered by geometric nested dissection (0.05 s, fill
+        within 2 % of METIS or below it, 0.13-0.22 s less analysis on 60-86k
+        nodes);
         others by PARDISO's METIS, which gave a third of the geometric
         ordering's factorisation time on an fTetWild mesh (docs/fem.md).
         """
