@@ -13,10 +13,12 @@ try:  # 3D Slicer
                                                ScriptedLoadableModuleTest,
                                                ScriptedLoadableModuleWidget)
 except ImportError:  # slicer-core or no Slicer at all
-    from fluoguide.slicer_compat import (ScriptedLoadableModule,
-                                         ScriptedLoadableModuleLogic,
-                                         ScriptedLoadableModuleTest,
-                                         ScriptedLoadableModuleWidget)
+    from fluoguide.slicer_compat import (
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
 
 
 class FluoCalib(ScriptedLoadableModule):
@@ -36,14 +38,7 @@ class FluoCalib(ScriptedLoadableModule):
 
 class FluoCalibWidget(ScriptedLoadableModuleWidget):
     """In Slicer: a Qt form over FluoCalibLogic.  Outside Slicer the web app
-    (``fluo app``) builds its panel from the same logic with :meth:`setupWeb`."""
-
-    def setupWeb(self, app):
-        """The FluoCalib panel of the web app (``fluoguide.webapp``) on ``app.scene``."""
-        from fluoguide.webapp.calib_panel import CalibPanel
-
-        self.logic = FluoCalibLogic(app.scene)
-        return CalibPanel(app, self.logic)
+    (``fluo app``) builds its panel (``fluoapp.webapp.calib_panel``) over the same logic class."""
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -95,7 +90,7 @@ class FluoCalibLogic(ScriptedLoadableModuleLogic):
         """A job ``job(progress, cancel) -> IntrinsicsResult`` over board images
         (paths); it touches no scene node, so it may run on a worker thread.
         Hand the result to :meth:`storeCameraCalibration`."""
-        from FluoCalibLib.intrinsics import calibrate_camera
+        from FluoCalibLib.geometry.intrinsics import calibrate_camera
 
         images = [str(p) for p in images]
 
@@ -107,7 +102,7 @@ class FluoCalibLogic(ScriptedLoadableModuleLogic):
 
     def storeCameraCalibration(self, result):
         """``FluoCalib.CameraIntrinsics`` on the ``FluoCalibration`` node."""
-        from FluoCalibLib.geometry_scene import store_intrinsics
+        from FluoCalibLib.geometry.scene import store_intrinsics
 
         store_intrinsics(self.scene, result.camera, {"rms_px": result.rms_px,
                                                      "board": result.board_spec})

@@ -13,10 +13,12 @@ try:  # 3D Slicer
                                                ScriptedLoadableModuleTest,
                                                ScriptedLoadableModuleWidget)
 except ImportError:  # slicer-core or no Slicer at all
-    from fluoguide.slicer_compat import (ScriptedLoadableModule,
-                                         ScriptedLoadableModuleLogic,
-                                         ScriptedLoadableModuleTest,
-                                         ScriptedLoadableModuleWidget)
+    from fluoguide.slicer_compat import (
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
 
 
 class FluoNav(ScriptedLoadableModule):
@@ -35,14 +37,7 @@ class FluoNav(ScriptedLoadableModule):
 
 class FluoNavWidget(ScriptedLoadableModuleWidget):
     """In Slicer: a Qt form over FluoNavLogic.  Outside Slicer the web app
-    (``fluo app``) builds its panel from the same logic with :meth:`setupWeb`."""
-
-    def setupWeb(self, app):
-        """The FluoNav panel of the web app (``fluoguide.webapp``) on ``app.scene``."""
-        from fluoguide.webapp.nav_panel import NavPanel
-
-        self.logic = FluoNavLogic(app.scene)
-        return NavPanel(app, self.logic)
+    (``fluo app``) builds its panel (``fluoapp.webapp.nav_panel``) over the same logic class."""
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -83,7 +78,7 @@ class FluoNavLogic(ScriptedLoadableModuleLogic):
     def buildSurface(self, labelNodeName="CBCTLabels", targetTriangles=None):
         """Air-tissue surface of a label map as model node ``TissueSurface``."""
         from fluoguide import mrml_io
-        from FluoNavLib import surface
+        from FluoNavLib.mapping import surface
 
         node = mrml_io.get_node(self.scene, labelNodeName, "vtkMRMLLabelMapVolumeNode")
         poly = surface.surface_from_labelmap_node(node, target_triangles=targetTriangles)

@@ -13,10 +13,12 @@ try:  # 3D Slicer
                                                ScriptedLoadableModuleTest,
                                                ScriptedLoadableModuleWidget)
 except ImportError:  # slicer-core or no Slicer at all
-    from fluoguide.slicer_compat import (ScriptedLoadableModule,
-                                         ScriptedLoadableModuleLogic,
-                                         ScriptedLoadableModuleTest,
-                                         ScriptedLoadableModuleWidget)
+    from fluoguide.slicer_compat import (
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
 
 
 class FluoTomo(ScriptedLoadableModule):
@@ -37,14 +39,7 @@ class FluoTomo(ScriptedLoadableModule):
 
 class FluoTomoWidget(ScriptedLoadableModuleWidget):
     """In Slicer: a Qt form over FluoTomoLogic.  Outside Slicer the web app
-    (``fluo app``) builds its panel from the same logic with :meth:`setupWeb`."""
-
-    def setupWeb(self, app):
-        """The FluoTomo panel of the web app (``fluoguide.webapp``) on ``app.scene``."""
-        from fluoguide.webapp.tomo_panel import TomoPanel
-
-        self.logic = FluoTomoLogic(app.scene)
-        return TomoPanel(app, self.logic)
+    (``fluo app``) builds its panel (``fluoapp.webapp.tomo_panel``) over the same logic class."""
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -154,7 +149,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         from fluoguide import mrml_io
         from fluoguide.errors import FluoInputError
         from fluoguide.phantoms import make_phantom
-        from FluoTomoLib.igft import simulate_and_reconstruct
+        from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
 
         cbct = mrml_io.get_node(self.scene, "CBCT")
         truth = mrml_io.get_json_attribute(cbct, "FluoGuide.Truth")
@@ -182,7 +177,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
 
     def storeReconstruction(self, run, grid):
         """Write ``FluoTomoYield*`` (on the CBCT grid) and ``FluoTomoMeshSurface``."""
-        from FluoTomoLib.tomo_scene import store_reconstructions
+        from FluoTomoLib.scene import store_reconstructions
 
         shape, geo = grid
         return store_reconstructions(self.scene, run["coarse"], run["results"], shape,
@@ -192,8 +187,8 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         """Tetrahedral mesh of a label map (structured, fast path); shows its surface
         as ``FluoTomoMeshSurface`` and returns the Mesh."""
         from fluoguide import mrml_io
-        from FluoTomoLib.tomo_scene import store_mesh_surface
-        from FluoTomoLib.voxel_mesh import mesh_labelmap_structured
+        from FluoTomoLib.scene import store_mesh_surface
+        from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
 
         node = mrml_io.get_node(self.scene, labelNodeName, "vtkMRMLLabelMapVolumeNode")
         geo = mrml_io.volume_geometry(node)
@@ -210,8 +205,8 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         instead of the structured one (a second)."""
         from fluoguide import mrml_io
         from fluoguide.progress import check_cancel, report
-        from FluoTomoLib.tet_mesh import mesh_labelmap_quality
-        from FluoTomoLib.voxel_mesh import mesh_labelmap_structured
+        from FluoTomoLib.meshing.tetwild import mesh_labelmap_quality
+        from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
 
         node = mrml_io.get_node(self.scene, labelNodeName, "vtkMRMLLabelMapVolumeNode")
         geo = mrml_io.volume_geometry(node)
@@ -234,7 +229,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
 
     def storeMesh(self, mesh):
         """Show a mesh's surface as ``FluoTomoMeshSurface`` and keep the mesh."""
-        from FluoTomoLib.tomo_scene import store_mesh_surface
+        from FluoTomoLib.scene import store_mesh_surface
 
         store_mesh_surface(self.scene, mesh)
         self.mesh = mesh
@@ -246,8 +241,8 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         reconstructions; adds the phantom (if absent) and ``FluoTomoYield*`` volumes."""
         from fluoguide import mrml_io
         from fluoguide.phantoms import add_phantom_to_scene, make_phantom
-        from FluoTomoLib.igft import simulate_and_reconstruct
-        from FluoTomoLib.tomo_scene import store_reconstructions
+        from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
+        from FluoTomoLib.scene import store_reconstructions
 
         phantom = make_phantom("cylinder-tube", depth_mm=depthMm, seed=seed)
         run = simulate_and_reconstruct(phantom, methods=methods, seed=seed, progress=progress,

@@ -10,11 +10,11 @@ import time
 
 import numpy as np
 
-from FluoCalibLib import handeye as he
-from FluoCalibLib import transforms as tf
-from FluoCalibLib.boards import parse_board
-from FluoCalibLib.intrinsics import calibrate_camera
-from FluoCalibLib.synthetic_boards import default_camera, make_dataset
+from FluoCalibLib.geometry import handeye as he
+from FluoCalibLib.geometry import transforms as tf
+from FluoCalibLib.geometry.boards import parse_board
+from FluoCalibLib.geometry.intrinsics import calibrate_camera
+from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
 
 
 def _one(n_views, noise, seed):

@@ -29,7 +29,7 @@ def igtl_loss(rate_hz, seconds, poll_hz):
     import pyigtl
 
     from fluoguide import mrml_io
-    from FluoNavLib.igtl_client import IGTLReceiver
+    from FluoNavLib.devices.igtl_client import IGTLReceiver
 
     port = _free_port()
     server = pyigtl.OpenIGTLinkServer(port=port, local_server=True)
@@ -80,8 +80,8 @@ def igtl_loss(rate_hz, seconds, poll_hz):
 
 
 def ndi_track(seconds, faults):
-    from FluoNavLib.ndi_client import NDIClient
-    from FluoNavLib.ndi_simulator import Faults, NDISimulator
+    from FluoNavLib.devices.ndi_client import NDIClient
+    from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
 
     with NDISimulator(faults=Faults.typical() if faults else Faults(), seed=1) as sim:
         with NDIClient(sim.port) as client:
@@ -97,10 +97,10 @@ def ndi_track(seconds, faults):
 
 
 def live_latency(seconds, fps):
-    from FluoNavLib.frame_sources import SyntheticSource
-    from FluoNavLib.live_loop import LiveLoop
-    from FluoNavLib.ndi_client import NDIClient
-    from FluoNavLib.ndi_simulator import NDISimulator
+    from FluoNavLib.devices.frame_sources import SyntheticSource
+    from FluoNavLib.devices.live_loop import LiveLoop
+    from FluoNavLib.devices.ndi_client import NDIClient
+    from FluoNavLib.devices.ndi_simulator import NDISimulator
 
     with NDISimulator(seed=2) as sim:
         with NDIClient(sim.port) as client:

@@ -22,7 +22,7 @@ MUA, MUSP, N = 0.01, 1.0, 1.37
 
 
 def _slab(h_xy, half=30.0, depth=30.0):
-    from FluoTomoLib.structured_mesh import box_mesh, graded_axis
+    from FluoTomoLib.meshing.structured import box_mesh, graded_axis
 
     x = np.linspace(-half, half, int(round(2 * half / h_xy)) + 1)
     z = graded_axis(-depth, 0.0, min(0.5, h_xy / 2), 2.5, 3.0)
@@ -53,7 +53,7 @@ def _optode_slab():
     """The same slab refined where the optodes are: 0.4 mm across the source and
     detector rows (y = -3, +3), 1.0 mm along them (|x| <= 25 mm), growing to
     2.5 mm away from them; depth graded as in _slab, to 3 mm deep."""
-    from FluoTomoLib.structured_mesh import box_mesh, graded_axis
+    from FluoTomoLib.meshing.structured import box_mesh, graded_axis
 
     x = _refined_axis(30.0, [0.0], 1.0, 25.0, 2.5)
     y = _refined_axis(30.0, [3.0], 0.4, 1.5, 2.5)
@@ -80,7 +80,7 @@ def _accuracy(data, src, det):
 
 
 def run_ours(mesh, src, det):
-    from FluoTomoLib.forward import FluorescenceModel
+    from FluoTomoLib.fem.forward import FluorescenceModel
 
     p = dict(mua_per_mm=MUA, musp_per_mm=MUSP, n=N)
     t0 = time.perf_counter()

@@ -10,7 +10,7 @@ import json
 
 
 def main(argv=None):
-    from FluoNavLib.mapping_bench import run_mapping_benchmark
+    from FluoNavLib.mapping.benchmark import run_mapping_benchmark
 
     ap = argparse.ArgumentParser(prog="python -m benchmarks mapping")
     ap.add_argument("--repeats", type=int, default=5)

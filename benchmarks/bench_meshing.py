@@ -49,7 +49,7 @@ def _cases(names):
 
 
 def _row(name, method, size, mesh, ref, seconds):
-    from FluoTomoLib.mesh_quality import quality_report
+    from FluoTomoLib.meshing.report import quality_report
 
     q = quality_report(mesh, ref)
     errs = {r: e.get("volume_error_pct", float("nan")) for r, e in q["regions"].items()}
@@ -61,8 +61,8 @@ def _row(name, method, size, mesh, ref, seconds):
 
 
 def main(argv=None):
-    from FluoTomoLib.tet_mesh import mesh_labelmap_quality
-    from FluoTomoLib.voxel_mesh import labelmap_region_volumes, mesh_labelmap_structured
+    from FluoTomoLib.meshing.tetwild import mesh_labelmap_quality
+    from FluoTomoLib.meshing.voxel import labelmap_region_volumes, mesh_labelmap_structured
 
     ap = argparse.ArgumentParser(prog="benchmarks meshing")
     ap.add_argument("--cases", default="cylinder-roi,cylinder,big")

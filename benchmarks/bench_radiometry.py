@@ -13,12 +13,17 @@ import time
 
 import numpy as np
 
-from FluoCalibLib.camera_model import CameraModel
-from FluoCalibLib.camera_response import characterize
-from FluoCalibLib.illumination_fit import calibrate_illumination
-from FluoCalibLib.laser_line import calibrate_laser
-from FluoCalibLib.synth_light import (endoscope_camera, synthetic_illumination, synthetic_laser,
-                                     synthetic_lens_spectral_frames, synthetic_stack)
+from FluoCalibLib.geometry.camera_model import CameraModel
+from FluoCalibLib.radiometry.camera_response import characterize
+from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
+from FluoCalibLib.radiometry.laser_line import calibrate_laser
+from FluoCalibLib.radiometry.synthetic import (
+    endoscope_camera,
+    synthetic_illumination,
+    synthetic_laser,
+    synthetic_lens_spectral_frames,
+    synthetic_stack,
+)
 
 
 def _pct(a, b):

@@ -1,9 +1,10 @@
-"""FluoGuide: image-guided fluorescence quantification (shared foundation).
+"""FluoGuide's foundation: what the three module Libs stand on.
 
-The three Slicer modules keep their real code in ``FluoCalibLib``,
-``FluoNavLib`` and ``FluoTomoLib``; this package holds what all of them
-stand on (errors, MRML scene I/O, the Slicer compatibility layer, digital
-phantoms) and the ``fluo`` command line that joins them.
+Errors (``errors``), progress and cancellation (``progress``), MRML scene I/O and
+conventions (``mrml_io``, ``slicer_compat``), JSON of results (``jsonable``), lazy
+public ``__init__`` files (``lazy``), digital phantoms (``phantoms``, ``voxelize``,
+``optics_table``). It imports no module Lib and nothing of the application
+(``fluoapp``): a Slicer build ships it without the web stack.
 """
 
 __version__ = "0.1.0"

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FluoInputError
+from fluoguide.errors import FluoInputError
+from fluoguide.jsonable import to_jsonable
 
 
 def _slicer():
@@ -107,9 +108,7 @@ def node_summary(scene):
 
 def set_json_attribute(node, key, obj):
     """Store a JSON-serialisable object as a node attribute (saved in the .mrml)."""
-    from .cli import _to_jsonable
-
-    node.SetAttribute(key, json.dumps(_to_jsonable(obj), separators=(",", ":")))
+    node.SetAttribute(key, json.dumps(to_jsonable(obj), separators=(",", ":")))
 
 
 def get_json_attribute(node, key, default=None):

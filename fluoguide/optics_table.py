@@ -9,7 +9,7 @@ Wavelengths: excitation 780 nm (x), emission 830 nm (m).
 
 from __future__ import annotations
 
-from .errors import FluoInputError
+from fluoguide.errors import FluoInputError
 
 # ICG [ug/mL] -> (mua_x, musp_x, mua_f_x, mua_m, musp_m), 1/mm; n = 1.33, eta = 4 %
 ICG_TABLE = {

@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from .errors import FluoInputError
-from .optics_table import icg_liquid_optics, non_fluorescent_optics
-from .voxelize import voxelize
+from fluoguide.errors import FluoInputError
+from fluoguide.optics_table import icg_liquid_optics, non_fluorescent_optics
+from fluoguide.voxelize import voxelize
 
 HU = {"air": -1000.0, "water": 0.0, "agar": 20.0, "polyurethane": 110.0,
       "icg_tube": 150.0, "tongue": 70.0}
@@ -269,7 +269,7 @@ def make_phantom(name, **params):
 
 def add_phantom_to_scene(scene, phantom):
     """Add ``CBCT`` and ``CBCTLabels`` nodes (with the truth attribute) to a scene."""
-    from . import mrml_io
+    from fluoguide import mrml_io
 
     vol = mrml_io.add_volume(scene, "CBCT", phantom.cbct_hu, phantom.spacing_mm, phantom.origin_mm)
     vol.SetAttribute("FluoGuide.Phantom", phantom.name)
@@ -287,7 +287,7 @@ def write_phantom(phantom, out_dir):
     place at the end, so a failure leaves no half-written phantom behind.
     Returns the scene path.
     """
-    from . import mrml_io
+    from fluoguide import mrml_io
 
     out_dir = Path(out_dir).resolve()
     if out_dir.exists() and not out_dir.is_dir():

@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 import threading
 
-from .errors import FluoCancelled
+from fluoguide.errors import FluoCancelled
 
 
 class CancelToken:

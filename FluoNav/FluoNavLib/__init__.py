@@ -1,1 +1,6 @@
-"""Navigation: ray casting, illumination model, surface flux, live devices."""
+"""FluoNav's library: tracked devices and surface-flux mapping.
+
+Subpackages: ``devices`` (trackers, camera frames, live loop, recording) and
+``mapping`` (per-pixel ray casting, the navigated illumination model, flux maps,
+contours).
+"""

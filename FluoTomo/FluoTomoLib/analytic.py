@@ -13,7 +13,13 @@ import numpy as np
 
 from fluoguide.errors import FluoInputError
 
-from .optics import check_properties, diffusion_coefficient, mueff, reduced_albedo, robin_A
+from FluoTomoLib.optics import (
+    check_properties,
+    diffusion_coefficient,
+    mueff,
+    reduced_albedo,
+    robin_A,
+)
 
 
 def total_diffuse_reflectance(mua_per_mm, musp_per_mm, n):

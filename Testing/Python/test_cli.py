@@ -6,11 +6,11 @@ import sys
 
 import pytest
 
-from fluoguide.cli import build_parser, main
+from fluoapp.cli import build_parser, main
 
 
 def run_fluo(*args):
-    return subprocess.run([sys.executable, "-m", "fluoguide", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "fluoapp", *args], capture_output=True,
                           text=True, timeout=300)
 
 

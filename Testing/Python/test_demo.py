@@ -4,7 +4,8 @@ import json
 
 import pytest
 
-from fluoguide import demo, demo_stages
+from fluoapp.demo import run as demo
+from fluoapp.demo import stages as demo_stages
 from fluoguide.errors import FluoError, FluoInputError
 
 

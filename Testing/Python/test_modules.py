@@ -38,7 +38,7 @@ def test_lib_imports_without_slicer():
 
     code = ("import sys; sys.modules['slicer'] = None\n"
             "import FluoCalibLib, FluoNavLib, FluoTomoLib\n"
-            "from FluoTomoLib import mesh\n"
+            "from FluoTomoLib.meshing import mesh\n"
             "print('ok')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0 and "ok" in r.stdout, r.stderr

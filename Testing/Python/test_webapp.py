@@ -9,7 +9,7 @@ import pytest
 from fluoguide import mrml_io
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel
-from fluoguide.webapp.jobs import JobRunner
+from fluoapp.webapp.jobs import JobRunner
 
 
 def _wait(runner, timeout_s=60):
@@ -74,7 +74,7 @@ def test_job_runner_cancel_and_errors_become_state_not_exceptions():
 
 @pytest.fixture(scope="module")
 def app():
-    from fluoguide.webapp.app import create_app
+    from fluoapp.webapp.app import create_app
 
     return create_app()
 
@@ -83,7 +83,7 @@ def _panel(app, key):
     return next(p for p in app.panels if p.key == key)
 
 
-def test_app_has_one_panel_per_module_built_by_the_module_widgets(app):
+def test_app_has_one_panel_per_module_over_the_module_logic(app):
     assert [p.key for p in app.panels] == ["FluoCalib", "FluoTomo", "FluoNav"]
     import FluoTomo
 
@@ -184,7 +184,7 @@ def test_calib_panel_runs_the_light_calibrations(app):
         app.poll()
         assert not app.jobs.state.error, app.jobs.state.error
         assert key in app.state.calib_light_result
-    from FluoCalibLib import light_scene
+    from FluoCalibLib.radiometry import scene as light_scene
 
     assert light_scene.load_calibration(app.scene, light_scene.LASER_KEY)["error_3d_mm"] < 0.5
     app.state.calib_light_folder = "/nonexistent"

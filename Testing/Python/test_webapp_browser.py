@@ -42,7 +42,7 @@ def server():
     port = _free_port()
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     log = open(ARTIFACTS / "server.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "fluoguide.cli", "app", "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "fluoapp.cli", "app", "--port", str(port)],
                             cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}/"
     t0 = time.time()

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoCalibLib.camera_model import CameraModel
+from FluoCalibLib.geometry.camera_model import CameraModel
 
 # the thesis' 10 mm endoscope (physics.md section 4), with some tangential terms added
 ENDO = CameraModel(949.1, 951.0, 780.4, 465.9, (-0.4709, 0.3153, 1e-3, -5e-4, -0.134), 1392, 1040)
@@ -105,10 +105,10 @@ def test_dict_roundtrip_and_validation():
 
 
 def test_undistort_maps_straighten_a_rendered_board():
-    from FluoCalibLib import transforms as tf
-    from FluoCalibLib.boards import parse_board
-    from FluoCalibLib.synthetic_boards import default_camera, make_dataset
-    from FluoCalibLib.undistort import undistort_image, undistort_maps
+    from FluoCalibLib.geometry import transforms as tf
+    from FluoCalibLib.geometry.boards import parse_board
+    from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
+    from FluoCalibLib.geometry.undistort import undistort_image, undistort_maps
 
     cam = default_camera(640, 480)
     board = parse_board("chessboard:9x6:20")

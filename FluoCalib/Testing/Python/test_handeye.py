@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 
 from fluoguide import mrml_io
-from fluoguide.cli import main as fluo_main
+from fluoapp.cli import main as fluo_main
 from fluoguide.errors import FluoInputError
-from FluoCalibLib import geometry_scene as gs
-from FluoCalibLib import handeye as he
-from FluoCalibLib import transforms as tf
-from FluoCalibLib.boards import parse_board
-from FluoCalibLib.intrinsics import calibrate_camera
-from FluoCalibLib.opencv_yaml import read_calibration_yaml
-from FluoCalibLib.synthetic_boards import default_camera, make_dataset
+from FluoCalibLib.geometry import scene as gs
+from FluoCalibLib.geometry import handeye as he
+from FluoCalibLib.geometry import transforms as tf
+from FluoCalibLib.geometry.boards import parse_board
+from FluoCalibLib.geometry.intrinsics import calibrate_camera
+from FluoCalibLib.geometry.opencv_yaml import read_calibration_yaml
+from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
 
 CAM = default_camera(640, 480)
 BOARD = parse_board("chessboard:9x6:20")

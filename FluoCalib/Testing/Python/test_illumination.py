@@ -7,9 +7,13 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoCalibLib.illumination_fit import calibrate_illumination
-from FluoCalibLib.synth_light import (endoscope_camera, endoscope_cone, plane_poses,
-                                     synthetic_illumination)
+from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
+from FluoCalibLib.radiometry.synthetic import (
+    endoscope_camera,
+    endoscope_cone,
+    plane_poses,
+    synthetic_illumination,
+)
 
 
 def _pct(a, b):

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from fluoguide import mrml_io
-from fluoguide.cli import main as fluo_main
+from fluoapp.cli import main as fluo_main
 from fluoguide.errors import FluoInputError
-from FluoCalibLib import geometry_scene as gs
-from FluoCalibLib.boards import parse_board
-from FluoCalibLib.camera_model import CameraModel
-from FluoCalibLib.intrinsics import calibrate_camera, calibrate_from_detections, detect_views
-from FluoCalibLib.opencv_yaml import read_calibration_yaml
-from FluoCalibLib.synthetic_boards import default_camera, make_dataset
+from FluoCalibLib.geometry import scene as gs
+from FluoCalibLib.geometry.boards import parse_board
+from FluoCalibLib.geometry.camera_model import CameraModel
+from FluoCalibLib.geometry.intrinsics import calibrate_camera, calibrate_from_detections, detect_views
+from FluoCalibLib.geometry.opencv_yaml import read_calibration_yaml
+from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
 
 CAM = default_camera(640, 480)
 REAL = Path(__file__).resolve().parents[2] / "Resources" / "TestData" / "opencv_left"
@@ -214,6 +214,6 @@ def test_cli_synth_boards_writes_truth(tmp_path, capsys):
     board = parse_board(truth["board"])
     det = board.detect(img)
     cam = CameraModel.from_dict(truth["camera"])
-    from FluoCalibLib import transforms as tf
+    from FluoCalibLib.geometry import transforms as tf
     pred = cam.project(tf.apply_rigid(np.array(truth["board_to_camera"][0]), board.object_points))
     assert np.median(np.linalg.norm(det.image_points - pred, axis=1)) < 0.2

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoCalibLib.camera_model import CameraModel
-from FluoCalibLib.laser_line import calibrate_laser, fit_line, spot_centroid
-from FluoCalibLib.synth_light import synthetic_laser
+from FluoCalibLib.geometry.camera_model import CameraModel
+from FluoCalibLib.radiometry.laser_line import calibrate_laser, fit_line, spot_centroid
+from FluoCalibLib.radiometry.synthetic import synthetic_laser
 
 
 def _run(imgs, truth, **kw):

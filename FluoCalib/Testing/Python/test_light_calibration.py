@@ -10,13 +10,23 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoCalibLib.camera_model import CameraModel
-from FluoCalibLib.camera_response import Frame, characterize, load_stack, write_stack
-from FluoCalibLib.illumination_fit import calibrate_illumination
-from FluoCalibLib.laser_line import calibrate_laser, fit_line, spot_centroid
-from FluoCalibLib.radiometric_model import RadiometricCamera
-from FluoCalibLib.synth_light import (endoscope_camera, endoscope_cone, synthetic_illumination,
-                                     synthetic_laser, synthetic_stack)
+from FluoCalibLib.geometry.camera_model import CameraModel
+from FluoCalibLib.radiometry.camera_response import (
+    Frame,
+    characterize,
+    load_stack,
+    write_stack,
+)
+from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
+from FluoCalibLib.radiometry.laser_line import calibrate_laser, fit_line, spot_centroid
+from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
+from FluoCalibLib.radiometry.synthetic import (
+    endoscope_camera,
+    endoscope_cone,
+    synthetic_illumination,
+    synthetic_laser,
+    synthetic_stack,
+)
 
 
 def _pct(a, b):
@@ -164,7 +174,7 @@ def test_laser_bad_input():
 
 def test_cli_synth_then_calibrate_into_a_scene(tmp_path):
     def fluo(*args):
-        out = subprocess.run([sys.executable, "-m", "fluoguide.cli", *args], capture_output=True,
+        out = subprocess.run([sys.executable, "-m", "fluoapp.cli", *args], capture_output=True,
                              text=True, timeout=300)
         assert out.returncode == 0, out.stderr
         return json.loads(out.stdout)
@@ -182,13 +192,13 @@ def test_cli_synth_then_calibrate_into_a_scene(tmp_path):
     la = fluo("calib", "laser", str(tmp_path / "d" / "laser"), "--scene", str(scene), "--json")
     assert set(("origin_mm", "direction", "error_3d_mm", "error_2d_px")) <= set(la)
     from fluoguide import mrml_io
-    from FluoCalibLib import light_scene
+    from FluoCalibLib.radiometry import scene as light_scene
 
     back = mrml_io.load_scene(scene)
     assert light_scene.load_calibration(back, light_scene.RADIOMETRY_KEY)["gain_adu_per_e"] > 0
     assert light_scene.load_calibration(back, light_scene.ILLUMINATION_KEY)["cone"]["alpha"] > 0
     assert len(light_scene.load_calibration(back, light_scene.LASER_KEY)["direction"]) == 3
     assert (tmp_path / "plots" / "photon_transfer.png").stat().st_size > 5000
-    bad = subprocess.run([sys.executable, "-m", "fluoguide.cli", "calib", "radiometry",
+    bad = subprocess.run([sys.executable, "-m", "fluoapp.cli", "calib", "radiometry",
                           str(tmp_path / "nowhere")], capture_output=True, text=True)
     assert bad.returncode == 2 and "stack.json" in bad.stderr

@@ -8,11 +8,16 @@ import json
 import numpy as np
 import pytest
 
-from fluoguide import cli
+from fluoapp import cli
 from fluoguide.errors import FluoInputError
-from FluoCalibLib.camera_response import Frame, characterize, load_stack, write_stack
-from FluoCalibLib.radiometric_model import RadiometricCamera
-from FluoCalibLib.synth_light import synthetic_lens_spectral_frames, synthetic_stack
+from FluoCalibLib.radiometry.camera_response import (
+    Frame,
+    characterize,
+    load_stack,
+    write_stack,
+)
+from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
+from FluoCalibLib.radiometry.synthetic import synthetic_lens_spectral_frames, synthetic_stack
 
 # the thesis lens's best-fit exponent (nominal 2), physics.md section 5
 CAMERA = RadiometricCamera(lens_exponent=1.88)

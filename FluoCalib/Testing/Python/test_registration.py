@@ -5,11 +5,14 @@ import json
 import numpy as np
 import pytest
 
-from fluoguide.cli import main as fluo_main
+from fluoapp.cli import main as fluo_main
 from fluoguide.errors import FluoInputError
-from FluoCalibLib import transforms as tf
-from FluoCalibLib.registration import (pivot_calibration, register_points,
-                                       target_registration_error)
+from FluoCalibLib.geometry import transforms as tf
+from FluoCalibLib.geometry.registration import (
+    pivot_calibration,
+    register_points,
+    target_registration_error,
+)
 
 T_TRUE = tf.make_rigid(tf.rotation_matrix([0.2, -1.0, 0.5], 2.1), [120.0, -40.0, 300.0])
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoCalibLib import transforms as tf
+from FluoCalibLib.geometry import transforms as tf
 
 
 def _random_rotations(n, seed=0):

@@ -5,7 +5,7 @@ import pytest
 
 from fluoguide import mrml_io
 from fluoguide.errors import FluoInputError
-from FluoNavLib import frame_store as fs
+from FluoNavLib.devices import frame_store as fs
 
 
 def _pose(k):

@@ -10,10 +10,15 @@ import pytest
 
 from fluoguide import mrml_io
 from fluoguide.errors import FluoInputError
-from FluoCalibLib import transforms as tf
-from FluoNavLib import frame_store
-from FluoNavLib.recorder import Recorder, read_recording, replay, to_scene
-from FluoNavLib.timesync import PoseBuffer, estimate_latency
+from FluoCalibLib.geometry import transforms as tf
+from FluoNavLib.devices import frame_store
+from FluoNavLib.devices.recorder import (
+    Recorder,
+    read_recording,
+    replay,
+    to_scene,
+)
+from FluoNavLib.devices.timesync import PoseBuffer, estimate_latency
 
 
 def _pose(t):
@@ -98,7 +103,7 @@ def _free_port():
 def test_openigtlink_transforms_and_images_arrive_in_mrml():
     import pyigtl
 
-    from FluoNavLib.igtl_client import TIMESTAMP_ATTRIBUTE, IGTLReceiver
+    from FluoNavLib.devices.igtl_client import TIMESTAMP_ATTRIBUTE, IGTLReceiver
 
     port = _free_port()
     server = pyigtl.OpenIGTLinkServer(port=port, local_server=True)
@@ -148,7 +153,7 @@ def test_openigtlink_transforms_and_images_arrive_in_mrml():
 
 
 def test_cli_track_record_replay(tmp_path, capsys):
-    from fluoguide.cli import main
+    from fluoapp.cli import main
 
     assert main(["track", "--sim", "--seconds", "1.5", "--inject-faults", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoNavLib import frame_sources as fs
-from FluoNavLib.live_loop import LiveLoop
-from FluoNavLib.ndi_client import NDIClient
-from FluoNavLib.ndi_simulator import Faults, NDISimulator
-from FluoNavLib.recorder import Recorder
-from FluoNavLib.usb_devices import classify_usb, discover
+from FluoNavLib.devices import frame_sources as fs
+from FluoNavLib.devices.live_loop import LiveLoop
+from FluoNavLib.devices.ndi_client import NDIClient
+from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
+from FluoNavLib.devices.recorder import Recorder
+from FluoNavLib.devices.usb import classify_usb, discover
 
 
 def test_image_sequence_keeps_16_bit_counts_and_order(tmp_path):
@@ -170,7 +170,7 @@ def test_frames_skipped_between_track_calls_are_reported_missing():
 
 
 def test_cli_record_from_an_image_folder(tmp_path, capsys):
-    from fluoguide.cli import main
+    from fluoapp.cli import main
 
     for k in range(6):
         cv2.imwrite(str(tmp_path / f"{k}.png"), np.full((10, 11), 1000 + k, np.uint16))

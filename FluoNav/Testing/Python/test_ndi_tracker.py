@@ -6,10 +6,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from FluoNavLib.ndi_client import NDIClient
-from FluoNavLib.ndi_protocol import (NDIProtocolError, check_reply, crc16, format_phsr, format_tx,
-                                     parse_phsr, parse_tx, with_crc)
-from FluoNavLib.ndi_simulator import Faults, NDISimulator
+from FluoNavLib.devices.ndi_client import NDIClient
+from FluoNavLib.devices.ndi_protocol import (
+    NDIProtocolError,
+    check_reply,
+    crc16,
+    format_phsr,
+    format_tx,
+    parse_phsr,
+    parse_tx,
+    with_crc,
+)
+from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
 
 
 def test_crc_matches_the_device_replies():

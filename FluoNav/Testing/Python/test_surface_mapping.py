@@ -8,14 +8,20 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoCalibLib import transforms as tf
-from FluoCalibLib.camera_model import CameraModel
-from FluoCalibLib.illumination_model import IlluminationCone
-from FluoCalibLib.radiometric_model import RadiometricCamera
-from FluoNavLib.contour_classify import miss_rate
-from FluoNavLib.flux_map import (accumulate_on_faces, forward_image, plane_hits, transport_image,
-                                 view_model, view_weights)
-from FluoNavLib.pixel_cast import SurfaceCaster, cast_camera, reference_cast
+from FluoCalibLib.geometry import transforms as tf
+from FluoCalibLib.geometry.camera_model import CameraModel
+from FluoCalibLib.radiometry.illumination_model import IlluminationCone
+from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
+from FluoNavLib.mapping.contours import miss_rate
+from FluoNavLib.mapping.flux_map import (
+    accumulate_on_faces,
+    forward_image,
+    plane_hits,
+    transport_image,
+    view_model,
+    view_weights,
+)
+from FluoNavLib.mapping.pixel_cast import SurfaceCaster, cast_camera, reference_cast
 
 
 def _plane(half=200.0, z=0.0, n=20):
@@ -169,8 +175,13 @@ def test_extremes_are_masked_not_nan(method):
 
 @pytest.fixture(scope="module")
 def oral():
-    from FluoNavLib.nav_synth import (coupled_light, open_field_camera, oral_cavity_surface,
-                                      render_view, view_poses)
+    from FluoNavLib.mapping.synthetic import (
+        coupled_light,
+        open_field_camera,
+        oral_cavity_surface,
+        render_view,
+        view_poses,
+    )
 
     caster, _ = oral_cavity_surface(62000)
     cam = open_field_camera(binning=4)
@@ -218,7 +229,7 @@ def test_miss_rate_definition():
 
 
 def test_cli_synth_and_correct(tmp_path, capsys):
-    from fluoguide.cli import main
+    from fluoapp.cli import main
 
     assert main(["nav", "synth", "--out", str(tmp_path / "s"), "--views", "2", "--binning", "8",
                  "--triangles", "20000", "--json"]) == 0
@@ -235,7 +246,7 @@ def test_cli_synth_and_correct(tmp_path, capsys):
 
 def test_cli_writes_the_results_into_the_scene(tmp_path, capsys):
     from fluoguide import mrml_io
-    from fluoguide.cli import main
+    from fluoapp.cli import main
     from vtk.util import numpy_support as ns
 
     assert main(["nav", "synth", "--out", str(tmp_path / "s"), "--views", "3", "--binning", "8",
@@ -265,8 +276,13 @@ def test_cli_writes_the_results_into_the_scene(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_full_resolution_oral_cavity_acceptance():
-    from FluoNavLib.nav_synth import (coupled_light, open_field_camera, oral_cavity_surface,
-                                      render_view, view_poses)
+    from FluoNavLib.mapping.synthetic import (
+        coupled_light,
+        open_field_camera,
+        oral_cavity_surface,
+        render_view,
+        view_poses,
+    )
 
     caster, _ = oral_cavity_surface(62000)
     cam = open_field_camera()
@@ -284,7 +300,7 @@ def test_full_resolution_oral_cavity_acceptance():
 
 @pytest.mark.slow
 def test_cli_bench_mapping(capsys):
-    from fluoguide.cli import main
+    from fluoapp.cli import main
 
     assert main(["bench", "mapping", "--repeats", "1", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
@@ -300,7 +316,7 @@ def test_cli_bench_mapping(capsys):
     dict(half_angle_deg=45.0, alpha=1.5, gamma_per_mm=0.02, asym_amplitude=0.3, asym_phase_rad=0.7),
 ])
 def test_compiled_model_equals_the_cone_model(cone_kw):
-    from FluoNavLib.pixel_cast import PixelHits
+    from FluoNavLib.mapping.pixel_cast import PixelHits
 
     pts, tris = _spheres()
     caster = SurfaceCaster(pts, tris)

@@ -7,13 +7,27 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from fluoguide.cli import main
+from fluoapp.cli import main
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.analytic import (excitation_fluence_1d, log_reflectance, robin_surface_fluence,
-                                  spatially_resolved_reflectance, surface_fluence,
-                                  total_diffuse_fluorescence, total_diffuse_reflectance)
-from FluoTomoLib.optics import (DiffusionValidityWarning, check_properties, diffusion_coefficient,
-                                mueff, penetration_depth_mm, reff, robin_A, transport_mfp_mm)
+from FluoTomoLib.analytic import (
+    excitation_fluence_1d,
+    log_reflectance,
+    robin_surface_fluence,
+    spatially_resolved_reflectance,
+    surface_fluence,
+    total_diffuse_fluorescence,
+    total_diffuse_reflectance,
+)
+from FluoTomoLib.optics import (
+    DiffusionValidityWarning,
+    check_properties,
+    diffusion_coefficient,
+    mueff,
+    penetration_depth_mm,
+    reff,
+    robin_A,
+    transport_mfp_mm,
+)
 
 # physics.md table (thesis Table 2-5): ICG, mua_x, musp_x, mua_f,x, mua_m, musp_m
 ICG_ROWS = [

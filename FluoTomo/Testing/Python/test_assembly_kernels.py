@@ -8,13 +8,13 @@ import pytest
 import scipy.sparse as sp
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.assembly_kernels import element_gradients, upper_pattern, upper_values
-from FluoTomoLib.fem import geometry
-from FluoTomoLib.jacobian_kernels import node_elements
-from FluoTomoLib.locate import PointLocator
-from FluoTomoLib.mesh import Mesh
-from FluoTomoLib.pardiso import PardisoCholesky, mkl_pardiso
-from FluoTomoLib.structured_mesh import box_mesh, rectangle_mesh
+from FluoTomoLib.fem.assembly_kernels import element_gradients, upper_pattern, upper_values
+from FluoTomoLib.fem.operators import geometry
+from FluoTomoLib.fem.jacobian_kernels import node_elements
+from FluoTomoLib.fem.locate import PointLocator
+from FluoTomoLib.meshing.mesh import Mesh
+from FluoTomoLib.fem.pardiso import PardisoCholesky, mkl_pardiso
+from FluoTomoLib.meshing.structured import box_mesh, rectangle_mesh
 
 
 def _jittered(dim, seed=0):
@@ -112,7 +112,7 @@ def test_pardiso_binding_solves_and_reports_indefinite_matrices():
 
 @pytest.mark.skipif(mkl_pardiso() is None, reason="MKL cannot be loaded here")
 def test_operators_of_one_mesh_share_the_analysis():
-    from FluoTomoLib.fem import DiffusionOperator
+    from FluoTomoLib.fem.operators import DiffusionOperator
 
     m = _jittered(3, seed=4)
     b = np.zeros(m.n_nodes)
@@ -130,7 +130,7 @@ def test_operators_of_one_mesh_share_the_analysis():
 
 
 def test_geometric_ordering_is_a_permutation_with_metis_like_fill():
-    from FluoTomoLib.ordering import geometric_nested_dissection
+    from FluoTomoLib.fem.ordering import geometric_nested_dissection
 
     m = box_mesh(np.linspace(0, 20, 21), np.linspace(0, 20, 21), np.linspace(-10, 0, 11))
     g = geometry(m)
@@ -138,7 +138,7 @@ def test_geometric_ordering_is_a_permutation_with_metis_like_fill():
     assert np.array_equal(np.sort(order), np.arange(m.n_nodes))
     if mkl_pardiso() is None:
         return
-    from FluoTomoLib.fem import DiffusionOperator
+    from FluoTomoLib.fem.operators import DiffusionOperator
 
     op = DiffusionOperator(m, 0.01, 1.0, 1.37).factorize()
     assert op._solve.pattern.ordering == "user"         # grid meshes: geometric ordering
@@ -148,7 +148,7 @@ def test_geometric_ordering_is_a_permutation_with_metis_like_fill():
     # the fill PARDISO reports for both orderings (iparm(18) = -1 asks for it)
     fills = {}
     for name, ordr in (("geometric", order), ("metis", None)):
-        from FluoTomoLib.pardiso import PardisoPattern
+        from FluoTomoLib.fem.pardiso import PardisoPattern
 
         pat = PardisoPattern(g.indptr, g.indices, slots=1, order=ordr)
         pat.iparm[17] = -1

@@ -5,11 +5,18 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.camera_frames import (camera_pose_above, cast, detector_counts, expose,
-                                       frame_radiance, surface_caster, surface_values,
-                                       tomography_camera)
-from FluoTomoLib.noncontact import counts_to_boundary_fluence
-from FluoTomoLib.structured_mesh import box_mesh
+from FluoTomoLib.acquisition.camera_frames import (
+    camera_pose_above,
+    cast,
+    detector_counts,
+    expose,
+    frame_radiance,
+    surface_caster,
+    surface_values,
+    tomography_camera,
+)
+from FluoTomoLib.acquisition.noncontact_optodes import counts_to_boundary_fluence
+from FluoTomoLib.meshing.structured import box_mesh
 
 
 @pytest.fixture(scope="module")

@@ -6,10 +6,22 @@ import scipy.sparse as sp
 from scipy.special import k0
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.fem import (DiffusionOperator, detector_operator, geometry, point_source_rhs,
-                             source_positions, stiffness, weighted_mass)
+from FluoTomoLib.fem.operators import (
+    DiffusionOperator,
+    detector_operator,
+    geometry,
+    point_source_rhs,
+    source_positions,
+    stiffness,
+    weighted_mass,
+)
 from FluoTomoLib.optics import diffusion_coefficient, mueff, robin_A
-from FluoTomoLib.structured_mesh import box_mesh, graded_axis, rectangle_mesh, slab_mesh
+from FluoTomoLib.meshing.structured import (
+    box_mesh,
+    graded_axis,
+    rectangle_mesh,
+    slab_mesh,
+)
 
 
 def _rect():

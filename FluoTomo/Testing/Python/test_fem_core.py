@@ -6,13 +6,17 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.analytic import (excitation_fluence_1d, robin_surface_fluence,
-                                  total_diffuse_fluorescence, total_diffuse_reflectance)
-from FluoTomoLib.fem import DiffusionOperator, MeshResolutionWarning, weighted_mass
-from FluoTomoLib.forward import FluorescenceModel, safe_log
-from FluoTomoLib.mesh import Mesh
+from FluoTomoLib.analytic import (
+    excitation_fluence_1d,
+    robin_surface_fluence,
+    total_diffuse_fluorescence,
+    total_diffuse_reflectance,
+)
+from FluoTomoLib.fem.operators import DiffusionOperator, MeshResolutionWarning, weighted_mass
+from FluoTomoLib.fem.forward import FluorescenceModel, safe_log
+from FluoTomoLib.meshing.mesh import Mesh
 from FluoTomoLib.optics import DiffusionValidityWarning, robin_A
-from FluoTomoLib.structured_mesh import box_mesh, graded_axis, rectangle_mesh
+from FluoTomoLib.meshing.structured import box_mesh, graded_axis, rectangle_mesh
 
 ICG_04 = (0.016, 0.89, 0.013, 0.0068, 0.81)   # physics.md table, 0.4 ug/mL
 

@@ -5,10 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from fluoguide.cli import main
-from FluoTomoLib.forward import FluorescenceModel, safe_log
-from FluoTomoLib.structured_mesh import box_mesh, rectangle_mesh
-from FluoTomoLib.vtu_io import write_vtu
+from fluoapp.cli import main
+from FluoTomoLib.fem.forward import FluorescenceModel, safe_log
+from FluoTomoLib.meshing.structured import box_mesh, rectangle_mesh
+from FluoTomoLib.meshing.vtu_io import write_vtu
 
 PX = dict(mua_per_mm=0.032, musp_per_mm=1.0, n=1.33)
 PM = dict(mua_per_mm=0.025, musp_per_mm=0.9, n=1.33)

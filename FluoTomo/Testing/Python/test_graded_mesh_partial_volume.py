@@ -7,11 +7,15 @@ import pytest
 from fluoguide.errors import FluoInputError
 from fluoguide.optics_table import icg_absorption_per_yield
 from fluoguide.phantoms import make_phantom
-from FluoTomoLib.partial_volume import PartialVolumePrior, dual_cells, node_region_fractions
-from FluoTomoLib.self_absorption import _aitken, absorbing_mua
-from FluoTomoLib.voxel_mesh import (_axis_edges, labelmap_region_volumes,
-                                    mesh_labelmap_structured, region_centroid_mm,
-                                    target_refinement)
+from FluoTomoLib.recon.partial_volume import PartialVolumePrior, dual_cells, node_region_fractions
+from FluoTomoLib.recon.self_absorption import _aitken, absorbing_mua
+from FluoTomoLib.meshing.voxel import (
+    _axis_edges,
+    labelmap_region_volumes,
+    mesh_labelmap_structured,
+    region_centroid_mm,
+    target_refinement,
+)
 
 ROI = (-9.0, 9.0, -12.0, 12.0, -12.0, 0.0)
 
@@ -128,7 +132,7 @@ class _FakeModel:
     (40.0, False, "blind"),      # data the absorbing model cannot explain: runaway, refused
 ])
 def test_self_absorption_feedback(alpha, absorbing_data, expect):
-    from FluoTomoLib.self_absorption import reconstruct_self_absorbing
+    from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
 
     F = np.zeros((6, 2))
     F[:3, 0] = 1.0

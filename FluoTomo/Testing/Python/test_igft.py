@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fluoguide.phantoms import make_phantom
-from FluoTomoLib.igft import simulate_and_reconstruct
+from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
 
 
 @pytest.mark.slow
@@ -39,9 +39,9 @@ def test_self_absorption_feedback_corrects_the_hard_prior_yield():
 
 
 def test_tissue_air_facets_and_detectors_on_a_curved_surface():
-    from FluoTomoLib.igft_oral import ORAL_ROI_MM, tissue_air_facets
-    from FluoTomoLib.igft_steps import onto_surface_from_above
-    from FluoTomoLib.voxel_mesh import mesh_labelmap_structured
+    from FluoTomoLib.pipelines.oral import ORAL_ROI_MM, tissue_air_facets
+    from FluoTomoLib.pipelines.steps import onto_surface_from_above
+    from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
 
     ph = make_phantom("oral-cavity")
     m = mesh_labelmap_structured(ph.labels, ph.spacing_mm, ph.origin_mm, 2.0, roi=ORAL_ROI_MM)

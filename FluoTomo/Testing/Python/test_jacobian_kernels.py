@@ -7,10 +7,10 @@ from math import factorial
 import numpy as np
 import pytest
 
-from FluoTomoLib.fem import geometry
-from FluoTomoLib.jacobian_kernels import pair_jacobian
-from FluoTomoLib.forward import FluorescenceModel
-from FluoTomoLib.structured_mesh import box_mesh, rectangle_mesh
+from FluoTomoLib.fem.operators import geometry
+from FluoTomoLib.fem.jacobian_kernels import pair_jacobian
+from FluoTomoLib.fem.forward import FluorescenceModel
+from FluoTomoLib.meshing.structured import box_mesh, rectangle_mesh
 
 
 def _brute(mesh, F, G, c):

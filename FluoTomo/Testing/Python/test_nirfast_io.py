@@ -5,9 +5,9 @@ import pytest
 
 from fluoguide.errors import FluoInputError
 from fluoguide.phantoms import make_phantom
-from FluoTomoLib.nirfast_io import read_nirfast, write_nirfast
+from FluoTomoLib.meshing.nirfast_io import read_nirfast, write_nirfast
 from FluoTomoLib.optics import diffusion_coefficient
-from FluoTomoLib.voxel_mesh import mesh_labelmap_structured
+from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
 
 
 @pytest.fixture(scope="module")

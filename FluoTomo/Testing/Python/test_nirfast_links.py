@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.nirfast_io import read_optodes, write_optodes
+from FluoTomoLib.meshing.nirfast_io import read_optodes, write_optodes
 
 
 def _optodes():

@@ -4,9 +4,14 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.noncontact import (boundary_fluence_to_counts, counts_to_boundary_fluence,
-                                    detector_mask, ray_triangle_intersect, roi_mean_counts,
-                                    virtual_detectors)
+from FluoTomoLib.acquisition.noncontact_optodes import (
+    boundary_fluence_to_counts,
+    counts_to_boundary_fluence,
+    detector_mask,
+    ray_triangle_intersect,
+    roi_mean_counts,
+    virtual_detectors,
+)
 
 
 def _plane(z=0.0, half=50.0):

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.forward import FluorescenceModel
-from FluoTomoLib.profile_metrics import depth_profile, peak_and_centroid
-from FluoTomoLib.recon import RegionPrior, reconstruct, region_jacobian
-from FluoTomoLib.structured_mesh import rectangle_mesh
+from FluoTomoLib.fem.forward import FluorescenceModel
+from FluoTomoLib.recon.metrics import depth_profile, peak_and_centroid
+from FluoTomoLib.recon.solver import RegionPrior, reconstruct, region_jacobian
+from FluoTomoLib.meshing.structured import rectangle_mesh
 
 
 @pytest.fixture(scope="module")
@@ -104,7 +104,7 @@ def test_region_jacobian_from_same_labels_matches_default(problem):
 def test_forward_level_hard_prior_basis_removes_the_interpolation_bias():
     """Data on a 0.5 mm mesh; HP on a 1 mm mesh.  The coarse 0/1 basis mapped through
     the interpolation (J_f P K) cannot represent the fine disc; J_f K_f can."""
-    from FluoTomoLib.locate import locator
+    from FluoTomoLib.fem.locate import locator
 
     fine = rectangle_mesh(np.linspace(-20, 20, 81), np.linspace(-16, 0, 33))
     coarse = rectangle_mesh(np.linspace(-20, 20, 41), np.linspace(-16, 0, 17))

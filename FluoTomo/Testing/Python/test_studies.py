@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.studies import run_case, run_study, study_meshes
+from FluoTomoLib.studies.thesis import run_case, run_study, study_meshes
 
 KEYS = {"case", "method", "lambda", "true_peak", "peak", "peak_error_pct", "true_centroid_mm",
         "centroid_mm", "centroid_error_pct", "seconds"}
@@ -36,7 +36,7 @@ def test_study_a_rows_and_prior_benefit(tmp_path):
 
 
 def test_cli_custom_target_json(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "fluoguide", "study", "A", "--target", "6,3.5",
+    r = subprocess.run([sys.executable, "-m", "fluoapp", "study", "A", "--target", "6,3.5",
                         "--json", "--out", str(tmp_path)], capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stderr
@@ -65,7 +65,7 @@ def test_3d_slab_study_custom_target(tmp_path):
 
 
 def test_sweeps_report_error_and_time():
-    from FluoTomoLib.studies import run_sweep
+    from FluoTomoLib.studies.thesis import run_sweep
 
     out = run_sweep("noise", target=(6.0, 3.5))
     hp = [r for r in out["rows"] if r["method"] == "HP"]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.mesh_quality import quality_report
+from FluoTomoLib.meshing.report import quality_report
 
 R_SPHERE = 7.0
 
@@ -16,7 +16,7 @@ R_SPHERE = 7.0
 def mesh_labelmap_quality(*args, **kwargs):
     """One fTetWild thread: with several its result varies run to run, and the
     assertions below must not depend on thread scheduling."""
-    from FluoTomoLib.tet_mesh import mesh_labelmap_quality as mesher
+    from FluoTomoLib.meshing.tetwild import mesh_labelmap_quality as mesher
 
     kwargs.setdefault("threads", 1)
     return mesher(*args, **kwargs)
@@ -63,7 +63,7 @@ def test_regions_volumes_and_quality(sphere_mesh):
 def test_interface_conforms_to_the_sphere(sphere_mesh):
     """Faces between region 1 and 2 tets lie on the sphere (within a voxel), and
     no tet straddles it: every sphere tet is inside, every box tet outside."""
-    from FluoTomoLib.tet_mesh import _tet_faces
+    from FluoTomoLib.meshing.tetwild import _tet_faces
 
     _, m = sphere_mesh
     c = np.full(3, 12.5)
@@ -166,8 +166,8 @@ def test_bad_input():
 
 
 def test_interpolation_operators_are_exact_on_linear_fields():
-    from FluoTomoLib.recon_mesh import mesh_interpolation_operators, reconstruction_mesh_pair
-    from FluoTomoLib.structured_mesh import box_mesh
+    from FluoTomoLib.recon.grids import mesh_interpolation_operators, reconstruction_mesh_pair
+    from FluoTomoLib.meshing.structured import box_mesh
 
     fine = box_mesh(np.linspace(0, 20, 21), np.linspace(0, 10, 11), np.linspace(-8, 0, 9))
     coarse = box_mesh(np.linspace(0, 20, 6), np.linspace(0, 10, 4), np.linspace(-8, 0, 3))
@@ -195,7 +195,7 @@ def test_cli_quality_and_segmentation(tmp_path):
     lab = _sphere_in_box()
     img = sitk.GetImageFromArray(lab)
     sitk.WriteImage(img, str(tmp_path / "lab.nrrd"))
-    r = subprocess.run([sys.executable, "-m", "fluoguide", "mesh", str(tmp_path / "lab.nrrd"),
+    r = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "lab.nrrd"),
                         "--out", str(tmp_path / "m.vtu"), "--size", "3", "--json"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -214,7 +214,7 @@ def test_cli_quality_and_segmentation(tmp_path):
         simg.SetMetaData(f"Segment{n}_LabelValue", str(value))
         simg.SetMetaData(f"Segment{n}_Layer", "0")
     sitk.WriteImage(simg, str(tmp_path / "s.seg.nrrd"))
-    from FluoTomoLib.mesh_cli import _read_labelmap
+    from fluoapp.commands.mesh import _read_labelmap
 
     back, *_ = _read_labelmap(tmp_path / "s.seg.nrrd")
     np.testing.assert_array_equal(back, lab)     # segment n -> label n + 1
@@ -229,10 +229,10 @@ def test_cli_quality_and_segmentation(tmp_path):
     back4, *_ = _read_labelmap(tmp_path / "v.seg.nrrd")
     np.testing.assert_array_equal(back4, lab)
     (tmp_path / "bad.nrrd").write_bytes(b"NRRD0004\ngarbage\n")
-    bad = subprocess.run([sys.executable, "-m", "fluoguide", "mesh", str(tmp_path / "bad.nrrd"),
+    bad = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "bad.nrrd"),
                           "--out", str(tmp_path / "x.vtu")], capture_output=True, text=True)
     assert bad.returncode == 2 and "bad.nrrd" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "fluoguide", "mesh", str(tmp_path / "lab.nrrd"),
+    bad = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "lab.nrrd"),
                           "--out", str(tmp_path / "x.vtu"), "--refine", "cone:1,2"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "--refine" in bad.stderr

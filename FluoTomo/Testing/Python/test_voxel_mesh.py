@@ -5,8 +5,11 @@ import pytest
 
 from fluoguide.errors import FluoInputError
 from fluoguide.phantoms import make_phantom
-from FluoTomoLib.voxel_mesh import (labelmap_region_volumes, mesh_labelmap_structured,
-                                    node_labels_from_labelmap)
+from FluoTomoLib.meshing.voxel import (
+    labelmap_region_volumes,
+    mesh_labelmap_structured,
+    node_labels_from_labelmap,
+)
 
 
 def test_slab_phantom_mesh_volume_and_quality():
@@ -60,7 +63,7 @@ def test_thin_region_keeps_its_volume_and_cli(tmp_path):
     ref = labelmap_region_volumes(ph.labels, ph.spacing_mm)
     assert m.region_measures()[2] == pytest.approx(ref[2], rel=0.03)  # 2.4 mm tube, 1.6 mm cells
     write_phantom(ph, tmp_path / "p")
-    r = subprocess.run([sys.executable, "-m", "fluoguide", "mesh", str(tmp_path / "p" / "CBCTLabels.nrrd"),
+    r = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "p" / "CBCTLabels.nrrd"),
                         "--out", str(tmp_path / "m.vtu"), "--size", "2", "--fast", "--json"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -68,10 +71,10 @@ def test_thin_region_keeps_its_volume_and_cli(tmp_path):
     assert doc["inverted"] == 0 and doc["min_dihedral_deg"] > 30
     for region in doc["regions"].values():
         assert abs(region["volume_mm3"] - region["labelmap_volume_mm3"]) / region["labelmap_volume_mm3"] < 0.03
-    from FluoTomoLib.vtu_io import read_vtu
+    from FluoTomoLib.meshing.vtu_io import read_vtu
 
     back = read_vtu(tmp_path / "m.vtu")
     assert back.n_elements == doc["tets"] and set(back.regions.tolist()) == {1, 2}
-    bad = subprocess.run([sys.executable, "-m", "fluoguide", "mesh", str(tmp_path / "nope.nrrd"),
+    bad = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "nope.nrrd"),
                           "--out", str(tmp_path / "x.vtu"), "--fast"], capture_output=True, text=True)
     assert bad.returncode == 2 and "nope.nrrd" in bad.stderr

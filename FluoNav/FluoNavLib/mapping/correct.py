@@ -1,0 +1,135 @@
+"""Correct recorded tracked frames with the navigated illumination model
+(``fluo nav correct``): everything it needs comes from the MRML scene.
+
+Reads the frame and its pose from the recording (``frame_store``; a frame
+without a valid pose is refused), the intrinsics, ``FluoCalib.Illumination``
+(the cone) and ``FluoCalib.Radiometry`` (the camera) from ``FluoCalibration``,
+the pose chain ``TrackerToReference . CameraToolToTracker . CameraToTracker``
+and the ``TissueSurface``; writes the results back as ``FluoNavSurfaceFlux``,
+``FluoNavTransport`` and ``FluoNavRaw`` (``flux_scene``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fluoguide import mrml_io
+from fluoguide.errors import FluoInputError
+
+from FluoNavLib.devices import frame_store
+from FluoNavLib.mapping.contours import miss_rate
+from FluoNavLib.mapping.flux_map import (
+    ViewModel,
+    accumulate_on_faces,
+    surface_flux,
+    transport_image,
+    view_model,
+    view_weights,
+)
+from FluoNavLib.mapping.pixel_cast import PixelHits, SurfaceCaster, cast_camera
+
+__all__ = ["NavContext", "FrameResult", "load_context", "correct_frame", "map_frames_to_surface"]
+
+
+@dataclass
+class NavContext:
+    """What every frame of a recording shares: camera, light, surface."""
+
+    camera: object
+    cone: object
+    radiometric: object
+    caster: SurfaceCaster
+    polydata: object
+    tracker_to_reference: np.ndarray
+    camera_to_tool: np.ndarray
+
+
+@dataclass
+class FrameResult:
+    frame: int
+    counts: np.ndarray
+    hits: PixelHits
+    vm: ViewModel
+    transport: np.ndarray          # T_hat, 0 where not mapped
+    mapped: np.ndarray             # bool
+    flux_w_per_mm2: np.ndarray     # J, 0 where the counts are not valid
+    flux_valid: np.ndarray
+    saturated: np.ndarray
+    weight: np.ndarray             # view quality per pixel
+    numbers: dict
+
+
+def load_context(scene):
+    from FluoCalibLib.radiometry import scene as light_scene
+    from FluoCalibLib.geometry.scene import load_intrinsics
+    from FluoCalibLib.radiometry.illumination_model import IlluminationCone
+    from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
+
+    cam = load_intrinsics(scene)
+    il = light_scene.load_calibration(scene, light_scene.ILLUMINATION_KEY)
+    if not il or "cone" not in il:
+        raise FluoInputError("scene has no illumination calibration", field=light_scene.ILLUMINATION_KEY)
+    rad = light_scene.load_calibration(scene, light_scene.RADIOMETRY_KEY)
+    if not rad:
+        raise FluoInputError("scene has no radiometric calibration", field=light_scene.RADIOMETRY_KEY)
+    # the FluoCalib radiometry document holds the camera model under "camera"
+    # (our synthetic scenes) or as its top-level keys (fluo calib radiometry)
+    rc = RadiometricCamera.from_dict(rad.get("camera", rad))
+    model = mrml_io.get_node(scene, "TissueSurface", "vtkMRMLModelNode")
+    poly = model.GetPolyData()
+    caster = SurfaceCaster.from_polydata(poly)
+    t2r = mrml_io.get_transform(scene, "TrackerToReference")
+    c2t = mrml_io.get_transform(scene, "CameraToTracker")
+    return NavContext(cam, IlluminationCone.from_dict(il["cone"]), rc, caster, poly, t2r, c2t)
+
+
+def correct_frame(scene, ctx, n, min_intensity=0.05):
+    """Transport image, surface flux, weights and miss rates of recorded frame ``n``."""
+    img, info, poses = frame_store.read_tracked_frame(scene, n)
+    tool = poses.get("CameraToolToTracker")
+    if tool is None or not info.get("pose_valid", True):
+        raise FluoInputError("frame has no valid camera pose: not mapped", field="frame", value=n)
+    cam = ctx.camera
+    if (cam.width, cam.height) != (img.shape[1], img.shape[0]):
+        raise FluoInputError("frame size differs from the camera intrinsics", field="frame",
+                             value=(img.shape, cam.width, cam.height))
+    world = ctx.tracker_to_reference @ np.asarray(tool, float) @ ctx.camera_to_tool
+    counts = img.astype(float)
+    rc = ctx.radiometric
+    hits = cast_camera(ctx.caster, cam, world)
+    vm = view_model(hits, ctx.cone, world)
+    _, valid, saturated, _ = rc.radiance_from_counts(counts, min_snr=3.0)
+    S = counts - rc.offset_adu
+    T, ok = transport_image(S, vm, ctx.cone, min_intensity=min_intensity, valid=valid)
+    J, jvalid = surface_flux(counts, rc)
+    snr = rc.snr(np.maximum(S, 0.0) / rc.gain_adu_per_e)
+    w = view_weights(hits, vm, snr)
+    numbers = {"frame": int(n), "pixels": int(img.size), "visible": int(hits.visible.sum()),
+               "mapped": int(ok.sum()), "saturated": int(saturated.sum()),
+               "transport_median": float(np.median(T[ok])) if ok.any() else None,
+               "transport_iqr": ([float(np.percentile(T[ok], 25)), float(np.percentile(T[ok], 75))]
+                                 if ok.any() else None)}
+    jv = jvalid & hits.visible
+    numbers["surface_flux_median_w_per_mm2"] = float(np.median(J[jv])) if jv.any() else None
+    if ok.any():
+        raw_rate, _, _ = miss_rate(S, hits.visible & valid)
+        cor_rate, _, _ = miss_rate(T, ok)
+        numbers.update(miss_rate_raw_pct=raw_rate, miss_rate_corrected_pct=cor_rate)
+    return FrameResult(int(n), counts, hits, vm, T, ok, J, jvalid, saturated, w, numbers)
+
+
+def map_frames_to_surface(ctx, results):
+    """View-weighted per-face means of T and J over the frames' results.
+
+    Returns (transport, flux, weight, views) per face of the surface."""
+    n = ctx.caster.n_faces
+    T, wsum = accumulate_on_faces(n, [(r.hits.face, r.transport, r.weight, r.mapped) for r in results])
+    J, _ = accumulate_on_faces(n, [(r.hits.face, r.flux_w_per_mm2, r.weight, r.flux_valid & r.mapped)
+                                   for r in results])
+    views = np.zeros(n, np.int32)
+    for r in results:
+        m = r.mapped & (r.weight > 0)
+        views[np.unique(r.hits.face[m])] += 1
+    return T, J, wsum, views

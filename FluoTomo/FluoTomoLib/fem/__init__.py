@@ -1,0 +1,25 @@
+"""The finite-element diffusion model: operators, compiled assembly and Jacobian kernels,
+the PARDISO binding, fill-reducing ordering, point location and the coupled forward model.
+
+Modules
+-------
+- ``assembly_kernels``: Compiled (numba) FEM assembly straight into the upper triangle in CSR.
+- ``forward``: Coupled excitation/emission forward model, adjoint fields and Jacobians.
+- ``jacobian_kernels``: Compiled (numba) loops of the Jacobians of boundary data.
+- ``locate``: Point location in simplex meshes and closest points on their boundary.
+- ``operators``: Finite-element CW diffusion on linear triangles (2D) and tetrahedra (3D).
+- ``ordering``: Fill-reducing ordering of FEM matrices from the node coordinates.
+- ``pardiso``: MKL PARDISO through ctypes: sparse Cholesky for the diffusion operators.
+"""
+
+from fluoguide.lazy import attach
+
+__getattr__, __dir__, __all__ = attach(__name__, {
+    "assembly_kernels": ["upper_pattern", "element_gradients", "upper_values"],
+    "forward": ["triple_product_jacobian", "mua_jacobian", "FluorescenceModel", "safe_log"],
+    "jacobian_kernels": ["node_elements", "pair_jacobian"],
+    "locate": ["barycentric", "PointLocator", "locator", "BoundaryLocator", "boundary_locator"],
+    "operators": ["geometry", "symmetric_from_upper", "weighted_mass", "stiffness", "MeshResolutionWarning", "DiffusionOperator", "snap_to_surface", "source_positions", "point_source_rhs", "detector_operator"],
+    "ordering": ["geometric_nested_dissection"],
+    "pardiso": ["mkl_pardiso", "PardisoPattern", "PardisoCholesky"],
+})

@@ -1,0 +1,321 @@
+"""Finite-element CW diffusion on linear triangles (2D) and tetrahedra (3D).
+
+Weak form of -div(D grad Phi) + mua Phi = q with the Robin boundary
+Phi + 2 A D dPhi/dn = 0 (physics.md sections 1-2):
+
+    (K + M_mua + B / (2A)) Phi = b
+
+K: stiffness with element-mean D (exact for nodal, linearly varying D),
+M_mua: mass matrix weighted by nodal mua (exact P1 triple products),
+B: boundary-facet mass (row-sum lumped), b: point-source load (barycentric
+weights).
+
+What is expensive is computed once per mesh and cached on it (gradients,
+the upper-triangle sparsity pattern and each element's place in it, boundary
+weights); a new set of optical properties only refills the values (compiled
+loops, assembly_kernels.py), and one Cholesky factorisation (MKL PARDISO,
+pardiso.py) serves every source and adjoint.
+"""
+
+from __future__ import annotations
+
+import time
+from math import factorial
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from fluoguide.errors import FluoInputError
+
+from FluoTomoLib.fem.assembly_kernels import element_gradients, upper_pattern, upper_values
+from FluoTomoLib.fem.jacobian_kernels import node_elements
+from FluoTomoLib.fem.locate import boundary_locator, locator
+from FluoTomoLib.optics import check_properties, diffusion_coefficient, robin_A
+from FluoTomoLib.fem.ordering import geometric_nested_dissection
+from FluoTomoLib.fem.pardiso import PardisoCholesky, PardisoPattern, mkl_pardiso
+
+
+# ---------------------------------------------------------------- geometry cache
+
+class _Geometry:
+    """Per-mesh quantities that do not depend on optical properties: basis
+    gradients, measures, the upper-triangle CSR pattern with each element's
+    positions in it, and the lumped boundary mass per node."""
+
+    def __init__(self, mesh):
+        mesh.check_elements()
+        if np.any(mesh.signed_measures < 0):
+            raise FluoInputError(
+                f"{int(np.sum(mesh.signed_measures < 0))} inverted element(s); "
+                "orient the mesh (Mesh.oriented()) before solving",
+                field=f"{mesh.name}.elements[{int(np.flatnonzero(mesh.signed_measures < 0)[0])}]")
+        d = mesh.dim
+        # int32 element indices: half the memory traffic in every element loop
+        el = np.ascontiguousarray(mesh.elements, dtype=np.int32 if mesh.n_nodes < 2 ** 31 - 1
+                                  else np.int64)
+        self.elements = el
+        self.grad, _ = element_gradients(np.ascontiguousarray(mesh.nodes_mm, dtype=float), el)
+        self.vol = mesh.measures
+        self.n = mesh.n_nodes
+        self.dim = d
+        # exact integral of a product of three P1 functions: |e| d! a!b!c!/(d+a+b+c)!
+        self.c3 = factorial(d) / factorial(d + 3)
+        # elements around each node: the CSR pattern and the Jacobians use it
+        self.adjacency = node_elements(el, self.n)
+        self.indptr, self.indices, self.pos, self.diag = upper_pattern(el, self.n, *self.adjacency)
+        self._mesh = mesh
+        self._boundary_weight = None
+        self._pardiso_pattern = None
+
+    def pardiso_pattern(self):
+        """The PARDISO analysis of this mesh's pattern, shared by its operators.
+
+        Meshes on a grid (structured_mesh, voxel_mesh: meta "method" =
+        "structured") are ordered by geometric nested dissection (0.05 s, fill
+        within 2 % of METIS or below it, 0.13-0.22 s less analysis on 60-86k
+        nodes);
+        others by PARDISO's METIS, which gave a third of the geometric
+        ordering's factorisation time on an fTetWild mesh (docs/fem.md).
+        """
+        if self._pardiso_pattern is None:
+            order = None
+            if self._mesh.meta.get("method") == "structured":
+                order = geometric_nested_dissection(self._mesh.nodes_mm, self.indptr,
+                                                    self.indices)
+            self._pardiso_pattern = PardisoPattern(self.indptr, self.indices, slots=4,
+                                                   name=f"{self._mesh.name}.K", order=order)
+        return self._pardiso_pattern
+
+    def boundary_weight(self, facet_mask=None):
+        """Lumped boundary mass per node over the facets where ``facet_mask`` is
+        True (all if None): each facet gives a 1/d share of its measure to each
+        of its nodes.
+
+        Row-sum lumping: the consistent facet mass has positive off-diagonal
+        terms that outweigh the (negative) stiffness couplings when D is small
+        (musp ~ 100/mm), which breaks the M-matrix property and makes boundary
+        fluence oscillate negative.  Lumping keeps it positive at O(h^2) cost.
+        """
+        if facet_mask is None and self._boundary_weight is not None:
+            return self._boundary_weight
+        f = self._mesh.boundary_facets
+        fm = self._mesh.boundary_facet_measures
+        if facet_mask is not None:
+            sel = np.asarray(facet_mask, bool)
+            f, fm = f[sel], fm[sel]
+        w = np.bincount(f.ravel(), weights=np.repeat(fm / self.dim, self.dim), minlength=self.n)
+        if facet_mask is None:
+            self._boundary_weight = w
+        return w
+
+    def upper(self, D_nodal, w_nodal, diag_add=None):
+        """Upper triangle (CSR, sorted) of K(D) + M(w) [+ diag(diag_add)]."""
+        data = upper_values(self.elements, self.pos, self.grad, self.vol, self.c3,
+                            np.ascontiguousarray(D_nodal, dtype=float),
+                            np.ascontiguousarray(w_nodal, dtype=float), len(self.indices))
+        if diag_add is not None:
+            data[self.diag] += diag_add
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+    @property
+    def boundary_mass(self):
+        """Lumped boundary mass over every boundary facet (diagonal, CSR)."""
+        return sp.diags(self.boundary_weight(), format="csr")
+
+
+def geometry(mesh):
+    return mesh.cached("_fem_geometry", _Geometry)
+
+
+def _nodal(mesh, value, name):
+    v = np.asarray(value, dtype=float)
+    if v.ndim == 0:
+        return np.full(mesh.n_nodes, float(v))
+    if v.shape != (mesh.n_nodes,):
+        raise FluoInputError(f"needs a scalar or one value per node ({mesh.n_nodes})", field=name,
+                             value=v.shape)
+    return v
+
+
+def symmetric_from_upper(U):
+    """Full symmetric CSR from its upper triangle."""
+    return (U + sp.triu(U, k=1, format="csr").T).tocsr()
+
+
+def weighted_mass(mesh, w_nodal):
+    """Mass matrix weighted by a nodal field w: M_ij = integral w phi_i phi_j (exact)."""
+    g = geometry(mesh)
+    w = _nodal(mesh, w_nodal, "weight")
+    return symmetric_from_upper(g.upper(np.zeros(g.n), w))
+
+
+def stiffness(mesh, D_nodal):
+    """Stiffness K_ij = integral D_e grad phi_i . grad phi_j (element-mean D)."""
+    g = geometry(mesh)
+    D = _nodal(mesh, D_nodal, "D")
+    return symmetric_from_upper(g.upper(D, np.zeros(g.n)))
+
+
+# ---------------------------------------------------------------- solver
+
+def _pardiso_available():
+    return mkl_pardiso() is not None
+
+
+class MeshResolutionWarning(UserWarning):
+    """Elements are large compared with the light's decay length 1/mueff."""
+
+
+def _check_resolution(mesh, mua, musp, name):
+    import warnings
+
+    from FluoTomoLib.optics import mueff
+
+    h = float(np.median(mesh.measures)) ** (1.0 / mesh.dim) * (2.0 if mesh.dim == 3 else 1.5)
+    me = float(np.max(mueff(mua, musp)))
+    if h * me > 2.0:
+        warnings.warn(f"{name}: elements (~{h:.2g} mm) are coarse for a decay length 1/mueff = "
+                      f"{1 / me:.2g} mm; far-field values will be inaccurate and may underflow",
+                      MeshResolutionWarning, stacklevel=3)
+
+
+class DiffusionOperator:
+    """System matrix of one wavelength and its factorisation.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    mua_per_mm, musp_per_mm : scalar or (N,) nodal
+    n : refractive index of the tissue (outside: air)
+    robin_facets : bool mask over ``mesh.boundary_facets`` where the tissue-air
+        Robin condition applies; elsewhere the boundary is reflecting (zero
+        flux), e.g. the cut sides of a column modelling an infinite slab.
+        Default: every boundary facet.
+    solver : "auto" (PARDISO if MKL loads, else SuperLU), "pardiso", "splu" or "amg"
+        (smoothed-aggregation AMG preconditioned CG, for meshes too big to factorise)
+    """
+
+    def __init__(self, mesh, mua_per_mm, musp_per_mm, n, solver="auto", name="operator",
+                 robin_facets=None):
+        mua = _nodal(mesh, mua_per_mm, f"{name}.mua_per_mm")
+        musp = _nodal(mesh, musp_per_mm, f"{name}.musp_per_mm")
+        check_properties(mua, musp, n, where=name)
+        _check_resolution(mesh, mua, musp, name)
+        self.mesh = mesh
+        self.name = name
+        self.mua = mua
+        self.musp = musp
+        self.n = float(n)
+        self.A = float(robin_A(self.n))
+        self.D = diffusion_coefficient(mua, musp)
+        t0 = time.perf_counter()
+        g = geometry(mesh)
+        self.robin_facets = robin_facets
+        # assembled as the upper triangle PARDISO factorises; the full matrix
+        # (K) is built only when asked for (SuperLU, AMG, matrix products)
+        self.K_upper = g.upper(self.D, mua, g.boundary_weight(robin_facets) * (1.0 / (2.0 * self.A)))
+        self._K = None
+        self.assembly_seconds = time.perf_counter() - t0
+        self.factor_seconds = 0.0
+        self._solver_request = solver
+        self._solve = None
+        self.solver_name = None
+        self.n_solves = 0
+
+    @property
+    def K(self):
+        """The full symmetric system matrix (CSC)."""
+        if self._K is None:
+            self._K = symmetric_from_upper(self.K_upper).tocsc()
+        return self._K
+
+    def factorize(self):
+        if self._solve is not None:
+            return self
+        t0 = time.perf_counter()
+        req = self._solver_request
+        if req not in ("auto", "pardiso", "splu", "amg"):
+            raise FluoInputError("unknown solver; use auto, pardiso, splu or amg", field="solver",
+                                 value=req)
+        pardiso = req in ("auto", "pardiso") and _pardiso_available()
+        if req == "pardiso" and not pardiso:
+            raise FluoInputError("PARDISO (MKL) is not available", field="solver", value=req)
+        if pardiso:
+            self._solve = PardisoCholesky(self.K_upper, name=f"{self.name}.K",
+                                          pattern=geometry(self.mesh).pardiso_pattern())
+            self.solver_name = "pardiso"
+        elif req == "amg":
+            import pyamg
+
+            ml = pyamg.smoothed_aggregation_solver(self.K.tocsr(), symmetry="symmetric")
+
+            def solve(B):
+                B2 = B.reshape(len(B), -1)
+                X = np.column_stack([ml.solve(B2[:, j], tol=1e-10, accel="cg", maxiter=500)
+                                     for j in range(B2.shape[1])])
+                return X.reshape(B.shape)
+            self._solve = solve
+            self.solver_name = "amg-cg"
+        else:
+            lu = spla.splu(self.K, permc_spec="MMD_AT_PLUS_A")
+            self._solve = lu.solve
+            self.solver_name = "superlu"
+        self.factor_seconds = time.perf_counter() - t0
+        return self
+
+    def solve(self, B):
+        """Solve K X = B for a vector (N,) or a block (N, k); dense result."""
+        self.factorize()
+        if sp.issparse(B):
+            B = B.toarray()
+        B = np.asarray(B, dtype=float)
+        X = self._solve(B)
+        self.n_solves += 1 if B.ndim == 1 else B.shape[1]
+        return np.asarray(X)
+
+
+# ---------------------------------------------------------------- sources / detectors
+
+def snap_to_surface(mesh, points_mm, max_snap_mm=5.0, what="source"):
+    """Closest boundary points to ``points_mm``; error for points farther than max_snap_mm."""
+    pts = np.atleast_2d(np.asarray(points_mm, float))
+    if pts.shape[1] != mesh.dim:
+        raise FluoInputError(f"points must have {mesh.dim} coordinates", field=what,
+                             value=pts.shape)
+    if not np.all(np.isfinite(pts)):
+        raise FluoInputError("coordinates must be finite", field=what)
+    q, facet, bary, dist = boundary_locator(mesh).closest(pts)
+    far = np.flatnonzero(dist > max_snap_mm)
+    if len(far):
+        raise FluoInputError(f"is {dist[far[0]]:.3g} mm from the mesh surface (more than "
+                             f"{max_snap_mm:g} mm): off the mesh", field=f"{what}[{far[0]}]",
+                             value=pts[far[0]].tolist())
+    return q, facet, bary
+
+
+def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_mm=5.0):
+    """Buried isotropic sources: one transport MFP below the nearest surface point,
+    along the inward normal (physics.md section 2)."""
+    q, facet, bary = snap_to_surface(mesh, surface_points_mm, max_snap_mm, "source")
+    mua = _nodal(mesh, mua_per_mm, "mua_per_mm")
+    musp = _nodal(mesh, musp_per_mm, "musp_per_mm")
+    fnodes = mesh.boundary_facets[facet]
+    mut = np.einsum("ij,ij->i", bary, (mua + musp)[fnodes])
+    normal = mesh.boundary_normals[facet]
+    return q - normal / mut[:, None]
+
+
+def point_source_rhs(mesh, positions_mm):
+    """(N, S) sparse load of unit-power point sources at interior positions."""
+    P = locator(mesh).interpolation_matrix(positions_mm, what="source (buried)")
+    return P.T.tocsc()
+
+
+def detector_operator(mesh, surface_points_mm, max_snap_mm=5.0):
+    """(D, N) sparse operator: boundary fluence at the surface point nearest each detector."""
+    _, facet, bary = snap_to_surface(mesh, surface_points_mm, max_snap_mm, "detector")
+    nodes = mesh.boundary_facets[facet]
+    rows = np.repeat(np.arange(len(facet)), mesh.dim)
+    return sp.csr_matrix((bary.ravel(), (rows, nodes.ravel())),
+                         shape=(len(facet), mesh.n_nodes))

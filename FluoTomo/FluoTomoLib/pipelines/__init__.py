@@ -1,0 +1,17 @@
+"""Image-guided fluorescence tomography end to end: the steps every case shares
+(acquisition, forward model, reconstruction) and the phantom cases (cylinder tube, oral cavity).
+
+Modules
+-------
+- ``oral``: Image-guided fluorescence tomography of the oral-cavity phantom.
+- ``steps``: The steps every image-guided tomography case shares, whatever the phantom: the tracked camera's acquisition of a laser scan (rendered frames -> ROI counts -> normalised boundary fluence), the reconstruction model and prior from the CBCT labels, and NP / SP / HP with the optional self-absorption feedback.  igft.py (cylinder-tube) and igft_oral.py (oral cavity) put them together.
+- ``tube``: Image-guided fluorescence tomography of the cylinder-tube phantom, end to end.
+"""
+
+from fluoguide.lazy import attach
+
+__getattr__, __dir__, __all__ = attach(__name__, {
+    "oral": ["tissue_air_facets", "simulate_and_reconstruct_oral"],
+    "steps": ["nodal_optics", "acquire", "onto_surface_from_above", "reconstruction_model", "reconstruct_methods"],
+    "tube": ["simulate_and_reconstruct"],
+})

@@ -1,0 +1,5 @@
+import sys
+
+from fluoapp.cli import main
+
+sys.exit(main())

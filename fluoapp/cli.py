@@ -1,0 +1,123 @@
+"""The ``fluo`` command line.
+
+Each capability registers its own subcommands from a small ``*_cli`` module
+listed in ``CLI_MODULES``; this file only builds the parser, runs the chosen
+command and turns errors into one-line messages.
+
+Conventions every subcommand follows:
+
+- ``--json`` prints exactly one JSON object on stdout (progress goes to stderr).
+- Bad input raises ``FluoInputError``: one line on stderr, exit code 2.
+- A handler returns a dict (the JSON result); without ``--json`` it is printed
+  as readable ``key: value`` lines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+
+import numpy as np
+
+from fluoguide.errors import FluoCancelled, FluoError, FluoInputError
+from fluoguide.jsonable import dumps, to_jsonable
+
+# Modules that define ``register(subparsers)``.  Order = order in --help.
+CLI_MODULES = [
+    "fluoapp.commands.phantom",
+    "fluoapp.commands.scene",
+    "fluoapp.commands.demo",
+    "fluoapp.commands.app",
+    "fluoapp.commands.fem",
+    "fluoapp.commands.study",
+    "fluoapp.commands.mesh",
+    "fluoapp.commands.calib_geometry",
+    "fluoapp.commands.calib_light",
+    "fluoapp.commands.devices",
+    "fluoapp.commands.nav",
+]
+
+
+def cli_group(subparsers, name, help_text):
+    """Return the sub-subparsers of group ``name`` (``fluo calib ...``), creating it once.
+
+    Several modules add commands to one group (``calib camera`` and
+    ``calib radiometry`` live in different files).
+    """
+    groups = subparsers.__dict__.setdefault("_fluo_groups", {})
+    if name not in groups:
+        p = subparsers.add_parser(name, help=help_text, description=help_text)
+        groups[name] = p.add_subparsers(dest=f"{name}_command", metavar="COMMAND")
+        groups[name].required = True
+    return groups[name]
+
+
+def add_json_flag(parser):
+    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(
+        prog="fluo",
+        description="FluoGuide: image-guided fluorescence quantification "
+        "(calibration, navigation, tomography).",
+    )
+    from fluoguide import __version__
+
+    parser.add_argument("--version", action="version", version=f"fluo {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in CLI_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def _print_human(result, stream):
+    for key, value in result.items():
+        if isinstance(value, (dict, list)):
+            value = json.dumps(to_jsonable(value))
+        print(f"{key}: {value}", file=stream)
+
+
+def _quiet_vtk():
+    """VTK/MRML log to stderr on their own; the CLI reports errors itself."""
+    try:
+        import vtk
+
+        vtk.vtkObject.GlobalWarningDisplayOff()
+        vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
+    except (ImportError, AttributeError):
+        pass
+
+
+def main(argv=None):
+    parser = build_parser()
+    _quiet_vtk()
+    args = parser.parse_args(argv)
+    try:
+        result = args.func(args)
+    except FluoInputError as exc:
+        print(f"fluo: error: {exc}", file=sys.stderr)
+        return 2
+    except FluoCancelled as exc:
+        print(f"fluo: cancelled: {exc}", file=sys.stderr)
+        return 130
+    except FluoError as exc:
+        print(f"fluo: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("fluo: interrupted", file=sys.stderr)
+        return 130
+    if result is None:
+        return 0
+    if getattr(args, "json", False):
+        print(dumps(result))
+    else:
+        _print_human(result, sys.stdout)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

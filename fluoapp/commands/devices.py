@@ -1,0 +1,179 @@
+"""``fluo devices``, ``fluo track``, ``fluo record``, ``fluo replay``: find trackers and
+cameras, track poses, record and replay tracked frames."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from fluoapp.cli import add_json_flag
+from fluoguide.errors import FluoInputError
+
+def _devices(args):
+    from FluoNavLib.devices.usb import discover
+
+    return discover()
+
+
+def _track(args):
+    from FluoNavLib.devices.ndi_client import NDIClient
+    from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
+
+    if args.seconds <= 0:
+        raise FluoInputError("must be > 0", field="--seconds", value=args.seconds)
+    if args.igtl:
+        return _track_igtl(args)
+    sim = None
+    if args.sim:
+        sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(),
+                           seed=args.seed)
+        port = sim.start()
+    elif args.serial:
+        port = args.serial
+    else:
+        raise FluoInputError("choose --sim or --serial PORT", field="source")
+    try:
+        try:
+            client = NDIClient(port).open()
+        except Exception as exc:
+            raise FluoInputError(f"cannot open serial port ({exc})", field="--serial",
+                                 value=port) from None
+        with client:
+            client.initialize([b"FluoGuide sim tool " * 4] * (2 if args.sim else args.tools))
+            client.start()
+            t0 = time.monotonic()
+            stats = client.track(args.seconds)
+            elapsed = time.monotonic() - t0
+            client.stop()
+    finally:
+        if sim is not None:
+            sim.stop()
+    return {"frames": stats.frames, "rate_hz": stats.frames / elapsed, "seconds": elapsed,
+            "missing": stats.missing, "tool_missing": stats.tool_missing,
+            "out_of_volume": stats.out_of_volume, "crc_errors": stats.crc_errors,
+            "timeouts": stats.timeouts, "malformed": stats.malformed,
+            "device_errors": stats.device_errors, "recovered": stats.recovered,
+            "lost_unreported": stats.lost_unreported(), "segments": stats.segments,
+            "simulator": sim.counters if sim is not None else None}
+
+
+def _track_igtl(args):
+    from fluoguide import mrml_io
+
+    from FluoNavLib.devices.igtl_client import IGTLReceiver
+
+    host, _, port = args.igtl.rpartition(":")
+    if not host or not port.isdigit():
+        raise FluoInputError("expected HOST:PORT", field="--igtl", value=args.igtl)
+    with IGTLReceiver(mrml_io.new_scene(), host, int(port), nominal_rate_hz=args.rate) as rx:
+        out = rx.receive(args.seconds)
+    out["seconds"] = args.seconds
+    return out
+
+
+def _frame_source(args):
+    from FluoNavLib.devices import frame_sources as fs
+
+    if args.frames:
+        return fs.ImageSequenceSource(args.frames, fps=args.fps, realtime=True)
+    if args.camera is not None:
+        return fs.OpenCVSource(args.camera, fps=args.fps)
+    return fs.SyntheticSource(fps=args.fps, width=args.width, height=args.height, seed=args.seed)
+
+
+def _record(args):
+    """Simulated tracker + synthetic, image-sequence or camera frames -> a recording
+    folder, through the live loop (the same path the mapping takes)."""
+    from FluoNavLib.devices.live_loop import LiveLoop
+    from FluoNavLib.devices.ndi_client import NDIClient
+    from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
+    from FluoNavLib.devices.recorder import Recorder
+
+    if args.seconds <= 0 or args.fps <= 0:
+        raise FluoInputError("seconds and fps must be > 0", field="--seconds/--fps",
+                             value=(args.seconds, args.fps))
+    sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(), seed=args.seed)
+    port = sim.start()
+    try:
+        with NDIClient(port) as client, Recorder(args.out) as rec, _frame_source(args) as frames:
+            client.initialize([b"camera tool rom " * 4])
+            client.start()
+
+            def write(image, info, poses):
+                rec.add(image, info["timestamp_s"], poses, exposure_s=info["exposure_s"],
+                        pose_valid=info["pose_valid"], pose_status=info["pose_status"])
+
+            # a recording keeps every frame the camera gave (no "latest" dropping);
+            # a slow disk shows as latency, or as camera-side gaps (dropped_upstream)
+            loop = LiveLoop(frames, write, tracker=client, tools={"CameraToolToTracker": 1},
+                            camera_latency_s=0.5 / args.fps, drop_policy="none")
+            out = loop.run(seconds=args.seconds)
+            client.stop()
+            stats = client.stats
+    finally:
+        sim.stop()
+    return {"frames": out["delivered"], "frames_without_pose": out["pose_invalid"],
+            "pose_status": out["pose_status"], "dropped_slow": out["dropped_slow"],
+            "dropped_upstream": out["dropped_upstream"],
+            "frames_lost_unreported": out["lost_unreported"], "latency_ms": out["latency_ms"],
+            "tracker_frames": stats.frames, "tracker_missing": stats.missing,
+            "crc_errors": stats.crc_errors, "recovered": stats.recovered,
+            "lost_unreported": stats.lost_unreported(),
+            "folder": str(Path(args.out).resolve())}
+
+
+def _replay(args):
+    from FluoNavLib.devices.recorder import replay, to_scene
+
+    n = valid = 0
+    t0 = time.monotonic()
+    for _, info, poses in replay(args.folder, "max" if args.max_speed else "recorded"):
+        n += 1
+        valid += bool(info["pose_valid"])
+    out = {"frames": n, "frames_with_pose": valid, "seconds": time.monotonic() - t0}
+    if args.scene:
+        from fluoguide import mrml_io
+
+        out["scene"] = str(mrml_io.save_scene(to_scene(args.folder), args.scene))
+    return out
+
+
+def register(subparsers):
+    p = subparsers.add_parser("devices", help="list attached trackers and cameras (USB / serial)")
+    add_json_flag(p)
+    p.set_defaults(func=_devices)
+    p = subparsers.add_parser("track", help="track tool poses from an NDI tracker or the simulator")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--sim", action="store_true", help="protocol-faithful simulator on a pty")
+    src.add_argument("--serial", metavar="PORT", help="serial port of a real NDI tracker")
+    src.add_argument("--igtl", metavar="HOST:PORT", help="OpenIGTLink server (e.g. PLUS)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="--igtl: nominal message rate [Hz] for loss counting by timestamps")
+    p.add_argument("--seconds", type=float, default=5.0)
+    p.add_argument("--inject-faults", action="store_true",
+                   help="simulator: CRC errors, slow replies, dropouts and a disconnect")
+    p.add_argument("--tools", type=int, default=1, help="passive tools to request (--serial)")
+    p.add_argument("--seed", type=int, default=0)
+    add_json_flag(p)
+    p.set_defaults(func=_track)
+    p = subparsers.add_parser("record", help="record tracked camera frames (simulated tracker; "
+                              "synthetic, image-folder or camera frames) incrementally to a folder")
+    p.add_argument("--out", required=True, help="new or empty folder")
+    cam = p.add_mutually_exclusive_group()
+    cam.add_argument("--frames", metavar="FOLDER", help="images played as a camera at --fps")
+    cam.add_argument("--camera", type=int, metavar="INDEX", help="OpenCV/UVC camera index")
+    p.add_argument("--seconds", type=float, default=5.0)
+    p.add_argument("--fps", type=float, default=20.0)
+    p.add_argument("--width", type=int, default=348)
+    p.add_argument("--height", type=int, default=260)
+    p.add_argument("--inject-faults", action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+    add_json_flag(p)
+    p.set_defaults(func=_record)
+    p = subparsers.add_parser("replay", help="replay a recording (poses bit-exact), optionally as "
+                              "an MRML scene")
+    p.add_argument("folder")
+    p.add_argument("--max-speed", action="store_true", help="as fast as possible")
+    p.add_argument("--scene", help="also write the recording as an MRML scene (.mrml)")
+    add_json_flag(p)
+    p.set_defaults(func=_replay)

@@ -1,0 +1,37 @@
+"""``fluo scene info SCENE.mrml``: what a scene holds (nodes, attributes, data)."""
+
+from __future__ import annotations
+
+from fluoguide import mrml_io
+from fluoapp.cli import add_json_flag, cli_group
+
+
+def _info(args):
+    scene = mrml_io.load_scene(args.scene)
+    out = []
+    for item in mrml_io.node_summary(scene):
+        node = mrml_io.get_node(scene, item["name"], item["class"])
+        if node.IsA("vtkMRMLVolumeNode") and node.GetImageData() is not None:
+            geo = mrml_io.volume_geometry(node)
+            item["dimensions_ijk"] = list(node.GetImageData().GetDimensions())
+            item["spacing_mm"] = geo["spacing"].tolist()
+            item["origin_mm"] = geo["origin"].tolist()
+        elif node.IsA("vtkMRMLModelNode") and node.GetPolyData() is not None:
+            item["points"] = node.GetPolyData().GetNumberOfPoints()
+            item["cells"] = node.GetPolyData().GetNumberOfCells()
+        elif node.IsA("vtkMRMLLinearTransformNode"):
+            item["matrix_to_parent"] = mrml_io.get_transform(scene, item["name"]).tolist()
+            parent = node.GetParentTransformNode()
+            item["parent"] = parent.GetName() if parent is not None else None
+        # Attributes can hold whole JSON documents: list their keys only.
+        item["attributes"] = sorted(item["attributes"])
+        out.append(item)
+    return {"scene": str(args.scene), "nodes": out}
+
+
+def register(sub):
+    g = cli_group(sub, "scene", "inspect MRML scenes")
+    p = g.add_parser("info", help="list the nodes of a scene with their data and attributes")
+    p.add_argument("scene", help="scene file (.mrml)")
+    add_json_flag(p)
+    p.set_defaults(func=_info)

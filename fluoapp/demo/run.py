@@ -1,0 +1,152 @@
+"""The main job: ``fluo demo``, end to end on the digital phantoms.
+
+Stages run in order; each one records its numbers in ``metrics.json`` and its
+figures in the output folder as soon as it finishes, so a stage that fails
+stops the demo with a clear message and keeps everything earlier stages made.
+``report.html`` is written at the end (also after a failure) from what exists.
+"""
+
+from __future__ import annotations
+
+import html
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from fluoguide.errors import FluoError, FluoInputError
+from fluoguide.progress import check_cancel, report
+
+
+@dataclass
+class DemoContext:
+    out: Path
+    quick: bool = False
+    seed: int = 0
+    metrics: dict = field(default_factory=dict)
+    figures: list = field(default_factory=list)   # (stage, file name, caption)
+    notes: list = field(default_factory=list)     # (stage, text)
+    state: dict = field(default_factory=dict)     # objects handed between stages
+
+    def figure(self, stage, name, caption):
+        self.figures.append((stage, name, caption))
+
+    def note(self, stage, text):
+        self.notes.append((stage, text))
+
+
+def _write_json_atomic(path, data):
+    from fluoapp.cli import dumps
+
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(dumps(data))
+    tmp.replace(path)
+
+
+def _stages():
+    from fluoapp.demo import stages as demo_stages
+
+    return demo_stages.STAGES
+
+
+def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None):
+    """Run the demo stages into ``out_dir``; returns the metrics dict.
+
+    Raises FluoError (after writing metrics.json and report.html) when a stage
+    fails; the message names the stage.
+    """
+    out = Path(out_dir).resolve()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        raise FluoInputError(f"output folder is not writable ({exc.strerror})", file=out) from None
+    ctx = DemoContext(out=out, quick=quick, seed=seed)
+    stages = [s for s in _stages() if only is None or s[0] in only]
+    ctx.metrics = {"quick": quick, "seed": seed, "stage_seconds": {}, "stages_completed": [],
+                   "stages_failed": {}}
+    t_all = time.perf_counter()
+    failure = None
+    for i, (name, title, fn) in enumerate(stages):
+        check_cancel(cancel)
+        report(progress, i / len(stages), title)
+        t0 = time.perf_counter()
+        (out / f"{name}.error.txt").unlink(missing_ok=True)  # from an earlier run
+        try:
+            fn(ctx)
+        except Exception as exc:  # recorded, reported, then re-raised as one message
+            ctx.metrics["stages_failed"][name] = f"{type(exc).__name__}: {exc}"
+            (out / f"{name}.error.txt").write_text(traceback.format_exc())
+            failure = (name, exc)
+            break
+        finally:
+            ctx.metrics["stage_seconds"][name] = round(time.perf_counter() - t0, 3)
+            _write_json_atomic(out / "metrics.json", ctx.metrics)
+        ctx.metrics["stages_completed"].append(name)
+    ctx.metrics["total_seconds"] = round(time.perf_counter() - t_all, 3)
+    _write_json_atomic(out / "metrics.json", ctx.metrics)
+    write_report(ctx)
+    report(progress, 1.0, "done" if failure is None else f"failed in {failure[0]}")
+    if failure is not None:
+        name, exc = failure
+        raise FluoError(f"demo stage '{name}' failed: {exc} (details in {out / (name + '.error.txt')}; "
+                        f"earlier results kept in {out})")
+    return ctx.metrics
+
+
+def _fmt(v):
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)) and len(v) <= 12:
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "; ".join(f"{k}: {_fmt(x)}" for k, x in v.items())
+    return html.escape(str(v))
+
+
+def write_report(ctx):
+    """``report.html``: every stage's numbers, notes and figures on one page."""
+    m = ctx.metrics
+    rows = []
+    for stage in list(m["stage_seconds"]):
+        status = "failed" if stage in m["stages_failed"] else "ok"
+        rows.append(f"<tr><td>{html.escape(stage)}</td><td>{status}</td>"
+                    f"<td>{m['stage_seconds'][stage]:.1f}</td></tr>")
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>FluoGuide demo report</title>",
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+        "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:4px 8px;"
+        "text-align:left;vertical-align:top}th{background:#eee}img{max-width:100%;border:1px solid #ccc}"
+        ".fail{color:#b00}</style></head><body>",
+        "<h1>FluoGuide end-to-end demo</h1>",
+        f"<p>Mode: {'quick' if m.get('quick') else 'full'}; seed {m.get('seed')}; total "
+        f"{m.get('total_seconds', 0):.1f} s. Numbers: <a href='metrics.json'>metrics.json</a>; "
+        "scene: <a href='scene.mrml'>scene.mrml</a>.</p>",
+        "<h2>Stages</h2><table><tr><th>stage</th><th>status</th><th>seconds</th></tr>",
+        *rows, "</table>",
+    ]
+    for stage, err in m["stages_failed"].items():
+        parts.append(f"<p class='fail'>Stage {html.escape(stage)} failed: {html.escape(err)}</p>")
+    for stage in m["stages_completed"]:
+        section = m.get(stage)
+        figs = [f for f in ctx.figures if f[0] == stage]
+        notes = [n for n in ctx.notes if n[0] == stage]
+        if section is None and not figs and not notes:
+            continue
+        parts.append(f"<h2>{html.escape(stage)}</h2>")
+        for _, text in notes:
+            parts.append(f"<p>{html.escape(text)}</p>")
+        if isinstance(section, dict):
+            parts.append("<table>")
+            for k, v in section.items():
+                parts.append(f"<tr><th>{html.escape(str(k))}</th><td>{_fmt(v)}</td></tr>")
+            parts.append("</table>")
+        for _, name, caption in figs:
+            parts.append(f"<figure><img src='{html.escape(name)}' alt='{html.escape(caption)}'>"
+                         f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+    parts.append("</body></html>")
+    tmp = ctx.out / "report.html.tmp"
+    tmp.write_text("\n".join(parts))
+    tmp.replace(ctx.out / "report.html")

@@ -1,0 +1,475 @@
+"""The stages of ``fluo demo`` (see demo.py for how they run).
+
+Each stage is ``fn(ctx)``: it reads what earlier stages left in ``ctx.state``,
+writes files into ``ctx.out``, records numbers in ``ctx.metrics[stage]`` and
+figures with ``ctx.figure``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fluoguide import mrml_io
+from fluoguide.phantoms import add_phantom_to_scene, make_phantom, write_phantom
+
+TUBE_DEPTHS_MM = [2.7, 3.7, 4.7, 5.7, 6.7]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def stage_phantoms(ctx):
+    """Digital phantoms: cylinder-tube at the thesis's tube depths, oral cavity, slab."""
+    depths = TUBE_DEPTHS_MM[::2] if ctx.quick else TUBE_DEPTHS_MM
+    ctx.metrics["tube_depths_mm"] = depths
+    out = {}
+    tubes = {}
+    for d in depths:
+        ph = make_phantom("cylinder-tube", depth_mm=d, seed=ctx.seed)
+        write_phantom(ph, ctx.out / "phantoms" / f"cylinder-tube-{d:.1f}mm")
+        tubes[d] = ph
+        out[f"cylinder-tube {d:.1f} mm: tube volume error %"] = ph.truth()["regions"]["2"]["volume_error_pct"]
+    others = {}
+    for name in ("oral-cavity", "slab"):
+        ph = make_phantom(name, seed=ctx.seed)
+        write_phantom(ph, ctx.out / "phantoms" / name)
+        others[name] = ph
+        for label, r in ph.truth()["regions"].items():
+            out[f"{name} region {r['name']}: volume error %"] = r["volume_error_pct"]
+    ctx.state["tube_phantoms"] = tubes
+    ctx.state["phantoms"] = others
+    # The demo's own scene starts from the cylinder-tube phantom at the first depth.
+    scene = mrml_io.new_scene()
+    add_phantom_to_scene(scene, tubes[depths[0]])
+    ctx.state["scene"] = scene
+    mrml_io.save_scene(scene, ctx.out / "scene.mrml")
+    ctx.metrics["phantoms"] = out
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    ph = tubes[depths[0]]
+    i = ph.labels.shape[2] // 2
+    ext = [ph.origin_mm[1], ph.origin_mm[1] + ph.spacing_mm[1] * ph.labels.shape[1],
+           ph.origin_mm[2], ph.origin_mm[2] + ph.spacing_mm[2] * ph.labels.shape[0]]
+    axes[0].imshow(ph.cbct_hu[:, :, i], cmap="gray", vmin=-300, vmax=300, origin="lower", extent=ext)
+    axes[0].set_title(f"cylinder-tube CBCT (tube at {depths[0]} mm), y-z slice")
+    axes[0].set_xlabel("y [mm]")
+    axes[0].set_ylabel("z [mm]")
+    oc = others["oral-cavity"]
+    j = oc.labels.shape[1] // 2 + 5
+    ext = [oc.origin_mm[0], oc.origin_mm[0] + oc.spacing_mm[0] * oc.labels.shape[2],
+           oc.origin_mm[2], oc.origin_mm[2] + oc.spacing_mm[2] * oc.labels.shape[0]]
+    axes[1].imshow(oc.cbct_hu[:, j, :], cmap="gray", vmin=-300, vmax=300, origin="lower", extent=ext)
+    axes[1].set_title("oral-cavity CBCT, x-z slice")
+    axes[1].set_xlabel("x [mm]")
+    axes[2].imshow(oc.labels[:, j, :], cmap="viridis", origin="lower", extent=ext,
+                   interpolation="nearest")
+    axes[2].set_title("oral-cavity labels (0 air, 1 agar, 2 tongue)")
+    axes[2].set_xlabel("x [mm]")
+    fig.tight_layout()
+    fig.savefig(ctx.out / "phantoms.png", dpi=90)
+    plt.close(fig)
+    ctx.figure("phantoms", "phantoms.png", "Digital phantoms: synthetic CBCT (HU) and label maps.")
+
+
+
+
+def _tomo_figures(ctx, runs):
+    """Profiles per depth, error summary, and y-z sections (truth | NP | SP | HP)."""
+    plt = _plt()
+    methods = ["NP", "SP", "HP"]
+    colors = {"truth": "k", "NP": "tab:red", "SP": "tab:blue", "HP": "tab:green"}
+    depths = sorted(runs)
+    fig, axes = plt.subplots(1, len(depths), figsize=(3.2 * len(depths), 3.6), sharey=True)
+    axes = np.atleast_1d(axes)
+    for ax, d in zip(axes, depths):
+        run = runs[d]
+        z = run["profile_depth_mm"]
+        for key in ["truth"] + methods:
+            ax.plot(z, 1e3 * run["profiles"][key], color=colors[key], lw=1.6 if key == "truth" else 1.2,
+                    label=key)
+        ax.set_title(f"tube at {d:.1f} mm")
+        ax.set_xlabel("depth [mm]")
+        ax.set_xlim(0, 12)
+    axes[0].set_ylabel("yield [1e-3 / mm]")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Depth profiles through the tube (x = y = 0)")
+    fig.tight_layout()
+    fig.savefig(ctx.out / "tomo_profiles.png", dpi=90)
+    plt.close(fig)
+    ctx.figure("tomography", "tomo_profiles.png",
+               "Reconstructed yield along the depth profile through the tube, per depth.")
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for m in methods:
+        axes[0].plot(depths, [runs[d]["results"][m]["peak_error_pct"] for d in depths], "o-",
+                     color=colors[m], label=m)
+        axes[1].plot(depths, [runs[d]["results"][m]["centroid_error_pct"] for d in depths], "o-",
+                     color=colors[m], label=m)
+    for ax, title in zip(axes, ["peak yield error [%]", "centroid depth error [%]"]):
+        ax.axhline(0, color="grey", lw=0.8)
+        ax.set_xlabel("tube depth [mm]")
+        ax.set_title(title)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(ctx.out / "tomo_errors.png", dpi=90)
+    plt.close(fig)
+    ctx.figure("tomography", "tomo_errors.png", "Yield and centroid errors vs tube depth (NP, SP, HP).")
+
+    d = depths[0]
+    run = runs[d]
+    _section_figure(ctx.out / "tomo_sections.png", run, (-8, 8), (0, -10))
+    ctx.figure("tomography", "tomo_sections.png",
+               f"Cross-section through the tube at {d:.1f} mm (x = 0): truth | NP | SP | HP, "
+               "same colour scale.")
+
+    # one rendered camera frame (laser at the middle of the raster), log counts
+    frame = run["frame_example"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.6))
+    im = ax.imshow(np.log10(np.maximum(frame, 1.0)), cmap="gray")
+    fig.colorbar(im, ax=ax, label="log10 counts [ADU]")
+    ax.set_title(f"camera frame, laser at source {run['frame_example_source'] + 1} "
+                 f"(tube at {d:.1f} mm)")
+    ax.set_xlabel("x [px, 4x4 binned]")
+    ax.set_ylabel("y [px]")
+    fig.tight_layout()
+    fig.savefig(ctx.out / "tomo_frame.png", dpi=90)
+    plt.close(fig)
+    ctx.figure("tomography", "tomo_frame.png",
+               "A rendered fluorescence frame (every pixel ray-cast onto the surface, emission "
+               "exitance from the FEM field, shot and read noise); the bright spot is the laser "
+               "position, the detectors are ~1 mm^2 ROIs of such frames.")
+
+
+def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8):
+    """y-z section at x = 0 of truth | NP | SP | HP on one colour scale (blank
+    where there is no tissue); ``sources``: mark where the laser entered."""
+    from FluoTomoLib.fem.locate import locator
+
+    plt = _plt()
+    ny = int(abs(y_mm[1] - y_mm[0]) * px_per_mm) + 1
+    nz = int(abs(z_mm[1] - z_mm[0]) * px_per_mm) + 1
+    yy, zz = np.meshgrid(np.linspace(*y_mm, ny), np.linspace(*z_mm, nz))
+    pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
+    panels = [("forward model (truth)", run["fine"], run["true_yield_fine"])]
+    panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in ("NP", "SP", "HP")]
+    vmax = max(float(np.max(v)) for _, _, v in panels)
+    cmap = plt.get_cmap("inferno").with_extremes(bad="white")
+    fig, axes = plt.subplots(1, 4, figsize=(14, 3.4), constrained_layout=True)
+    for ax, (title, mesh, values) in zip(axes, panels):
+        P = locator(mesh).interpolation_matrix(pts, outside="nan")
+        inside = np.asarray(P.sum(axis=1)).ravel() > 0.5     # rows outside the mesh are empty
+        img = np.where(inside, P @ values, np.nan).reshape(yy.shape)
+        im = ax.imshow(1e3 * img, extent=(*y_mm, min(z_mm), max(z_mm)), origin="upper",
+                       cmap=cmap, vmin=0, vmax=1e3 * vmax, aspect="equal")
+        if sources:
+            ax.plot(run["sources_true_mm"][:, 1], run["sources_true_mm"][:, 2], "c.", ms=3)
+        ax.set_title(title)
+        ax.set_xlabel("y [mm]")
+    axes[0].set_ylabel("z [mm]")
+    fig.colorbar(im, ax=axes, shrink=0.9, fraction=0.02, label="yield [1e-3 / mm]")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def stage_tomography(ctx):
+    """Tracked non-contact acquisition and NP/SP/HP reconstruction at each tube depth."""
+    from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
+
+    # quick: a smaller region around the tube, same resolution (a coarser mesh
+    # cannot hold a 2.4 mm tube and would only show meshing error)
+    roi_half = (9.0, 21.0) if ctx.quick else (15.0, 25.0)
+    runs = {}
+    for d, ph in sorted(ctx.state["tube_phantoms"].items()):
+        runs[d] = simulate_and_reconstruct(ph, roi_half_mm=roi_half,
+                                           seed=ctx.seed)
+    ctx.state["tomo_runs"] = runs
+    depths = sorted(runs)
+    methods = ["NP", "SP", "HP"]
+    ctx.metrics["yield_error_pct"] = {m: [runs[d]["results"][m]["peak_error_pct"] for d in depths]
+                                      for m in methods}
+    ctx.metrics["centroid_error_pct"] = {m: [runs[d]["results"][m]["centroid_error_pct"]
+                                             for d in depths] for m in methods}
+    summary = {}
+    for m in methods:
+        summary[f"{m} mean |yield error| %"] = float(np.mean(np.abs(ctx.metrics["yield_error_pct"][m])))
+        summary[f"{m} mean |centroid error| %"] = float(
+            np.mean(np.abs(ctx.metrics["centroid_error_pct"][m])))
+    r0 = runs[depths[0]]
+    summary.update({
+        "forward mesh nodes / tets": [r0["mesh_nodes"]["forward"], r0["mesh_elements"]["forward"]],
+        "reconstruction mesh nodes / tets": [r0["mesh_nodes"]["reconstruction"],
+                                             r0["mesh_elements"]["reconstruction"]],
+        "measurements per case": r0["measurements"],
+        "mean source position error from tracking [mm]": float(
+            np.mean([runs[d]["source_error_mm"] for d in depths])),
+        "solver": r0["solver"],
+        "camera pose error from tracking [mm] (mean)": float(
+            np.mean([runs[d]["camera_pose_error_mm"] for d in depths])),
+        "pixels per detector ROI (median)": float(
+            np.median([runs[d]["roi_pixels_median"] for d in depths])),
+        "simulated acquisition per case [s] (median): FEM fields + rendered frames": float(
+            np.median([runs[d]["timings"]["forward_simulation"]
+                       + runs[d]["timings"]["camera_frames"] for d in depths])),
+        "processing per case [s] (median): meshing + Jacobian + NP/SP/HP": float(np.median(
+            [runs[d]["timings"]["total"] - runs[d]["timings"]["forward_simulation"]
+             - runs[d]["timings"]["camera_frames"] for d in depths])),
+        "thesis FEM processing per case [s]": "300-600",
+    })
+    summary["speed-up vs thesis (300 s, median case)"] = 300.0 / summary[
+        "processing per case [s] (median): meshing + Jacobian + NP/SP/HP"]
+    ctx.metrics["tomography"] = summary
+    ctx.metrics["tomography_cases"] = {
+        f"{d:.1f}": {m: {k: v for k, v in runs[d]["results"][m].items() if k != "yield"}
+                     for m in methods} | {"timings": runs[d]["timings"]} for d in depths}
+    ctx.note("tomography", "Thesis phantom experiment (real data): mean |yield error| NP 85 %, "
+             "SP 18 %, HP 16 %; centroid 1.8 % (SP), 1.2 % (HP). Here: the same pipeline on the "
+             "digital cylinder-tube phantom: tracked laser and camera, rendered camera frames "
+             "with shot and read noise; HP feeds the absorption of the ICG it reconstructs back "
+             "into its model (docs/tomography.md).")
+    _tomo_figures(ctx, runs)
+    _tomo_to_scene(ctx, runs[depths[0]], ctx.state["tube_phantoms"][depths[0]])
+
+
+def _tomo_to_scene(ctx, run, phantom):
+    """Reconstructions as volumes on the CBCT grid (for fusion) and the mesh surface."""
+    from FluoTomoLib.scene import store_reconstructions
+    from FluoTomoLib.meshing.vtu_io import write_vtu
+
+    scene = ctx.state["scene"]
+    results = {m: run["results"][m] for m in ("NP", "SP", "HP")}
+    store_reconstructions(scene, run["coarse"], results, phantom.labels.shape,
+                          phantom.spacing_mm, phantom.origin_mm)
+    write_vtu(run["coarse"], ctx.out / "reconstruction_mesh.vtu",
+              point_data={m: r["yield"] for m, r in results.items()})
+    mrml_io.save_scene(scene, ctx.out / "scene.mrml")
+
+
+def stage_camera_calibration(ctx):
+    """Camera intrinsics and hand-eye from rendered board images with known truth."""
+    from pathlib import Path
+
+    from FluoCalibLib.geometry import handeye as he
+    from FluoCalibLib.geometry.boards import parse_board
+    from FluoCalibLib.geometry.scene import store_handeye, store_intrinsics
+    from FluoCalibLib.geometry.intrinsics import calibrate_camera, view_poses
+    from FluoCalibLib.geometry.synthetic_boards import make_dataset
+
+    n_views = 10 if ctx.quick else 16
+    data = make_dataset(ctx.out / "calibration-images", board="chessboard:9x6:20",
+                        n_views=n_views, seed=ctx.seed)
+    images = [str(ctx.out / "calibration-images" / n) for n in data["images"]]
+    res = calibrate_camera(images, "chessboard:9x6:20", holdout=2)
+    cam = res.camera
+    true = data["camera"]
+    out = {
+        "views used / held out / rejected": [len(res.used), len(res.holdout), len(res.rejected)],
+        "rms reprojection [px]": res.rms_px,
+        "held-out rms [px]": res.holdout_rms_px,
+        "fx error %": 100 * (cam.fx - true["fx"]) / true["fx"],
+        "fy error %": 100 * (cam.fy - true["fy"]) / true["fy"],
+        "cx, cy error [px]": [cam.cx - true["cx"], cam.cy - true["cy"]],
+    }
+    board = parse_board("chessboard:9x6:20")
+    index = {Path(p).name: i for i, p in enumerate(images)}
+    keep = [v for v in res.views if v.status in ("used", "holdout")]
+    views = view_poses(cam, board, keep)
+    B = [v.board_to_camera for v in views]
+    A = [np.asarray(data["tool_to_tracker"][index[Path(v.name).name]]) for v in views]
+    cmp = he.compare_methods(cam, board, B, A, [(v.ids, v.image_points) for v in views],
+                             np.asarray(data["board_to_tracker"]), he.METHODS,
+                             truth_camera_to_tool=data["camera_to_tool"], holdout=2)
+    for method, r in cmp.items():
+        out[f"hand-eye {method}: translation error [mm]"] = r["translation_error_mm"]
+        out[f"hand-eye {method}: held-out 3D [mm] / 2D [px] error"] = [
+            r.get("holdout_err3d_mean_mm"), r.get("holdout_err2d_mean_px")]
+    scene = ctx.state["scene"]
+    store_intrinsics(scene, cam, {"rms_px": res.rms_px})
+    store_handeye(scene, cmp["TSAI"]["camera_to_tool"], {"method": "TSAI"})
+    mrml_io.save_scene(scene, ctx.out / "scene.mrml")
+    ctx.metrics["camera_calibration"] = out
+    ctx.note("camera_calibration", f"{n_views} synthetic 9x6 chessboard views rendered for a "
+             "known camera and tracked tool; thesis: 3D error 0.17 mm, 2D error 2.77 px "
+             "(31 mm open-field lens).")
+
+
+def stage_light_calibration(ctx):
+    """Camera response, broad-beam illumination and laser line from synthetic
+    images with known truth (physics.md sections 5-7)."""
+    from FluoCalibLib.radiometry import scene as light_scene
+    from FluoCalibLib.geometry.camera_model import CameraModel
+    from FluoCalibLib.radiometry.camera_response import characterize
+    from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
+    from FluoCalibLib.radiometry.laser_line import calibrate_laser
+    from FluoCalibLib.radiometry.plots import plot_radiometry, plot_ratio_images
+    from FluoCalibLib.radiometry.synthetic import (
+        endoscope_camera,
+        synthetic_illumination,
+        synthetic_laser,
+        synthetic_stack,
+    )
+
+    frames, truth = synthetic_stack(seed=ctx.seed)
+    rad = characterize(frames)
+    cam = truth["camera"]
+    out = {f"{k} (truth {cam[k]:g})": rad[k] for k in ("gain_adu_per_e", "dark_current_e_per_s",
+                                                      "bias_e", "read_noise_e")}
+    out.update({"linearity R^2": rad["linearity_r2"], "nonlinearity %": rad["nonlinearity_pct"],
+                "dynamic range": rad["dynamic_range"]})
+    import shutil
+
+    for src, name in zip(plot_radiometry(rad, ctx.out / "light-plots"),
+                         ("radiometry_ptc.png", "radiometry_linearity.png", "radiometry_dark.png")):
+        shutil.move(src, ctx.out / name)
+    ctx.figure("light_calibration", "radiometry_ptc.png",
+               "Photon-transfer curve of the synthetic camera stack (slope = gain).")
+    imgs, t_il = synthetic_illumination(seed=ctx.seed)
+    il = calibrate_illumination(imgs, endoscope_camera(), t_il["phantom_to_camera"], t_il["rd"],
+                                t_il["offset_adu"])
+    c = t_il["cone"]
+    out["illumination: axis error [deg]"] = float(np.degrees(np.arccos(np.clip(
+        np.dot(il["axis"], c["axis"]), -1, 1))))
+    out["illumination: half-angle [deg] (truth 35)"] = il["half_angle_deg"]
+    for k in ("alpha", "gamma_per_mm", "system_gain_adu"):
+        out[f"illumination: {k} error %"] = 100 * (il[k] - c[k]) / c[k]
+    out["illumination: ratio mean (SD)"] = [il["ratio_mean"], il["ratio_sd"]]
+    out["illumination: model"] = il["model"]
+    shutil.move(plot_ratio_images(il["ratio_images"], ctx.out / "light-plots")[0],
+                ctx.out / "illumination_ratio.png")
+    shutil.rmtree(ctx.out / "light-plots", ignore_errors=True)
+    ctx.figure("light_calibration", "illumination_ratio.png",
+               "Measured / fitted cone model for the five phantom poses (endoscope light; the "
+               "cone leaves the image in the nearest view).")
+    limgs, t_la = synthetic_laser(seed=ctx.seed)
+    la = calibrate_laser(limgs, CameraModel.from_dict(t_la["camera"]), t_la["camera_to_tracker"],
+                         t_la["laser_to_tracker"], t_la["phantom_to_tracker"],
+                         t_la["pointer_origin_tool_mm"])
+    out["laser: direction error [deg]"] = float(np.degrees(np.arccos(np.clip(
+        np.dot(la["direction"], t_la["direction"]), -1, 1))))
+    out["laser: held-out 3D error [mm] / 2D [px]"] = [la["error_3d_mm"], la["error_2d_px"]]
+    scene = ctx.state["scene"]
+    light_scene.store_calibration(scene, light_scene.RADIOMETRY_KEY,
+                                  {k: v for k, v in rad.items() if k not in ("ptc", "linearity", "dark")})
+    light_scene.store_calibration(scene, light_scene.ILLUMINATION_KEY,
+                                  {**{k: v for k, v in il.items() if k not in ("cone", "ratio_images")},
+                                   "cone": il["cone"].to_dict()})
+    light_scene.store_calibration(scene, light_scene.LASER_KEY,
+                                  {k: v for k, v in la.items() if k != "spots_px"})
+    ctx.metrics["light_calibration"] = out
+    ctx.note("light_calibration", "Targets: gain, dark current, bias, read noise within 3 %; cone "
+             "axis < 0.5 deg, half-angle < 0.2 deg, alpha/gamma/gain within 3 %, ratio 1.00 +- "
+             "0.01; laser direction < 0.3 deg, 3D error < 0.5 mm (thesis 0.92 mm).")
+
+
+def stage_surface_mapping(ctx):
+    """Tracked views of the oral-cavity phantom (homogeneous fluorescence): per-pixel
+    ray casting, optical-transport correction, 40 % contour miss rates."""
+    import time
+
+    from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
+    from FluoNavLib.mapping.contours import miss_rate, overlay_png
+    from FluoNavLib.mapping.flux_map import transport_image
+    from FluoNavLib.mapping.synthetic import (
+        coupled_light,
+        open_field_camera,
+        oral_cavity_surface,
+        render_view,
+        view_poses,
+    )
+    from FluoNavLib.mapping.pixel_cast import cast_camera
+
+    caster, _ = oral_cavity_surface(62000, seed=ctx.seed)
+    cone = coupled_light()
+    rc = RadiometricCamera(gain_adu_per_e=1.0)
+    cam = open_field_camera(binning=4)
+    within, raw_rates, cor_rates = [], [], []
+    for k, pose in enumerate(view_poses(2 if ctx.quick else 4)):
+        counts, hits, vm = render_view(caster, cam, pose, cone, 0.3, rc, seed=ctx.seed + k)
+        S = counts - rc.offset_adu
+        T, ok = transport_image(S, vm, cone)
+        within.append(float((ok & (np.abs(T / 0.3 - 1) < 0.05)).sum() / hits.visible.sum()))
+        r_raw, c_raw, _ = miss_rate(S, hits.visible)
+        r_cor, c_cor, _ = miss_rate(T, ok)
+        raw_rates.append(r_raw)
+        cor_rates.append(r_cor)
+        if k == 1:
+            overlay_png(ctx.out / "mapping_raw.png", S, c_raw,
+                        f"raw counts, 40 % contour: miss {r_raw:.1f} %", hits.visible)
+            overlay_png(ctx.out / "mapping_corrected.png", T, c_cor,
+                        f"corrected transport T (truth 0.3): miss {r_cor:.1f} %", ok)
+    full = open_field_camera()
+    pose = view_poses(2)[1]
+    ts = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        cast_camera(caster, full, pose)
+        ts.append(time.perf_counter() - t0)
+    ts_b = []
+    for _ in range(10):
+        t0 = time.perf_counter()
+        cast_camera(caster, full, pose, binning=10)
+        ts_b.append(time.perf_counter() - t0)
+    ctx.metrics["surface_mapping"] = {
+        "views": len(within), "triangles": caster.n_faces,
+        "visible pixels with transport within 5 % (per view)": within,
+        "miss rate raw % (per view)": raw_rates, "miss rate corrected % (per view)": cor_rates,
+        "frames/s full resolution 1392x1040 (median)": 1.0 / float(np.median(ts)),
+        "frames/s 10x binned (median)": 1.0 / float(np.median(ts_b)),
+    }
+    ctx.figure("surface_mapping", "mapping_raw.png",
+               "Raw fluorescence of homogeneous tissue seen by the tracked camera: the 40 % "
+               "contour misses the cavity walls (illumination and angle).")
+    ctx.figure("surface_mapping", "mapping_corrected.png",
+               "After per-pixel ray casting and the navigated illumination model: uniform "
+               "optical transport, nothing missed.")
+    ctx.note("surface_mapping", "Targets: transport within 5 % over >= 90 % of visible pixels, "
+             "corrected miss rate < 5 %, >= 30 frames/s at full resolution and >= 300 binned "
+             "(the cast; the full illumination model adds to it: docs/surface-mapping.md).")
+
+
+def stage_oral_tomography(ctx):
+    """The same acquisition and reconstruction on the oral cavity: a curved surface,
+    beams and camera looking into the cavity, the ICG-rich tongue as the target."""
+    from FluoTomoLib.pipelines.oral import simulate_and_reconstruct_oral
+
+    ph = ctx.state["phantoms"]["oral-cavity"]
+    # the same meshes in quick mode: at 2 mm the tongue's 0.7 mm decay length is
+    # not resolved (measured: HP's agar value ran away)
+    run = simulate_and_reconstruct_oral(ph, seed=ctx.seed)
+    methods = ["NP", "SP", "HP"]
+    out = {}
+    for m in methods:
+        r = run["results"][m]
+        out[f"{m} tongue yield error %"] = r["tongue_yield_error_pct"]
+        out[f"{m} agar yield error %"] = r["agar_yield_error_pct"]
+    out.update({"measurements": run["measurements"],
+                "mean source position error from tracking [mm]": run["source_error_mm"],
+                "mesh nodes forward / reconstruction": [run["mesh_nodes"]["forward"],
+                                                        run["mesh_nodes"]["reconstruction"]],
+                "stage times [s]": {k: round(v, 2) for k, v in run["timings"].items()}})
+    ctx.metrics["oral_tomography"] = out
+
+    _section_figure(ctx.out / "oral_sections.png", run, (-16, 26), (-8, -40), sources=True)
+    ctx.figure("oral_tomography", "oral_sections.png",
+               "Oral cavity, section x = 0 through the tongue (the cavity is white: not tissue): "
+               "truth | NP | SP | HP, same colour scale; cyan dots: where the laser entered.")
+    ctx.note("oral_tomography", "A bulk, optically thick target (2 ug/mL ICG: ~2.3 mm "
+             "penetration) seen through a voxel-staircase surface: the yields here are far "
+             "from the tube study's; docs/tomography.md says why.")
+    return out
+
+
+STAGES = [
+    ("phantoms", "digital phantoms", stage_phantoms),
+    ("camera_calibration", "camera and hand-eye calibration", stage_camera_calibration),
+    ("light_calibration", "radiometric, illumination and laser calibration", stage_light_calibration),
+    ("surface_mapping", "tracked views and surface-flux mapping", stage_surface_mapping),
+    ("tomography", "tracked acquisition and reconstruction", stage_tomography),
+    ("oral_tomography", "oral-cavity acquisition and reconstruction", stage_oral_tomography),
+]

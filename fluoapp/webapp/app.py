@@ -1,0 +1,209 @@
+"""``fluo app``: the FluoGuide web application on trame-slicer.
+
+One MRML scene (trame-slicer's ``SlicerApp``), slice views and a 3D view,
+trame-slicer's segment editor, and one panel per module.  Each panel is built
+over its module's logic class (``<Module>Logic`` on the app's scene), the class the
+desktop Slicer widget uses.
+
+Rules the panels follow:
+
+- every callback from the browser goes through :meth:`FluoGuideApp.guarded`, so
+  an error becomes a message in the page, never a dead page;
+- long work runs through :attr:`jobs` (one background job, progress bar,
+  cancel button); its result is applied to the scene on the server's event
+  loop by :meth:`poll`, so the UI never freezes and MRML stays single-threaded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import logging
+import time
+
+from fluoguide.errors import FluoError
+
+from fluoapp.webapp.jobs import JobRunner
+
+__all__ = ["FluoGuideApp", "create_app"]
+
+log = logging.getLogger("fluoguide.app")
+
+
+class FluoGuideApp:
+    """The server-side application (build with :func:`create_app`)."""
+
+    POLL_S = 0.2
+
+    def __init__(self, server=None, scene_path=None):
+        from trame.app import get_server
+        from trame_slicer import module as trame_slicer_module
+        from trame_slicer.app.logic import LayoutButtonLogic
+        from trame_slicer.app.logic.segmentation import SegmentEditorLogic
+        from trame_slicer.core import SlicerApp
+        from trame_slicer.rca_view import register_rca_factories
+
+        self.server = server or get_server(None, client_type="vue3")
+        self.server.enable_module(trame_slicer_module)
+        self.slicer_app = SlicerApp()
+        register_rca_factories(self.slicer_app.view_manager, self.server)
+        self.layout_logic = LayoutButtonLogic(self.server, self.slicer_app)
+        self.segment_logic = SegmentEditorLogic(self.server, self.slicer_app)
+        self.jobs = JobRunner()
+        self.state.trame__title = "FluoGuide"
+        self.state.fluo_message = ""
+        self.state.fluo_message_color = "info"
+        self.state.fluo_message_visible = False
+        self.state.job = self.jobs.state.as_dict()
+        self.state.ping_count = 0
+        self.ctrl.fluo_ping = self._ping
+        self.ctrl.fluo_cancel_job = self.guarded(self.jobs.cancel)
+        self.panels = self._make_panels()
+        from fluoapp.webapp.ui import build_ui
+
+        self.ui = build_ui(self)
+        self.segment_logic.set_ui(self.ui.tool_registry["segment_editor"])
+        self.layout_logic.set_ui(self.ui.layout_button)
+        self.ctrl.on_server_ready.add(self._on_ready)
+        if scene_path:
+            self.load_scene_file(scene_path)
+
+    # -- shorthands ----------------------------------------------------------
+    @property
+    def state(self):
+        return self.server.state
+
+    @property
+    def ctrl(self):
+        return self.server.controller
+
+    @property
+    def scene(self):
+        return self.slicer_app.scene
+
+    def _make_panels(self):
+        from fluoguide.slicer_compat import import_module_file
+
+        from fluoapp.webapp.calib_panel import CalibPanel
+        from fluoapp.webapp.nav_panel import NavPanel
+        from fluoapp.webapp.tomo_panel import TomoPanel
+
+        panels = []
+        for name, panel in (("FluoCalib", CalibPanel), ("FluoTomo", TomoPanel), ("FluoNav", NavPanel)):
+            logic = getattr(import_module_file(name), f"{name}Logic")(self.scene)
+            panels.append(panel(self, logic))
+        return panels
+
+    # -- messages and guarded callbacks --------------------------------------
+    def notify(self, text, color="info"):
+        self.state.fluo_message = str(text)
+        self.state.fluo_message_color = color
+        self.state.fluo_message_visible = True
+        (log.warning if color == "error" else log.info)("%s", text)
+
+    def guarded(self, fn):
+        """Wrap a UI callback: errors become a red message, the page lives on."""
+
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            try:
+                return fn(*args, **kwargs)
+            except FluoError as exc:
+                self.notify(str(exc), "error")
+            except Exception as exc:  # unexpected: keep the page alive, show the type
+                log.exception("callback %s failed", getattr(fn, "__name__", fn))
+                self.notify(f"{type(exc).__name__}: {exc}", "error")
+            return None
+
+        return wrapper
+
+    def start_job(self, name, work, on_done=None):
+        """Run ``work(progress, cancel)`` in the background; ``on_done(result)`` later
+        on the event loop.  Errors and cancellation end up as messages."""
+
+        def on_error(kind, text):
+            if kind == "cancelled":
+                self.notify(f"{name}: cancelled", "warning")
+            else:
+                self.notify(f"{name} failed: {text}", "error")
+
+        self.jobs.start(name, work, on_done=on_done, on_error=on_error)
+        self.state.job = self.jobs.state.as_dict()
+
+    def _ping(self):
+        # The browser tests time this round trip while a job runs.
+        self.state.ping_count = int(self.state.ping_count or 0) + 1
+
+    # -- event loop ----------------------------------------------------------
+    def _on_ready(self, **_):
+        asyncio.get_event_loop().create_task(self._poll_loop())
+
+    async def _poll_loop(self):
+        while True:
+            try:
+                self.poll()
+            except Exception:  # never let the poller die
+                log.exception("poll failed")
+            await asyncio.sleep(self.POLL_S)
+
+    def poll(self):
+        """Apply finished jobs and publish job progress to the browser."""
+        with self.state:
+            self.jobs.poll()
+            self.state.job = self.jobs.state.as_dict()
+            for panel in self.panels:
+                hook = getattr(panel, "on_poll", None)
+                if hook is not None:
+                    hook()
+
+    # -- scene ---------------------------------------------------------------
+    def load_scene_file(self, path):
+        from fluoguide import mrml_io
+        from fluoguide.errors import FluoInputError
+
+        loaded = mrml_io.load_scene(path)  # validates and names bad files
+        self.scene.Clear(0)
+        ok = self.slicer_app.io_manager.load_scene(str(path))
+        if not ok:
+            raise FluoInputError("scene could not be loaded into the app", file=path)
+        del loaded
+        self.show_cbct()
+
+    def show_cbct(self, reset=True):
+        from fluoguide import mrml_io
+
+        vol = mrml_io.get_node(self.scene, "CBCT", required=False)
+        if vol is None:
+            return None
+        self.slicer_app.display_manager.show_volume(vol, vr_preset="CT-AAA", do_reset_views=reset)
+        vr = self.slicer_app.volume_rendering.get_vr_display_node(vol)
+        if vr is not None:
+            vr.SetVisibility(False)  # slices + surface models read better than a CT render here
+        self.segment_logic.on_volume_changed(vol)
+        self.state.is_volume_loaded = True
+        return vol
+
+    def show_in_3d(self, node):
+        self.slicer_app.display_manager.set_node_visible_in_group(node)
+
+    def show_foreground(self, volume_node, opacity=0.7):
+        for view in self.slicer_app.view_manager.get_slice_views():
+            view.set_foreground_volume_id(volume_node.GetID() if volume_node else None)
+            view.set_foreground_opacity(opacity)
+
+    def render_all(self, reset_3d=False):
+        if reset_3d:
+            for view in self.slicer_app.view_manager.get_threed_views():
+                view.reset_camera()
+        for view in self.slicer_app.view_manager.get_views():
+            view.schedule_render()
+
+    def start(self, port=8080, host="127.0.0.1", **kwargs):
+        t0 = time.perf_counter()
+        log.info("FluoGuide app on http://%s:%s/ (built in %.1f s)", host, port,
+                 time.perf_counter() - t0)
+        return self.server.start(port=port, host=host, open_browser=False, **kwargs)
+
+
+def create_app(server=None, scene_path=None):
+    return FluoGuideApp(server=server, scene_path=scene_path)
