@@ -9,8 +9,11 @@ transforms are ``AToB`` (maps coordinates of frame A into frame B, stored as
 the node's "transform to parent").  Node names are listed in docs/scene.md.
 
 Saving is atomic per scene: storage files and the ``.mrml`` are written into a
-temporary folder next to the target and moved in place only when all writes
-succeeded, so a failed save never leaves a half-written scene.
+staging folder next to the target and moved in as one journaled transaction
+(``fluoguide.atomic``): a failed or killed save leaves the old scene or the new
+one, never a mix. Loading refuses data paths that leave the scene's folder,
+anything that is not a regular file, corrupt models and transforms, and
+transform cycles.
 """
 
 from __future__ import annotations
@@ -18,11 +21,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
+import stat
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
+from fluoguide import atomic
 from fluoguide.errors import FluoInputError
 from fluoguide.jsonable import to_jsonable
 
@@ -86,20 +91,22 @@ def remove_node(scene, name):
         scene.RemoveNode(node)
 
 
+_SUMMARY_SKIP = ("vtkMRMLSubjectHierarchyNode", "vtkMRMLStorageNode", "vtkMRMLDisplayNode",
+                 "vtkMRMLSelectionNode", "vtkMRMLInteractionNode", "vtkMRMLColorTableNode")
+
+
+def data_nodes(scene):
+    """The nodes a person would call the scene's data (no display, storage, hierarchy ... nodes)."""
+    return [node for node in nodes(scene)
+            if not any(node.IsA(c) for c in _SUMMARY_SKIP)
+            and not (node.GetHideFromEditors() and not node.GetName())]
+
+
 def node_summary(scene):
     """List of dicts (name, class, attributes) of the data nodes in a scene."""
-    skip = ("vtkMRMLSubjectHierarchyNode", "vtkMRMLStorageNode", "vtkMRMLDisplayNode",
-            "vtkMRMLSelectionNode", "vtkMRMLInteractionNode", "vtkMRMLColorTableNode")
     out = []
-    for node in nodes(scene):
-        if any(node.IsA(c) for c in skip):
-            continue
-        if node.GetHideFromEditors() and not node.GetName():
-            continue
-        attrs = {}
-        names = node.GetAttributeNames() or ()
-        for key in names:
-            attrs[key] = node.GetAttribute(key)
+    for node in data_nodes(scene):
+        attrs = {key: node.GetAttribute(key) for key in (node.GetAttributeNames() or ())}
         out.append({"name": node.GetName(), "class": node.GetClassName(), "attributes": attrs})
     return out
 
@@ -119,6 +126,9 @@ def get_json_attribute(node, key, default=None):
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise FluoInputError(f"attribute is not valid JSON ({exc.msg})",
+                             field=f"{node.GetName()}.{key}") from None
+    except RecursionError:  # a hostile scene: JSON nested thousands deep
+        raise FluoInputError("attribute is JSON nested too deeply to read",
                              field=f"{node.GetName()}.{key}") from None
 
 
@@ -383,16 +393,20 @@ def save_scene(scene, path):
 
     Data go to NRRD (volumes), VTK (models), HDF5 ITK transforms (.h5, as
     Slicer writes them) and TSV (tables).  Everything is written into a
-    temporary folder first and moved in place only when all writes succeeded.
+    staging folder first and moved in as one transaction (``fluoguide.atomic``):
+    a crash at any moment leaves the old scene or the new one.
     Returns the scene file path.
     """
     path = Path(path).resolve()
     if path.suffix != ".mrml":
         raise FluoInputError("scene file must end in .mrml", file=path)
     out_dir = path.parent
+    if out_dir.exists() and not out_dir.is_dir():
+        raise FluoInputError("output folder is a file", file=out_dir)
+    if path.is_dir():
+        raise FluoInputError("scene path is a folder", file=path)
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".fluo-save-", dir=out_dir))
+        tmp = atomic.staging_folder(out_dir)
     except OSError as exc:
         raise FluoInputError(f"cannot write here ({exc.strerror})", file=out_dir) from None
     try:
@@ -415,7 +429,7 @@ def save_scene(scene, path):
             stem = _safe_file_stem(node.GetName())
             fname = stem + ext
             k = 1
-            while fname in used:
+            while fname in used or fname == path.name:
                 fname = f"{stem}_{k}{ext}"
                 k += 1
             used.add(fname)
@@ -423,20 +437,19 @@ def save_scene(scene, path):
                 sn.SetUseCompression(1)
             sn.SetFileName(str(tmp / fname))
             if not sn.WriteData(node):
-                raise FluoInputError("failed to write storage file", file=tmp / fname,
+                raise FluoInputError("failed to write storage file", file=out_dir / fname,
                                      field=node.GetName())
             targets.append((sn, fname))
-        # Committed inside the temporary folder, the scene refers to its data
+        # Committed inside the staging folder, the scene refers to its data
         # files by bare relative names, so moving them together keeps it valid.
         scene.SetRootDirectory(str(tmp))
         scene.SetURL(str(tmp / path.name))
         if not scene.Commit():
             raise FluoInputError("failed to write scene file", file=path)
-        # Some writers add companion files (a table's .schema.tsv): move all.
-        for f in sorted(tmp.iterdir()):
-            if f.name != path.name:
-                os.replace(f, out_dir / f.name)
-        os.replace(tmp / path.name, path)
+        # Some writers add companion files (a table's .schema.tsv): move all,
+        # the .mrml last (readers open it first).
+        data = sorted(f.name for f in tmp.iterdir() if f.name != path.name)
+        atomic.commit_files(tmp, out_dir, data + [path.name])
         for sn, fname in targets:
             sn.SetFileName(str(out_dir / fname))
         scene.SetRootDirectory(str(out_dir))
@@ -446,6 +459,63 @@ def save_scene(scene, path):
     return path
 
 
+def _check_storage_paths(path):
+    """Refuse a scene whose storage nodes point outside its folder or at non-files.
+
+    Checked on the XML before MRML opens anything: a hostile scene must not make
+    the loader read /etc/passwd or block forever on a FIFO.
+    """
+    root_dir = path.parent.resolve()
+    try:
+        tree = ET.parse(path)
+    except ET.ParseError as exc:
+        raise FluoInputError(f"corrupt MRML scene (XML: {exc})", file=path) from None
+    except RecursionError:
+        raise FluoInputError("corrupt MRML scene (XML nested too deeply)", file=path) from None
+    for elem in tree.iter():
+        for key, value in elem.attrib.items():
+            if not (key == "fileName" or key.startswith("fileListMember")) or not value:
+                continue
+            rel = Path(value)
+            if rel.is_absolute():
+                raise FluoInputError("scene refers to a data file by an absolute path; "
+                                     "only files inside the scene's folder are read",
+                                     file=path, field=elem.get("id") or elem.tag, value=value)
+            full = (root_dir / rel).resolve()
+            try:
+                full.relative_to(root_dir)
+            except ValueError:
+                raise FluoInputError("scene refers to a data file outside its folder",
+                                     file=path, field=elem.get("id") or elem.tag,
+                                     value=value) from None
+            if not full.exists():
+                raise FluoInputError("data file of the scene is missing", file=full,
+                                     field=elem.get("id") or elem.tag)
+            if not stat.S_ISREG(full.stat().st_mode):
+                raise FluoInputError("data file of the scene is not a regular file", file=full,
+                                     field=elem.get("id") or elem.tag)
+
+
+def _check_transforms(scene, path):
+    for node in nodes(scene, "vtkMRMLLinearTransformNode"):
+        vm = _vtk().vtkMatrix4x4()
+        node.GetMatrixTransformToParent(vm)
+        m = _vtk_to_matrix(vm)
+        # VTK reads NaN as 0: a singular matrix is a corrupt (or NaN) transform
+        if not np.all(np.isfinite(m)) or abs(np.linalg.det(m[:3, :3])) < 1e-12:
+            raise FluoInputError("corrupt transform (not finite or singular)", file=path,
+                                 field=node.GetName())
+        seen = {node.GetID()}
+        parent_id = node.GetTransformNodeID()
+        while parent_id:
+            if parent_id in seen:
+                raise FluoInputError("transform parents form a cycle", file=path,
+                                     field=node.GetName())
+            seen.add(parent_id)
+            parent = scene.GetNodeByID(parent_id)
+            parent_id = parent.GetTransformNodeID() if parent is not None else None
+
+
 def load_scene(path):
     """Read a .mrml scene and the storage files it refers to.
 
@@ -453,11 +523,15 @@ def load_scene(path):
     files is missing or unreadable.
     """
     path = Path(path).resolve()
+    if path.parent.is_dir():
+        atomic.recover(path.parent)  # finish a save that a crash interrupted
     if not path.is_file():
         raise FluoInputError("scene file not found", file=path)
-    head = path.read_bytes()[:4096]
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
     if b"<MRML" not in head:
         raise FluoInputError("not an MRML scene (no <MRML> element)", file=path)
+    _check_storage_paths(path)
     scene = new_scene()
     scene.SetURL(str(path))
     scene.SetRootDirectory(str(path.parent))
@@ -478,8 +552,10 @@ def load_scene(path):
         if node.IsA("vtkMRMLVolumeNode") and node.GetImageData() is None:
             raise FluoInputError("corrupt volume file", file=full, field=node.GetName())
         if node.IsA("vtkMRMLModelNode") and (node.GetPolyData() is None
-                                            or node.GetPolyData().GetNumberOfPoints() == 0):
+                                            or node.GetPolyData().GetNumberOfPoints() == 0
+                                            or node.GetPolyData().GetNumberOfCells() == 0):
             raise FluoInputError("corrupt model file", file=full, field=node.GetName())
     if not imported:
         raise FluoInputError("corrupt MRML scene", file=path)
+    _check_transforms(scene, path)
     return scene

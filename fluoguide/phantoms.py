@@ -19,13 +19,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
+from fluoguide import atomic
 from fluoguide.errors import FluoInputError
 from fluoguide.optics_table import icg_liquid_optics, non_fluorescent_optics
 from fluoguide.voxelize import voxelize
@@ -283,8 +283,9 @@ def add_phantom_to_scene(scene, phantom):
 def write_phantom(phantom, out_dir):
     """Write ``out_dir/scene.mrml`` (+ NRRD files) and ``out_dir/truth.json``.
 
-    Everything is written into a temporary sibling folder and renamed into
-    place at the end, so a failure leaves no half-written phantom behind.
+    Everything is written into a staging folder and moved in as one journaled
+    transaction (``fluoguide.atomic``): a failure or a kill leaves the old
+    phantom or the new one, never a mix.
     Returns the scene path.
     """
     from fluoguide import mrml_io
@@ -292,27 +293,24 @@ def write_phantom(phantom, out_dir):
     out_dir = Path(out_dir).resolve()
     if out_dir.exists() and not out_dir.is_dir():
         raise FluoInputError("output exists and is not a folder", file=out_dir)
-    parent = out_dir.parent
     try:
-        parent.mkdir(parents=True, exist_ok=True)
+        out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise FluoInputError(f"cannot create the output folder ({exc.strerror})", file=parent) from None
-    if not os.access(parent, os.W_OK):
-        raise FluoInputError("output folder is not writable", file=parent)
-    if out_dir.exists() and not os.access(out_dir, os.W_OK):
+        raise FluoInputError(f"cannot create the output folder ({exc.strerror})", file=out_dir) from None
+    if not os.access(out_dir, os.W_OK):
         raise FluoInputError("output folder is not writable", file=out_dir)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-", dir=parent))
+        tmp = atomic.staging_folder(out_dir)
     except OSError as exc:
-        raise FluoInputError(f"cannot write here ({exc.strerror})", file=parent) from None
+        raise FluoInputError(f"cannot write here ({exc.strerror})", file=out_dir) from None
     try:
         scene = mrml_io.new_scene()
         add_phantom_to_scene(scene, phantom)
         mrml_io.save_scene(scene, tmp / "scene.mrml")
-        (tmp / "truth.json").write_text(json.dumps(phantom.truth(), indent=2))
-        out_dir.mkdir(exist_ok=True)
-        for f in sorted(tmp.iterdir()):
-            os.replace(f, out_dir / f.name)
+        (tmp / "truth.json").write_text(json.dumps(phantom.truth(), indent=2, allow_nan=False))
+        # one transaction: data, truth, and the scene file last
+        names = sorted(f.name for f in tmp.iterdir() if f.name not in ("scene.mrml", "truth.json"))
+        atomic.commit_files(tmp, out_dir, names + ["truth.json", "scene.mrml"])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir / "scene.mrml"

@@ -7,10 +7,12 @@ from fluoapp.cli import add_json_flag, cli_group
 
 
 def _info(args):
+    import vtk
+
     scene = mrml_io.load_scene(args.scene)
     out = []
-    for item in mrml_io.node_summary(scene):
-        node = mrml_io.get_node(scene, item["name"], item["class"])
+    # one pass over the nodes (a name lookup per node was quadratic in the scene size)
+    for node, item in zip(mrml_io.data_nodes(scene), mrml_io.node_summary(scene)):
         if node.IsA("vtkMRMLVolumeNode") and node.GetImageData() is not None:
             geo = mrml_io.volume_geometry(node)
             item["dimensions_ijk"] = list(node.GetImageData().GetDimensions())
@@ -20,7 +22,9 @@ def _info(args):
             item["points"] = node.GetPolyData().GetNumberOfPoints()
             item["cells"] = node.GetPolyData().GetNumberOfCells()
         elif node.IsA("vtkMRMLLinearTransformNode"):
-            item["matrix_to_parent"] = mrml_io.get_transform(scene, item["name"]).tolist()
+            vm = vtk.vtkMatrix4x4()
+            node.GetMatrixTransformToParent(vm)
+            item["matrix_to_parent"] = [[vm.GetElement(i, j) for j in range(4)] for i in range(4)]
             parent = node.GetParentTransformNode()
             item["parent"] = parent.GetName() if parent is not None else None
         # Attributes can hold whole JSON documents: list their keys only.
