@@ -47,6 +47,13 @@ class FluoCancelled(FluoError):
     """Raised inside long work when the user cancels it."""
 
 
+class FluoDeviceError(FluoError):
+    """A device or a peer (tracker, OpenIGTLink server, camera) misbehaved.
+
+    Not the user's bad input: the CLI prints one line and exits with code 1.
+    """
+
+
 def require_finite(name, value, file=None):
     """Raise FluoInputError unless every element of ``value`` is finite."""
     import numpy as np
