@@ -439,6 +439,9 @@ def save_scene(scene, path):
             if not sn.WriteData(node):
                 raise FluoInputError("failed to write storage file", file=out_dir / fname,
                                      field=node.GetName())
+            # the writer's file list holds paths into the staging folder (saved
+            # relative to the wrong folder): one file per node, no list
+            sn.ResetFileNameList()
             targets.append((sn, fname))
         # Committed inside the staging folder, the scene refers to its data
         # files by bare relative names, so moving them together keeps it valid.
@@ -489,6 +492,8 @@ def _check_storage_paths(path):
                                      file=path, field=elem.get("id") or elem.tag,
                                      value=value) from None
             if not full.exists():
+                if key != "fileName":
+                    continue  # a stale member of a file list (Slicer keeps them): not read
                 raise FluoInputError("data file of the scene is missing", file=full,
                                      field=elem.get("id") or elem.tag)
             if not stat.S_ISREG(full.stat().st_mode):

@@ -138,15 +138,28 @@ def _edit(path, old, new):
 @pytest.mark.parametrize("value", ["../outside.nrrd", "/etc/passwd", "sub/../../outside.nrrd"])
 def test_storage_paths_outside_the_scene_folder_are_refused(saved, value):
     (saved.parent.parent / "outside.nrrd").write_bytes((saved.parent / "V.nrrd").read_bytes())
-    _edit(saved, 'fileName="V.nrrd" fileListMember0="V.nrrd"', f'fileName="{value}"')
+    _edit(saved, 'fileName="V.nrrd"', f'fileName="{value}"')
     with pytest.raises(FluoInputError, match="absolute path|outside its folder") as e:
         mrml_io.load_scene(saved)
     assert value in str(e.value)
 
 
+def test_a_file_list_member_outside_the_folder_is_refused(saved):
+    _edit(saved, 'fileName="V.nrrd"', 'fileName="V.nrrd" fileListMember0="../../../etc/passwd"')
+    with pytest.raises(FluoInputError, match="outside its folder"):
+        mrml_io.load_scene(saved)
+
+
+def test_saved_scenes_name_their_files_only(saved):
+    # no file list with paths into the staging folder, no absolute paths
+    text = saved.read_text()
+    assert "fluo-stage" not in text and "fileListMember" not in text
+    assert str(saved.parent) not in text
+
+
 def test_a_fifo_as_data_file_is_refused_without_blocking(saved):
     os.mkfifo(saved.parent / "pipe.nrrd")
-    _edit(saved, 'fileName="V.nrrd" fileListMember0="V.nrrd"', 'fileName="pipe.nrrd"')
+    _edit(saved, 'fileName="V.nrrd"', 'fileName="pipe.nrrd"')
     result = {}
 
     def load():

@@ -7,7 +7,17 @@ import time
 from pathlib import Path
 
 from fluoapp.cli import add_json_flag
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoDeviceError, FluoInputError
+
+
+def _seconds(value):
+    """``--seconds``: finite, positive and at most a day (inf and NaN never end or never start)."""
+    import math
+
+    if not math.isfinite(value) or value <= 0 or value > 86400:
+        raise FluoInputError("must be a number of seconds in (0, 86400]", field="--seconds",
+                             value=value)
+    return value
 
 def _devices(args):
     from FluoNavLib.devices.usb import discover
@@ -19,8 +29,7 @@ def _track(args):
     from FluoNavLib.devices.ndi_client import NDIClient
     from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
 
-    if args.seconds <= 0:
-        raise FluoInputError("must be > 0", field="--seconds", value=args.seconds)
+    _seconds(args.seconds)
     if args.igtl:
         return _track_igtl(args)
     sim = None
@@ -48,6 +57,12 @@ def _track(args):
     finally:
         if sim is not None:
             sim.stop()
+    if stats.frames == 0:
+        # a tracker that answered nothing usable is a failed run, not an empty success
+        raise FluoDeviceError(
+            f"tracker on {port} delivered no frames in {elapsed:.1f} s (CRC errors "
+            f"{stats.crc_errors}, time-outs {stats.timeouts}, malformed {stats.malformed}, "
+            f"device errors {stats.device_errors})")
     return {"frames": stats.frames, "rate_hz": stats.frames / elapsed, "seconds": elapsed,
             "missing": stats.missing, "tool_missing": stats.tool_missing,
             "out_of_volume": stats.out_of_volume, "crc_errors": stats.crc_errors,
@@ -89,9 +104,9 @@ def _record(args):
     from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
     from FluoNavLib.devices.recorder import Recorder
 
-    if args.seconds <= 0 or args.fps <= 0:
-        raise FluoInputError("seconds and fps must be > 0", field="--seconds/--fps",
-                             value=(args.seconds, args.fps))
+    _seconds(args.seconds)
+    if not (args.fps > 0 and args.fps <= 1000):
+        raise FluoInputError("must be a frame rate in (0, 1000] Hz", field="--fps", value=args.fps)
     sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(), seed=args.seed)
     port = sim.start()
     try:

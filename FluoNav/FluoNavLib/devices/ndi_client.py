@@ -24,9 +24,16 @@ from FluoNavLib.devices.ndi_protocol import (
     parse_tx,
 )
 
-__all__ = ["NDIClient", "TrackingStats"]
+__all__ = ["NDIClient", "TrackingStats", "parse_handle"]
 
 log = logging.getLogger("fluoguide.ndi")
+
+
+def parse_handle(body):
+    """The port handle of a PHRQ reply: two hex digits (raises NDIProtocolError)."""
+    if len(body) != 2 or any(c not in "0123456789ABCDEFabcdef" for c in body):
+        raise NDIProtocolError(f"PHRQ reply is not a port handle: {body[:40]!r}")
+    return int(body, 16)
 
 
 @dataclass
@@ -136,7 +143,7 @@ class NDIClient:
         self.serial.baudrate = self.baud
         self.handles = []
         for rom in self._roms:
-            h = int(self._request_retry("PHRQ", "*********1****"), 16)
+            h = parse_handle(self._request_retry("PHRQ", "*********1****"))
             for off in range(0, len(rom), 64):
                 chunk = rom[off:off + 64].ljust(64, b"\x00")
                 self._expect_okay("PVWR", f"{h:02X}{off:04X}{chunk.hex().upper()}")
