@@ -25,3 +25,41 @@ def to_jsonable(obj):
 def dumps(result, indent=2):
     """JSON text of a result dict (numpy types converted, NaN/inf -> null)."""
     return json.dumps(to_jsonable(result), indent=indent, allow_nan=False)
+
+
+def read_json(path, expect=dict, field=None):
+    """Parse the JSON file ``path``; FluoInputError naming the file, line and column.
+
+    Parameters
+    ----------
+    path : str or Path
+    expect : type or tuple of types, optional
+        The type the top-level value must have (``dict`` by default; None for any).
+    field : str, optional
+        The option or field the file came from (``--calibration``), for the message.
+    """
+    from pathlib import Path
+
+    from fluoguide.errors import FluoInputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise FluoInputError("file not found" if not path.exists() else "not a regular file",
+                             file=path, field=field)
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = json.loads(text)
+    except UnicodeDecodeError:
+        raise FluoInputError("not UTF-8 text", file=path, field=field) from None
+    except json.JSONDecodeError as exc:
+        raise FluoInputError(f"not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno})",
+                             file=path, field=field) from None
+    except RecursionError:
+        raise FluoInputError("JSON nested too deeply", file=path, field=field) from None
+    except OSError as exc:
+        raise FluoInputError(f"cannot read ({exc.strerror})", file=path, field=field) from None
+    if expect is not None and not isinstance(data, expect):
+        want = expect.__name__ if isinstance(expect, type) else "/".join(t.__name__ for t in expect)
+        raise FluoInputError(f"expected a JSON {'object' if expect is dict else want}, "
+                             f"got {type(data).__name__}", file=path, field=field)
+    return data

@@ -219,3 +219,23 @@ def test_scene_info_reads_a_thousand_transforms(tmp_path):
     from fluoapp.cli import main
 
     assert main(["scene", "info", str(path), "--json"]) == 0
+
+
+def test_a_damaged_calibration_json_is_refused_not_overwritten(tmp_path):
+    from FluoCalibLib.radiometry.scene import RADIOMETRY_KEY, write_calibration_json
+
+    path = tmp_path / "calibration.json"
+    damaged = '{"Intrinsics": {"fx": 800}, "HandEye": [1, 2],}'  # a trailing comma
+    path.write_text(damaged)
+    with pytest.raises(FluoInputError, match="not valid JSON .*line 1") as e:
+        write_calibration_json(path, RADIOMETRY_KEY, {"gain": 1.0})
+    assert "--calibration" in str(e.value)
+    assert path.read_text() == damaged  # the user's other calibrations are still there
+    path.write_text('{"Intrinsics": {"fx": 800}}')
+    write_calibration_json(path, RADIOMETRY_KEY, {"gain": 1.0})
+    import json
+
+    assert json.loads(path.read_text()) == {"Intrinsics": {"fx": 800}, "Radiometry": {"gain": 1.0}}
+    path.write_text("[1, 2]")
+    with pytest.raises(FluoInputError, match="expected a JSON object"):
+        write_calibration_json(path, RADIOMETRY_KEY, {"gain": 1.0})

@@ -8,7 +8,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from fluoguide import mrml_io
+from fluoguide import atomic, mrml_io
+from fluoguide.jsonable import read_json, to_jsonable
 
 from FluoCalibLib.geometry.scene import calibration_node
 
@@ -32,16 +33,13 @@ def load_calibration(scene, key):
 
 def write_calibration_json(path, key, doc):
     """Merge ``{key: doc}`` into a calibration JSON file (written atomically);
-    ``FluoCalibLogic.loadCalibrationJson`` reads it back onto the scene."""
+    ``FluoCalibLogic.loadCalibrationJson`` reads it back onto the scene.
+
+    An existing file that is not a readable JSON object is refused, never
+    overwritten: it holds the user's other calibrations.
+    """
     path = Path(path)
-    data = {}
-    if path.is_file():
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError:
-            data = {}
+    data = read_json(path, field="--calibration") if path.exists() else {}
     data[key.split(".", 1)[1]] = doc
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    tmp.replace(path)
+    atomic.write_text(path, json.dumps(to_jsonable(data), indent=1, allow_nan=False))
     return path
