@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -264,6 +265,14 @@ def make_phantom(name, **params):
     if name not in PHANTOMS:
         raise FluoInputError(f"unknown phantom; choose one of {', '.join(PHANTOMS)}",
                              field="phantom", value=name)
+    for key, value in params.items():
+        if key == "seed":
+            if not isinstance(value, (int, np.integer)) or not 0 <= value < 2**32:
+                raise FluoInputError("seed must be an integer within 0..2**32-1", field="seed",
+                                     value=value)
+        elif isinstance(value, (int, float, np.number)) and not np.isfinite(value):
+            # NaN slips through every range check (all comparisons are False)
+            raise FluoInputError("must be a finite number", field=key, value=float(value))
     return PHANTOMS[name](**params)
 
 
@@ -293,14 +302,13 @@ def write_phantom(phantom, out_dir):
     out_dir = Path(out_dir).resolve()
     if out_dir.exists() and not out_dir.is_dir():
         raise FluoInputError("output exists and is not a folder", file=out_dir)
+    fresh = not out_dir.exists()
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FluoInputError(f"cannot create the output folder ({exc.strerror})", file=out_dir) from None
-    if not os.access(out_dir, os.W_OK):
-        raise FluoInputError("output folder is not writable", file=out_dir)
-    try:
-        tmp = atomic.staging_folder(out_dir)
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        # a new phantom is staged beside its folder and appears with one rename;
+        # over an existing one it is staged inside and committed as a transaction
+        tmp = (Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.stage-", dir=out_dir.parent))
+               if fresh else atomic.staging_folder(out_dir))
     except OSError as exc:
         raise FluoInputError(f"cannot write here ({exc.strerror})", file=out_dir) from None
     try:
@@ -308,9 +316,11 @@ def write_phantom(phantom, out_dir):
         add_phantom_to_scene(scene, phantom)
         mrml_io.save_scene(scene, tmp / "scene.mrml")
         (tmp / "truth.json").write_text(json.dumps(phantom.truth(), indent=2, allow_nan=False))
-        # one transaction: data, truth, and the scene file last
-        names = sorted(f.name for f in tmp.iterdir() if f.name not in ("scene.mrml", "truth.json"))
-        atomic.commit_files(tmp, out_dir, names + ["truth.json", "scene.mrml"])
+        if fresh:
+            os.replace(tmp, out_dir)
+        else:
+            names = sorted(f.name for f in tmp.iterdir() if f.name not in ("scene.mrml", "truth.json"))
+            atomic.commit_files(tmp, out_dir, names + ["truth.json", "scene.mrml"])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir / "scene.mrml"
