@@ -33,6 +33,7 @@ CLI_MODULES = [
     "fluoapp.commands.fem",
     "fluoapp.commands.study",
     "fluoapp.commands.mesh",
+    "fluoapp.commands.tomo",
     "fluoapp.commands.calib_geometry",
     "fluoapp.commands.calib_light",
     "fluoapp.commands.devices",

@@ -87,23 +87,57 @@ def _read_points_csv(path, field):
     return np.array(rows)
 
 
-def _forward(args):
-    from FluoTomoLib.fem.forward import FluorescenceModel, safe_log
+def _read_forward_mesh(path):
+    """The mesh of ``fluo forward``: elements of either orientation are turned
+    positive (counted), degenerate ones refused naming the file."""
     from FluoTomoLib.meshing.vtu_io import read_mesh
 
+    mesh = read_mesh(path)
+    try:
+        mesh.check_elements()
+    except FluoInputError as exc:
+        raise FluoInputError(exc.problem + " (only degenerate elements are refused; either "
+                             "orientation is fine)", file=path, field=exc.field,
+                             value=exc.value) from None
+    flipped = int(np.sum(mesh.signed_measures < 0))
+    return (mesh.oriented() if flipped else mesh), flipped
+
+
+def _forward(args):
+    from FluoTomoLib.fem.forward import FluorescenceModel, safe_log
+    from FluoTomoLib.tomography import homogeneous_optics, read_optics
+
     t0 = time.perf_counter()
-    mesh = read_mesh(args.mesh)
+    mesh, flipped = _read_forward_mesh(args.mesh)
     src = _read_points_csv(args.sources, "sources")
     det = _read_points_csv(args.detectors, "detectors")
     for name, pts in (("sources", src), ("detectors", det)):
         if pts.shape[1] != mesh.dim:
             raise FluoInputError(f"points are {pts.shape[1]}D but the mesh is {mesh.dim}D",
                                  file=getattr(args, name), field=name)
-    props = dict(mua_per_mm=args.mua, musp_per_mm=args.musp, n=args.n)
-    fm = FluorescenceModel(mesh, props, props, src, det, solver=args.solver)
+    if args.optics is not None:
+        if args.mua is not None or args.musp is not None:
+            raise FluoInputError("give --optics or --mua/--musp, not both", field="--optics")
+        optics = read_optics(args.optics)
+    else:
+        if args.mua is None or args.musp is None:
+            raise FluoInputError("give --optics optics.json (per region) or --mua and --musp "
+                                 "(one material)", field="--mua" if args.mua is None else "--musp")
+        optics = homogeneous_optics(args.mua, args.musp, args.n, labels=mesh.regions)
+    yields = None
+    if args.yield_spec is not None:
+        from fluoapp.commands.tomo import _parse_yields
+
+        yields = _parse_yields(args.yield_spec)
+    props_x, props_m, y_nodes = optics.nodal_from_mesh(mesh, yields)
+    fm = FluorescenceModel(mesh, props_x, props_m, src, det, solver=args.solver)
     data = fm.excitation_data()
     out = {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "sources": len(src),
-           "detectors": len(det), "detector_fluence": data.tolist()}
+           "detectors": len(det), "regions": [int(r) for r in mesh.regions],
+           "reoriented_elements": flipped, "detector_fluence": data.tolist()}
+    if yields is not None:
+        out["fluorescence"] = fm.emission_data(y_nodes).tolist()
+        out["yield_by_region"] = {str(k): v for k, v in yields.items()}
     if args.jacobian:
         J = fm.jacobian_mua_x()
         out["jacobian_shape"] = list(J.shape)
@@ -111,6 +145,13 @@ def _forward(args):
         if args.jacobian_out:
             np.save(args.jacobian_out, J)
             out["jacobian_file"] = str(Path(args.jacobian_out).resolve())
+        if yields is not None:
+            Jy = fm.jacobian_yield()
+            out["jacobian_yield_shape"] = list(Jy.shape)
+            out["jacobian_yield_norm"] = float(np.linalg.norm(Jy))
+            if args.yield_jacobian_out:
+                np.save(args.yield_jacobian_out, Jy)
+                out["jacobian_yield_file"] = str(Path(args.yield_jacobian_out).resolve())
     out["log_valid_fraction"] = float(safe_log(data)[1].mean())
     out["solver"] = fm.solver_name
     out["timings"] = fm.timings
@@ -137,16 +178,32 @@ def register(sub):
     p.set_defaults(func=_analytic)
 
     p = sub.add_parser("forward", help="FEM forward model: boundary fluence for sources x detectors",
-                       description="CW diffusion FEM on a .vtu mesh. Sources/detectors: CSV of x,y[,z] "
-                       "mm; sources snap to the nearest surface point and are buried one MFP'.")
-    p.add_argument("--mesh", required=True, help="mesh file (.vtu, or NIRFAST .node/.elem stem)")
-    p.add_argument("--mua", type=float, required=True, help="absorption [1/mm]")
-    p.add_argument("--musp", type=float, required=True, help="reduced scattering [1/mm]")
-    p.add_argument("--n", type=float, default=1.33, help="refractive index")
+                       description="CW diffusion FEM on a .vtu mesh (one or several regions, "
+                       "elements of either orientation). Sources/detectors: CSV of x,y[,z] mm; "
+                       "sources snap to the nearest surface point and are buried one MFP'. "
+                       "With --yield also the fluorescence data (and with --jacobian the yield "
+                       "Jacobian).")
+    p.add_argument("--mesh", required=True, help="mesh file (.vtu with a cell array 'region', "
+                   "or NIRFAST .node/.elem stem)")
+    p.add_argument("--optics", default=None, help="optics.json: mua/musp per region at "
+                   "excitation and emission, n, fluorophore (docs/tomography-own-scene.md); "
+                   "or --mua/--musp for one material")
+    p.add_argument("--mua", type=float, default=None, help="absorption [1/mm] of one material "
+                   "at both wavelengths (instead of --optics)")
+    p.add_argument("--musp", type=float, default=None, help="reduced scattering [1/mm] of one "
+                   "material (instead of --optics)")
+    p.add_argument("--n", type=float, default=1.33, help="refractive index with --mua/--musp "
+                   "(default 1.33)")
+    p.add_argument("--yield", dest="yield_spec", default=None, metavar="LABEL:VALUE[,...]",
+                   help="fluorescence yield [1/mm] per region: also the fluorescence data "
+                   "(default: excitation only)")
     p.add_argument("--sources", required=True, help="CSV of source points")
     p.add_argument("--detectors", required=True, help="CSV of detector points")
-    p.add_argument("--jacobian", action="store_true", help="also compute the mua Jacobian")
-    p.add_argument("--jacobian-out", default=None, help="save the Jacobian as .npy")
-    p.add_argument("--solver", default="auto", help="auto, pardiso, splu or amg")
+    p.add_argument("--jacobian", action="store_true", help="also compute the mua Jacobian (and "
+                   "the yield Jacobian with --yield)")
+    p.add_argument("--jacobian-out", default=None, help="save the mua Jacobian as .npy")
+    p.add_argument("--yield-jacobian-out", default=None, help="save the yield Jacobian as .npy "
+                   "(with --yield --jacobian)")
+    p.add_argument("--solver", default="auto", help="auto, pardiso, splu or amg (default auto)")
     add_json_flag(p)
     p.set_defaults(func=_forward)

@@ -294,15 +294,18 @@ def snap_to_surface(mesh, points_mm, max_snap_mm=5.0, what="source"):
     return q, facet, bary
 
 
-def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_mm=5.0):
+def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_mm=5.0,
+                     normals=None):
     """Buried isotropic sources: one transport MFP below the nearest surface point,
-    along the inward normal (physics.md section 2)."""
+    along the inward normal (physics.md section 2).  ``normals``: (S, d) outward
+    unit normals of the true surface to bury along instead of the facet's (a
+    voxel mesh's facet normals are axis directions on a curved surface)."""
     q, facet, bary = snap_to_surface(mesh, surface_points_mm, max_snap_mm, "source")
     mua = _nodal(mesh, mua_per_mm, "mua_per_mm")
     musp = _nodal(mesh, musp_per_mm, "musp_per_mm")
     fnodes = mesh.boundary_facets[facet]
     mut = np.einsum("ij,ij->i", bary, (mua + musp)[fnodes])
-    normal = mesh.boundary_normals[facet]
+    normal = mesh.boundary_normals[facet] if normals is None else np.asarray(normals, float)
     return q - normal / mut[:, None]
 
 
