@@ -136,10 +136,11 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         return {k: (name, float((labels == k).sum() * vox)) for k, name in info.items()}
 
     def prepareTubeReconstruction(self, methods=("NP", "SP", "HP"), lam=10.0, seed=0,
-                                  labelNodeName="CBCTLabels"):
+                                  labelNodeName="CBCTLabels", accuracy="fast"):
         """A job ``job(progress, cancel) -> run`` that simulates the tracked
         acquisition of the cylinder-tube phantom in the scene (its truth is on
-        ``CBCT``) and reconstructs on a mesh of the scene's label map.
+        ``CBCT``) and reconstructs on a mesh of the scene's label map (through
+        the public label-map path, ``accuracy`` "fast" by default in the app).
 
         Everything is read from the scene here, on the caller's thread, so the
         job itself touches no MRML node and can run on a worker thread; hand its
@@ -171,7 +172,9 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
             phantom = make_phantom("cylinder-tube", **params)
             return simulate_and_reconstruct(
                 phantom, methods=methods, lam=lam, seed=seed, progress=progress, cancel=cancel,
-                recon_labels=(labels, np.asarray(geo["spacing"]), np.asarray(geo["origin"])))
+                accuracy=accuracy,
+                recon_labels=(labels, np.asarray(geo["spacing"]), np.asarray(geo["origin"]),
+                              np.asarray(geo["direction"])))
 
         job.grid = (mrml_io.volume_array(cbct).shape, mrml_io.volume_geometry(cbct))
         return job
@@ -182,7 +185,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
 
         shape, geo = grid
         return store_reconstructions(self.scene, run["coarse"], run["results"], shape,
-                                     geo["spacing"], geo["origin"])
+                                     geo["spacing"], geo["origin"], geo.get("direction"))
 
     def prepareMesh(self, sizeMm=1.0, roi=None, labelNodeName="CBCTLabels", quality=False):
         """A job ``job(progress, cancel) -> Mesh`` of the label map (read now, meshed
@@ -303,14 +306,16 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         return read_acquisition(acquisition, labelmap=self.labelMap(labelNode),
                                 optics=self.readOptics(optics))
 
-    def buildMesh(self, labelNode, sizeMm=1.0, roi=None, target=None, acquisition=None,
+    def buildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
                   optics=None, accuracy="balanced", quality=False, outputModelNode=None,
                   progress=None, cancel=None):
         """Tetrahedral mesh of a label map as a model node (a volume mesh: cell
         array ``region`` = label, RAS mm) -> the node.
 
-        The structured mesh is the reconstruction mesh :meth:`reconstruct`
-        uses when given this node (``meshNode``): anchored at and refined across
+        ``sizeMm``: the element size (near the optodes when an acquisition is
+        given; default: the ``accuracy`` level's).  The structured mesh is the
+        reconstruction mesh :meth:`reconstruct` uses when given this node
+        (``meshNode``): anchored at and refined across
         the ``target`` label (default: the smallest region that is not the
         largest), its tissue-air nodes on the smooth surface; with an
         ``acquisition`` (and ``optics``) its region of interest is the one
@@ -322,7 +327,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
                                     accuracy, quality)
         return self.storeBuiltMesh(job(progress, cancel), outputModelNode)
 
-    def prepareBuildMesh(self, labelNode, sizeMm=1.0, roi=None, target=None, acquisition=None,
+    def prepareBuildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
                          optics=None, accuracy="balanced", quality=False):
         """:meth:`buildMesh` split for a worker thread: read the scene now,
         return ``job(progress, cancel) -> built``; hand ``built`` to
@@ -342,8 +347,8 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
             acq = self.readAcquisition(acquisition, labelNode, optics)
         elif optics is not None:
             optics = self.readOptics(optics)
-        size = float(sizeMm)
-        if not (np.isfinite(size) and 0.2 <= size <= 10.0):
+        size = None if sizeMm is None else float(sizeMm)
+        if size is not None and not (np.isfinite(size) and 0.2 <= size <= 10.0):
             raise FluoInputError("element size must be within 0.2..10 mm", field="sizeMm",
                                  value=sizeMm)
 
@@ -353,18 +358,23 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
             from FluoTomoLib.tomography.model import reconstruction_mesh
             from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
 
+            from FluoTomoLib.tomography.accuracy import cap_at_burial
+
             report(progress, 0.05, "meshing the label map")
+            settings = accuracy_settings(accuracy, recon_mm=size)
+            h = settings["recon_mm"]
+            if optics is not None:
+                h, _ = cap_at_burial(h, optics, lm.labels)
             if quality:
                 from FluoTomoLib.meshing.tetwild import mesh_labelmap_quality
 
-                mesh = mesh_labelmap_quality(lm.labels_kji, lm.spacing_mm, lm.origin_mm, size,
+                mesh = mesh_labelmap_quality(lm.labels_kji, lm.spacing_mm, lm.origin_mm, h,
                                              roi=roi, direction=lm.direction, progress=progress,
                                              cancel=cancel)
                 mesh.meta["preview"] = True
                 return {"mesh_ras": mesh, "mesh_local": None, "labelmap": lm,
                         "preview": True, "roi_info": None}
             tgt = lm.default_target() if target is None else int(target)
-            settings = accuracy_settings(accuracy, recon_mm=size)
             roi_info = None
             if acq is not None:
                 src, _ = place_on_surface(lm, acq.sources_ras_mm, "sources")
@@ -378,9 +388,13 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
             else:
                 box = None
             check_cancel(cancel)
-            mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, size, box, tgt,
-                                       settings["refine_factor"], surface=lm.surface(),
-                                       cancel=cancel)
+            optodes = None if acq is None else np.vstack([src, det])
+            mfp = cap_at_burial(h, optics, lm.labels)[1] if optics is not None else None
+            mesh = reconstruction_mesh(
+                lm.labels_kji, lm.spacing_mm, h, box, tgt, settings["refine_factor"],
+                surface=lm.surface(), optodes=optodes, coarse_mm=settings["recon_coarse_mm"],
+                optode_normals=None if optodes is None else lm.surface().closest(optodes)[1],
+                burial_mm=mfp, cancel=cancel)
             report(progress, 1.0, "mesh done")
             return {"mesh_ras": lm.mesh_to_ras(mesh), "mesh_local": mesh, "labelmap": lm,
                     "preview": False, "roi_info": roi_info, "accuracy": settings}

@@ -226,12 +226,15 @@ class TomoPanel:
         node.GetDisplayNode().SetOpacity(0.35)
         self.app.show_in_3d(node)
         ref = mesh.meta.get("labelmap_volumes_mm3") or {}
-        vols = mesh.region_measures()
+        err = mesh.meta.get("volume_error_pct") or {}
         parts = []
-        for label, v in sorted(vols.items()):
-            r = ref.get(label)
-            parts.append(f"region {label}: {v:.0f} mm³" + (
-                f" ({100 * (v - r) / r:+.1f} % of the label map's)" if r else ""))
+        for label, r in sorted(ref.items()):
+            parts.append(f"region {label}: {r:.0f} mm³ in the label map" + (
+                f", mesh {err[label]:+.1f} % of the label map's" if label in err else ""))
+        fit = mesh.meta.get("surface_fit_mm")
+        if fit:
+            parts.append(f"tissue-air nodes moved onto the smooth surface by up to "
+                         f"{fit['max']:.2f} mm")
         role = ("the reconstruction uses this mesh" if used else
                 "preview: the reconstruction meshes the scene itself (anchored and refined "
                 "on the target; the mesh it used is shown after it runs)")

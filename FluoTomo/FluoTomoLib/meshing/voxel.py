@@ -36,6 +36,8 @@ def _axis_edges(lo, hi, size_mm, anchor=None, refine=None):
     ends, and the cells at lo and hi absorb the remainder (each between h/2
     and 3h/2 wide).
     """
+    if refine is not None and len(refine) and not np.isscalar(refine[0]):
+        return _nested_edges(lo, hi, size_mm, anchor, refine)
     if refine is not None:
         a, b, hf = float(refine[0]), float(refine[1]), float(refine[2])
         a, b = max(a, lo), min(b, hi)
@@ -51,6 +53,37 @@ def _axis_edges(lo, hi, size_mm, anchor=None, refine=None):
     below = anchor - size_mm * np.arange(int(np.floor((anchor - lo) / size_mm)), 0, -1)
     above = anchor + size_mm * np.arange(1, int(np.floor((hi - anchor) / size_mm)) + 1)
     return _close_ends(np.concatenate([below, [anchor], above]), lo, hi, size_mm, size_mm)
+
+
+def _nested_edges(lo, hi, size_mm, anchor, bands):
+    """Edges on [lo, hi] with several bands [(a, b, h), ...] of smaller cells
+    (where bands overlap the finest wins), all on one grid through ``anchor``
+    (or lo): every level's lines are anchor + k h, so nested sizes in ratios
+    of 2 share their lines and a transition is clean; where they do not, a
+    line closer than half the local size to the previous one is dropped."""
+    c = float(anchor) if anchor is not None and lo <= anchor <= hi else float(lo)
+    levels = sorted(((max(float(a), lo), min(float(b), hi), float(h)) for a, b, h in bands
+                     if min(float(b), hi) > max(float(a), lo)), key=lambda t: t[2])
+    levels.append((lo, hi, float(size_mm)))
+    pts, covered = [], []
+    for a, b, h in levels:
+        g = c + h * np.arange(np.ceil((a - c) / h - 1e-9), np.floor((b - c) / h + 1e-9) + 1)
+        keep = np.ones(len(g), bool)
+        for ca, cb in covered:
+            keep &= ~((g > ca + 1e-9) & (g < cb - 1e-9))
+        pts.append(g[keep])
+        covered.append((a, b))
+
+    def local(x):
+        return min([h for a, b, h in levels if a - 1e-9 <= x <= b + 1e-9] or [size_mm])
+
+    inner = np.unique(np.concatenate(pts))
+    kept = []
+    for x in inner:
+        prev = kept[-1] if kept else lo
+        if x - prev >= 0.5 * min(local(x), local(prev)) - 1e-9:
+            kept.append(x)
+    return _close_ends(np.array(kept), lo, hi, size_mm, min(h for _, _, h in levels))
 
 
 def _close_ends(inner, lo, hi, size_mm, min_mm):
@@ -320,10 +353,10 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
         remainder).  Anchoring at a small target's centre makes the nodes
         sample it symmetrically, so its reconstructed centre is not shifted by
         up to half a cell (see region_centroid_mm)
-    refine : per axis (x, y, z) None or (a_mm, b_mm, size_mm): a band [a, b]
+    refine : per axis (x, y, z) None, (a_mm, b_mm, size_mm): a band [a, b]
         with smaller cells (the grid stays rectilinear, so the band runs
         through the whole roi along the other axes; refine only the axes a
-        target is thin in)
+        target is thin in), or a list of such bands (nested: the finest wins)
 
     Returns
     -------
@@ -385,10 +418,21 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
                                  value=np.ravel(anchor_mm).tolist())
     if refine is not None:
         refine = list(refine)
-        if len(refine) != 3 or any(r is not None and (len(r) != 3 or not r[2] > 0
-                                                     or not r[1] > r[0]) for r in refine):
-            raise FluoInputError("refine must be three entries of None or (a_mm, b_mm, "
-                                 "size_mm) with a < b, size > 0", field="refine", value=refine)
+
+        def _band_ok(t):
+            return len(t) == 3 and t[2] > 0 and t[1] > t[0]
+
+        def _axis_ok(r):
+            if r is None:
+                return True
+            if len(r) and not np.isscalar(r[0]):          # several bands
+                return all(_band_ok(t) for t in r)
+            return _band_ok(r)
+
+        if len(refine) != 3 or not all(_axis_ok(r) for r in refine):
+            raise FluoInputError("refine must be three entries of None, (a_mm, b_mm, size_mm) "
+                                 "or a list of them, with a < b, size > 0", field="refine",
+                                 value=refine)
     edges = grid_edges(roi, size_mm, anchor_mm, refine)
     n_cells = int(np.prod([len(e) - 1 for e in edges]))
     if n_cells > MAX_CELLS:

@@ -27,5 +27,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "model": ["reconstruction_mesh", "membership", "check_prior_volumes", "TissueModel"],
     "simulate": ["ENGINES", "DEFAULT_SCAN", "default_scan", "add_noise", "simulation_mesh",
                  "simulate_fem", "simulate_acquisition"],
-    "reconstruct": ["reconstruct_labelmap", "nodal_to_grid", "write_reconstruction"],
+    "reconstruct": ["reconstruct_labelmap", "reconstruct_labelmap_methods", "nodal_to_grid",
+                    "write_reconstruction"],
 })

@@ -554,8 +554,8 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
 
     caster = SurfaceCaster(pts_ras, tris)
     hits = cast(caster, camera, camera_to_ras)
-    counts, _ = detector_counts(np.asarray(frames, float), np.asarray(saturated, bool), hits, det,
-                                roi_area_mm2)
+    counts, n_pix = detector_counts(np.asarray(frames, float), np.asarray(saturated, bool), hits,
+                                    det, roi_area_mm2)
     lost = mask & ~np.isfinite(counts)
     if np.any(lost):
         s, dd = np.argwhere(lost)[0]
@@ -567,7 +567,7 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
     y = counts_to_boundary_fluence(np.nan_to_num(counts), offset_adu, gain, robin_A(n_tissue),
                                    laser_power_w)
     return Acquisition(src, det, np.where(mask, y, 0.0), mask, "counts (tracked frames)",
-                       {"roi_counts": counts}, source=source)
+                       {"roi_counts": counts, "roi_pixels": n_pix}, source=source)
 
 
 def write_tracked_frames(folder, frames, laser_poses, beam_origin_tool_mm, beam_dir_tool, camera,

@@ -102,16 +102,30 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
     seconds, ...), ``yield_kji`` (float32 on the label map's grid), ``mesh``
     (local frame), ``yield_nodes``, ``sources_ras_mm``, ``detectors_ras_mm``.
     """
-    from FluoTomoLib.tomography.accuracy import accuracy_settings
+    return reconstruct_labelmap_methods(
+        lm, optics, acquisition, (method,), lam, target, accuracy, size_mm, refine_factor,
+        roi_ras, truncation_pct, data_model, self_absorption, mesh, max_offset_mm, progress,
+        cancel)[str(method).upper()]
+
+
+def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "HP"), lam=None,
+                                 target=None, accuracy="balanced", size_mm=None,
+                                 refine_factor=None, roi_ras=None, truncation_pct=None,
+                                 data_model="linear", self_absorption=("HP", "SP"), mesh=None,
+                                 max_offset_mm=MAX_OFFSET_MM, progress=None, cancel=None):
+    """:func:`reconstruct_labelmap` for several methods on one model (one mesh,
+    one Jacobian).  Returns {method: result}."""
+    from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
     from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
                                               reconstruction_mesh)
     from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
 
     t_all = time.perf_counter()
     timings = {}
-    method = str(method).upper()
-    if method not in ("NP", "SP", "HP"):
-        raise FluoInputError("method must be NP, SP or HP", field="method", value=method)
+    methods = [str(m).upper() for m in methods]
+    for m in methods:
+        if m not in ("NP", "SP", "HP"):
+            raise FluoInputError("method must be NP, SP or HP", field="method", value=m)
     lam = 10.0 if lam is None else float(lam)
     if not (np.isfinite(lam) and lam > 0):
         raise FluoInputError("lambda must be a positive number", field="lambda", value=lam)
@@ -140,7 +154,10 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
         if moved > 0.5:
             notes.append(f"optodes were moved up to {moved:.2f} mm onto the tissue surface")
         check_cancel(cancel)
-        h = settings["recon_mm"]
+        h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
+        if h < settings["recon_mm"]:
+            notes.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
+                         f"(asked for {settings['recon_mm']:g} mm)")
         if mesh is None:
             t0 = time.perf_counter()
             if roi_ras is not None:
@@ -163,7 +180,11 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
             t0 = time.perf_counter()
             mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, roi, target,
                                        settings["refine_factor"], surface=lm.surface(),
-                                       cancel=cancel)
+                                       optodes=np.vstack([src, det]),
+                                       coarse_mm=settings["recon_coarse_mm"],
+                                       optode_normals=lm.surface().closest(
+                                           np.vstack([src, det]))[1],
+                                       burial_mm=mfp, cancel=cancel)
             timings["meshing"] = time.perf_counter() - t0
         else:
             roi_info = {"chosen": "the mesh given", "truncation_max_pct": None}
@@ -185,24 +206,38 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
         _, prior_notes = check_prior_volumes(tm.prior, mesh,
                                              mesh.meta.get("labelmap_volumes_mm3", {}))
         notes.extend(prior_notes)
-        check_cancel(cancel)
-        report(progress, 0.6, f"reconstruction {method}")
         y = acquisition.y()
-        res, passes = tm.solve(y, method, lam, self_absorption, data_model == "log", cancel)
-        timings["reconstruction"] = res.seconds
-        report(progress, 0.9, "yield volume on the label map's grid")
-        vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
+        solved = {}
+        for i, method in enumerate(methods):
+            check_cancel(cancel)
+            report(progress, 0.6 + 0.3 * i / len(methods), f"reconstruction {method}")
+            solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
+                                      cancel)
     for w in caught:
         text = str(w.message)
         if text not in notes:
             notes.append(text)
-    if "diverged" in res.stop_reason:
-        notes.append(res.stop_reason)
+    t_common = time.perf_counter() - t_all - sum(r.seconds for r, _ in solved.values())
+    out = {}
+    for method, (res, passes) in solved.items():
+        out[method] = _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam,
+                              target, data_model, settings, h, roi_info, list(notes),
+                              dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
+                              t_common + res.seconds)
+    report(progress, 1.0, "done")
+    return out
 
-    # region yields: nodes wholly inside each region (partial volume >= 0.99; a
-    # rim node carries its neighbours' share whatever the method)
+
+def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target, data_model,
+            settings, h, roi_info, notes, timings, src, det, d_src, d_det, seconds):
+    """The summary and volumes of one method's solution."""
     from FluoTomoLib.tomography.model import nodal_volumes
 
+    vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
+    if "diverged" in res.stop_reason:
+        notes.append(res.stop_reason)
+    # region yields: nodes wholly inside each region (partial volume >= 0.99; a
+    # rim node carries its neighbours' share whatever the method)
     v = nodal_volumes(mesh)
     F = tm.fractions
     regions = {}
@@ -241,18 +276,19 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
         "accuracy": settings,
         "region_of_interest": roi_info,
         "mesh": {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "element_mm": h,
-                 "volume_error_pct": mesh.meta.get("volume_error_pct", {})},
+                 "coarse_element_mm": mesh.meta.get("coarse_mm"),
+                 "volume_error_pct": mesh.meta.get("volume_error_pct", {}),
+                 "surface_fit_mm": mesh.meta.get("surface_fit_mm")},
         "solver": {"iterations": res.iterations, "stop_reason": res.stop_reason,
                    "clipped_fraction": res.clipped_fraction,
                    "self_absorption_peaks": passes,
                    "residual_ss": res.residual, "initial_residual_ss": res.residual_history[0]},
         "timings": timings,
-        "seconds": time.perf_counter() - t_all,
+        "seconds": seconds,
     }
-    report(progress, 1.0, "done")
     return {"summary": summary, "yield_kji": vol, "mesh": mesh, "yield_nodes": res.yield_per_mm,
             "sources_ras_mm": lm.to_ras(src), "detectors_ras_mm": lm.to_ras(det),
-            "result": res}
+            "result": res, "model": tm}
 
 
 def write_reconstruction(out_dir, lm, result):

@@ -97,7 +97,8 @@ def add_noise(y, noise_pct, rng):
     return y * (1.0 + 0.01 * noise_pct * rng.standard_normal(np.shape(y)))
 
 
-def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, cancel=None):
+def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, burial_mm=None,
+                    cancel=None):
     """Graded structured mesh of the whole tissue: ``size_mm`` cells in the box
     of the points and the target grown by ``margin_mm``, ``coarse_mm`` elsewhere;
     its tissue-air nodes moved onto the smooth surface (model.fit_to_surface)."""
@@ -105,12 +106,27 @@ def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, can
 
     t_lo, t_hi = lm.tissue_bounds_local()
     lo, hi = points_local.min(axis=0), points_local.max(axis=0)
-    if target is not None:
-        b_lo, b_hi = lm.region_bounds_local(target)
-        lo, hi = np.minimum(lo, b_lo), np.maximum(hi, b_hi)
-    lo, hi = np.maximum(lo - margin_mm, t_lo), np.minimum(hi + margin_mm, t_hi)
     roi = np.array([t_lo[0], t_hi[0], t_lo[1], t_hi[1], t_lo[2], t_hi[2]])
-    refine = [(lo[a], hi[a], size_mm) if coarse_mm > size_mm else None for a in range(3)]
+    if target is not None:          # where the target is compact (not a tube's length)
+        b_lo, b_hi = lm.region_bounds_local(target)
+        thin = (b_hi - b_lo) < 0.5 * (t_hi - t_lo)
+        lo = np.where(thin, np.minimum(lo, b_lo), lo)
+        hi = np.where(thin, np.maximum(hi, b_hi), hi)
+    lo, hi = np.maximum(lo - margin_mm, t_lo), np.minimum(hi + margin_mm, t_hi)
+    refine = [[(lo[a], hi[a], size_mm)] if coarse_mm > size_mm else [] for a in range(3)]
+    if burial_mm is not None:
+        from FluoTomoLib.tomography.model import surface_band
+
+        band = surface_band(points_local, lm.surface().closest(points_local)[1], burial_mm,
+                            size_mm)
+        if band is not None and band[1][2] < size_mm:
+            refine[band[0]].append(band[1])
+    from FluoTomoLib.tomography.model import cap_grading
+
+    coarse_mm = max(cap_grading(coarse_mm, refine), size_mm)
+    refine = [None if not r else (r[0] if len(r) == 1 else r) for r in refine]
+    if all(r is None for r in refine):
+        refine = None
     import warnings
 
     with warnings.catch_warnings():
@@ -137,8 +153,11 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     decay = 1.0 / max(optics.min_mueff(lm.labels), 1e-6)
     margin = max(4.0, 0.5 * decay)
     report(progress, 0.05, "simulation mesh (whole label map)")
-    mesh = simulation_mesh(lm, np.vstack([src, det]), target, settings["simulate_mm"],
-                           settings["simulate_coarse_mm"], margin, cancel)
+    from FluoTomoLib.tomography.accuracy import cap_at_burial
+
+    h, mfp = cap_at_burial(settings["simulate_mm"], optics, lm.labels)
+    mesh = simulation_mesh(lm, np.vstack([src, det]), target, h,
+                           max(settings["simulate_coarse_mm"], h), margin, mfp, cancel)
     check_cancel(cancel)
     labs, F = membership(mesh, lm.labels_kji, lm.spacing_mm)
     y_nodes = F @ np.array([float(yield_by_label.get(int(v), 0.0)) for v in labs])
@@ -148,7 +167,7 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     data = fm.emission_data(y_nodes)
     check_cancel(cancel)
     info = {"engine": "fem", "mesh_nodes": mesh.n_nodes, "mesh_elements": mesh.n_elements,
-            "element_mm": settings["simulate_mm"], "coarse_element_mm":
+            "element_mm": h, "coarse_element_mm":
             settings["simulate_coarse_mm"], "fine_band_margin_mm": margin,
             "domain": "whole label map", "solver": fm.solver_name,
             "mesh_warnings": list(mesh.meta.get("warnings", [])),

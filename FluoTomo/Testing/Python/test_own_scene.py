@@ -213,7 +213,10 @@ def test_small_scene_simulated_and_reconstructed_in_any_direction(tmp_path):
 
     sc = small_scene(OBLIQUE, spacing=(0.9, 0.8, 1.0))
     lm = _lm(sc)
-    optics = optics_from_dict(OPTICS)
+    # a dye whose absorption is not modelled: the problem is linear in the yield
+    # (an absorbing 2 ug/mL ICG sphere this close to the surface is nearly
+    # saturated: docs/tomography-own-scene.md)
+    optics = optics_from_dict(dict(OPTICS, fluorophore=None))
     acq, info = simulate_acquisition(lm, optics, {7: 2.6e-3}, noise_pct=1.0, seed=2,
                                      accuracy="fast", scan={"sources_per_side": 3,
                                                             "detectors_per_side": 5,
@@ -222,7 +225,7 @@ def test_small_scene_simulated_and_reconstructed_in_any_direction(tmp_path):
     out = reconstruct_labelmap(lm, optics, acq, method="HP", accuracy="fast")
     s = out["summary"]
     err = (s["regions"]["7"]["yield_per_mm"] - 2.6e-3) / 2.6e-3
-    assert abs(err) < 0.25, s["regions"]
+    assert abs(err) < 0.15, s["regions"]
     assert s["peak_label"] == 7
     assert np.linalg.norm(np.array(s["peak_ras_mm"]) - sc["inclusion_centre_ras_mm"]) <= 3.0
     summary = write_reconstruction(tmp_path / "out", lm, out)
