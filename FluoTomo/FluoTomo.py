@@ -308,7 +308,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
 
     def buildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
                   optics=None, accuracy="balanced", quality=False, outputModelNode=None,
-                  progress=None, cancel=None):
+                  grading=False, progress=None, cancel=None):
         """Tetrahedral mesh of a label map as a model node (a volume mesh: cell
         array ``region`` = label, RAS mm) -> the node.
 
@@ -324,11 +324,11 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         (smooth interfaces), which reconstructions do not use.
         """
         job = self.prepareBuildMesh(labelNode, sizeMm, roi, target, acquisition, optics,
-                                    accuracy, quality)
+                                    accuracy, quality, grading)
         return self.storeBuiltMesh(job(progress, cancel), outputModelNode)
 
     def prepareBuildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
-                         optics=None, accuracy="balanced", quality=False):
+                         optics=None, accuracy="balanced", quality=False, grading=False):
         """:meth:`buildMesh` split for a worker thread: read the scene now,
         return ``job(progress, cancel) -> built``; hand ``built`` to
         :meth:`storeBuiltMesh` on the scene's thread."""
@@ -392,7 +392,8 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
             mfp = cap_at_burial(h, optics, lm.labels)[1] if optics is not None else None
             mesh = reconstruction_mesh(
                 lm.labels_kji, lm.spacing_mm, h, box, tgt, settings["refine_factor"],
-                surface=lm.surface(), optodes=optodes, coarse_mm=settings["recon_coarse_mm"],
+                surface=lm.surface(), optodes=optodes,
+                coarse_mm=settings["recon_coarse_mm"] if grading else None,
                 optode_normals=None if optodes is None else lm.surface().closest(optodes)[1],
                 burial_mm=mfp, cancel=cancel)
             report(progress, 1.0, "mesh done")

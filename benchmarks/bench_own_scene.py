@@ -42,7 +42,8 @@ def main(argv=None):
                                         simulate_acquisition)
 
     ap = argparse.ArgumentParser(prog="python -m benchmarks own_scene")
-    ap.add_argument("--levels", default="fast,balanced,fine")
+    ap.add_argument("--levels", default="fast,balanced,fine,balanced:grading",
+                    help="accuracy levels; LEVEL:grading adds optode-aware grading")
     ap.add_argument("--methods", default="HP,SP")
     ap.add_argument("--simulate-mm", type=float, default=0.5)
     ap.add_argument("--repeats", type=int, default=1)
@@ -61,17 +62,19 @@ def main(argv=None):
           f"{time.perf_counter() - t0:.1f} s", flush=True)
     centre = sc["inclusion_centre_ras_mm"]
     rows = []
-    for level in args.levels.split(","):
+    for spec in args.levels.split(","):
+        level, _, opt = spec.partition(":")
         for method in args.methods.split(","):
             times, out = [], None
             for _ in range(args.repeats):
                 t = time.perf_counter()
-                out = reconstruct_labelmap(lm, optics, acq, method=method, accuracy=level)
+                out = reconstruct_labelmap(lm, optics, acq, method=method, accuracy=level,
+                                           grading=opt == "grading")
                 times.append(time.perf_counter() - t)
             s = out["summary"]
             inc = s["regions"]["7"]["yield_per_mm"]
             cen = np.array(s["target_centroid_ras_mm"])
-            row = {"level": level, "method": method,
+            row = {"level": spec, "method": method,
                    "yield_error_pct": 100.0 * (inc - TRUE_YIELD) / TRUE_YIELD,
                    "centroid_error_mm": float(np.linalg.norm(cen - centre)),
                    "peak_in_inclusion": s["peak_label"] == 7,

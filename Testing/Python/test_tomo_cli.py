@@ -231,3 +231,87 @@ def test_issue_scene_through_the_logic(issue_scene):
         assert sc["labels_kji"][k, j, i] == sc["inclusion_label"]
     out = tmp = None
     del out, tmp
+
+
+def _mixed_meshes(tmp_path):
+    from FluoTomoLib.meshing.mesh import Mesh
+    from FluoTomoLib.meshing.structured import box_mesh
+    from FluoTomoLib.meshing.vtu_io import write_vtu
+
+    m = box_mesh(np.linspace(-10, 10, 11), np.linspace(-10, 10, 11), np.linspace(-8, 0, 5))
+    c = m.nodes_mm[m.elements].mean(axis=1)
+    reg = np.where(np.linalg.norm(c - [0, 0, -4], axis=1) < 3.0, 7, 3)
+    good = Mesh(m.nodes_mm, m.elements, reg).oriented()
+    el = good.elements.copy()
+    flip = np.arange(len(el)) % 3 == 0               # every third element the other way round
+    el[flip, 0], el[flip, 1] = good.elements[flip, 1], good.elements[flip, 0]
+    write_vtu(good, tmp_path / "good.vtu")
+    write_vtu(Mesh(good.nodes_mm, el, reg), tmp_path / "mixed.vtu")
+    el2 = good.elements.copy()
+    el2[5, 3] = el2[5, 2]                             # a degenerate element
+    write_vtu(Mesh(good.nodes_mm, el2, reg), tmp_path / "degenerate.vtu")
+    (tmp_path / "src.csv").write_text("x,y,z\n-3,0,0\n3,0,0\n")
+    (tmp_path / "det.csv").write_text("0,0,0\n6,0,0\n-6,2,0\n")
+    (tmp_path / "optics.json").write_text(json.dumps(OPTICS))
+    return int(flip.sum())
+
+
+def test_forward_multi_region_either_orientation_and_yield(tmp_path):
+    """``fluo forward``: regions from the mesh with optics.json, --yield gives the
+    fluorescence data and the yield Jacobian; a mesh with mixed element
+    orientation gives the same numbers and says how many it turned; only a
+    degenerate element is refused, in one line that names the file."""
+    flipped = _mixed_meshes(tmp_path)
+    outs = {}
+    for name in ("good", "mixed"):
+        r = fluo("forward", "--mesh", tmp_path / f"{name}.vtu", "--optics",
+                 tmp_path / "optics.json", "--sources", tmp_path / "src.csv", "--detectors",
+                 tmp_path / "det.csv", "--yield", "7:0.0026", "--jacobian", "--json")
+        assert r.returncode == 0, r.stderr
+        outs[name] = json.loads(r.stdout)
+    assert outs["good"]["reoriented_elements"] == 0
+    assert outs["mixed"]["reoriented_elements"] == flipped
+    assert outs["mixed"]["regions"] == [3, 7]
+    assert np.allclose(outs["mixed"]["fluorescence"], outs["good"]["fluorescence"], rtol=1e-10)
+    assert np.allclose(outs["mixed"]["detector_fluence"], outs["good"]["detector_fluence"])
+    assert outs["good"]["jacobian_yield_shape"] == [6, outs["good"]["nodes"]]
+    assert np.all(np.array(outs["good"]["fluorescence"]) > 0)
+    # the homogeneous shortcut still works on a multi-region mesh
+    r = fluo("forward", "--mesh", tmp_path / "mixed.vtu", "--mua", "0.01", "--musp", "1",
+             "--sources", tmp_path / "src.csv", "--detectors", tmp_path / "det.csv", "--json")
+    assert r.returncode == 0, r.stderr
+    r = fluo("forward", "--mesh", tmp_path / "degenerate.vtu", "--optics",
+             tmp_path / "optics.json", "--sources", tmp_path / "src.csv", "--detectors",
+             tmp_path / "det.csv")
+    _one_line_exit_2(r, "degenerate.vtu")
+    assert "Mesh." not in r.stderr and "()" not in r.stderr
+    doc = json.loads(json.dumps(OPTICS))
+    del doc["excitation"]["7"], doc["emission"]["7"]
+    (tmp_path / "o2.json").write_text(json.dumps(doc))
+    r = fluo("forward", "--mesh", tmp_path / "good.vtu", "--optics", tmp_path / "o2.json",
+             "--sources", tmp_path / "src.csv", "--detectors", tmp_path / "det.csv")
+    _one_line_exit_2(r, "[7]")
+
+
+def test_mesh_fast_reports_region_volumes_and_warns(tmp_path):
+    """``fluo mesh --fast`` on a flipped, anisotropic label map: region volumes
+    against the label map within 1 %; a region too small for the cells is in
+    the JSON's warnings."""
+    sc = _write_scene(tmp_path, semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0))
+    r = fluo("mesh", tmp_path / "labels.nrrd", "--fast", "--size", "1.0", "--out",
+             tmp_path / "m.vtu", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["warnings"] == []
+    for region in doc["regions"].values():
+        assert abs(region["volume_error_pct"]) < 1.0, doc["regions"]
+    lab = sc["labels_kji"].copy()
+    lab[lab == 7] = 3
+    lab[10, 20, 20] = 9                               # one voxel: 0.72 mm^3
+    write_volume_nrrd(tmp_path / "tiny.nrrd", lab, sc["spacing_mm"], sc["origin_mm"],
+                      sc["direction"])
+    r = fluo("mesh", tmp_path / "tiny.nrrd", "--fast", "--size", "2.0", "--out",
+             tmp_path / "t.vtu", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert any("region 9" in w for w in doc["warnings"]), doc["warnings"]

@@ -122,7 +122,8 @@ def _reconstruct(args):
             lm, optics, acq, method=args.method, lam=args.lam, target=args.target,
             accuracy=args.accuracy, size_mm=args.element_mm, roi_ras=roi,
             truncation_pct=args.truncation_pct, data_model=args.data_model,
-            self_absorption=("HP", "SP") if args.self_absorption else (), progress=bar)
+            self_absorption=("HP", "SP") if args.self_absorption else (),
+            grading=args.grading, progress=bar)
     summary = write_reconstruction(args.out, lm, result)
     summary["seconds"] = time.perf_counter() - t0
     return summary
@@ -201,6 +202,10 @@ def register(subparsers):
     p.add_argument("--data-model", choices=["linear", "log"], default="linear",
                    help="fit the data (linear, default) or their logarithm (log: every used "
                    "measurement must be > 0)")
+    p.add_argument("--grading", action="store_true",
+                   help="optode-aware grading: cells twice as large away from the optodes and "
+                   "the target (about half the nodes, default off: it moved the data of the "
+                   "issue's scene by up to 11 %%)")
     p.add_argument("--no-self-absorption", dest="self_absorption", action="store_false",
                    help="do not feed the fluorophore's absorption back (default: fed back for "
                    "HP and SP when optics.json names a fluorophore)")

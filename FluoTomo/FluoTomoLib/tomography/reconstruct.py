@@ -29,10 +29,10 @@ from fluoguide.progress import check_cancel, report
 
 from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 
-#: Jacobian copies the solver holds at once (J, R^-1 J^T, the self-absorption model)
-_JACOBIAN_COPIES = 3
+#: Jacobian-sized arrays the solver holds at once (J and R^-1 J^T for NP / SP)
+_JACOBIAN_COPIES = 2
 #: largest Jacobian memory [bytes] a reconstruction may take
-MAX_JACOBIAN_BYTES = 3e9
+MAX_JACOBIAN_BYTES = 4e9
 
 
 def nodal_to_grid(mesh, values, lm):
@@ -70,7 +70,8 @@ def _half_max_centroid(vol, lm):
 def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=None,
                          accuracy="balanced", size_mm=None, refine_factor=None, roi_ras=None,
                          truncation_pct=None, data_model="linear", self_absorption=("HP", "SP"),
-                         mesh=None, max_offset_mm=MAX_OFFSET_MM, progress=None, cancel=None):
+                         mesh=None, max_offset_mm=MAX_OFFSET_MM, grading=False, progress=None,
+                         cancel=None):
     """Reconstruct the yield of a label map from an acquisition.
 
     Parameters
@@ -95,6 +96,9 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
         :func:`FluoTomoLib.tomography.model.reconstruction_mesh`), e.g. the one
         the app showed; None builds it
     max_offset_mm : optodes farther from the tissue surface are refused
+    grading : optode-aware grading: ``recon_coarse_mm`` cells away from the box of
+        the optodes and the target (about half the nodes; the data moved by up
+        to 11 % on the issue's scene, docs)
 
     Returns
     -------
@@ -104,15 +108,16 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
     """
     return reconstruct_labelmap_methods(
         lm, optics, acquisition, (method,), lam, target, accuracy, size_mm, refine_factor,
-        roi_ras, truncation_pct, data_model, self_absorption, mesh, max_offset_mm, progress,
-        cancel)[str(method).upper()]
+        roi_ras, truncation_pct, data_model, self_absorption, mesh, max_offset_mm, grading,
+        progress, cancel)[str(method).upper()]
 
 
 def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "HP"), lam=None,
                                  target=None, accuracy="balanced", size_mm=None,
                                  refine_factor=None, roi_ras=None, truncation_pct=None,
                                  data_model="linear", self_absorption=("HP", "SP"), mesh=None,
-                                 max_offset_mm=MAX_OFFSET_MM, progress=None, cancel=None):
+                                 max_offset_mm=MAX_OFFSET_MM, grading=False, progress=None,
+                                 cancel=None):
     """:func:`reconstruct_labelmap` for several methods on one model (one mesh,
     one Jacobian).  Returns {method: result}."""
     from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
@@ -181,7 +186,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
             mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, roi, target,
                                        settings["refine_factor"], surface=lm.surface(),
                                        optodes=np.vstack([src, det]),
-                                       coarse_mm=settings["recon_coarse_mm"],
+                                       coarse_mm=settings["recon_coarse_mm"] if grading
+                                       else None,
                                        optode_normals=lm.surface().closest(
                                            np.vstack([src, det]))[1],
                                        burial_mm=mfp, cancel=cancel)
@@ -273,7 +279,7 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         "sources": len(src), "detectors": len(det),
         "moved_to_surface_mm": {"sources_max": float(d_src.max()),
                                 "detectors_max": float(d_det.max())},
-        "accuracy": settings,
+        "accuracy": dict(settings, grading=bool(mesh.meta.get("coarse_mm", h) > h + 1e-9)),
         "region_of_interest": roi_info,
         "mesh": {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "element_mm": h,
                  "coarse_element_mm": mesh.meta.get("coarse_mm"),

@@ -123,7 +123,7 @@ def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, bur
             refine[band[0]].append(band[1])
     from FluoTomoLib.tomography.model import cap_grading
 
-    coarse_mm = max(cap_grading(coarse_mm, refine), size_mm)
+    coarse_mm = cap_grading(coarse_mm, refine, size_mm)
     refine = [None if not r else (r[0] if len(r) == 1 else r) for r in refine]
     if all(r is None for r in refine):
         refine = None
