@@ -13,40 +13,40 @@ from fluoguide.errors import FluoInputError
 
 
 def _synth(args):
-    """Oral-cavity scene: TissueSurface, calibrations, tracked frames."""
+    """Oral-cavity scene: TissueSurface, calibrations, tracked frames.  The frames
+    are rendered on the phantom's analytic surface from the true poses; the scene
+    holds the CBCT-derived surface, tracked poses and a hand-eye with errors."""
     from fluoguide import mrml_io
     from FluoCalibLib.radiometry import scene as light_scene
     from FluoCalibLib.geometry.scene import store_intrinsics
-    from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
 
     from FluoNavLib.devices import frame_store
-    from FluoNavLib.mapping.synthetic import (
-        coupled_light,
-        open_field_camera,
-        oral_cavity_surface,
-        render_view,
-        view_poses,
-    )
+    from FluoNavLib.mapping.synthetic import PoseError, tracked_acquisition
 
-    caster, poly = oral_cavity_surface(args.triangles)
-    cam = open_field_camera(args.binning)
-    cone = coupled_light()
-    rc = RadiometricCamera(gain_adu_per_e=1.0)
+    acq = tracked_acquisition(args.views, args.binning, args.transport,
+                              tracking=PoseError(args.tracking_mm, args.tracking_deg),
+                              hand_eye=PoseError(args.hand_eye_mm, args.hand_eye_deg),
+                              surface_triangles=args.triangles)
+    cam, rc = acq["camera"], acq["radiometric"]
     scene = mrml_io.new_scene()
-    mrml_io.add_model(scene, "TissueSurface", poly)
+    mrml_io.add_model(scene, "TissueSurface", acq["surface"])
     store_intrinsics(scene, cam, {"rms_px": 0.0})
-    light_scene.store_calibration(scene, light_scene.ILLUMINATION_KEY, {"cone": cone.to_dict()})
+    light_scene.store_calibration(scene, light_scene.ILLUMINATION_KEY,
+                                  {"cone": acq["cone"].to_dict()})
     light_scene.store_calibration(scene, light_scene.RADIOMETRY_KEY, {"camera": rc.to_dict()})
     mrml_io.set_transform(scene, "TrackerToReference", np.eye(4))
-    mrml_io.set_transform(scene, "CameraToTracker", np.eye(4))   # hand-eye: camera = tool frame
+    mrml_io.set_transform(scene, "CameraToTracker", acq["hand_eye"])   # hand-eye, as calibrated
     frame_store.new_recording(scene)
-    for k, pose in enumerate(view_poses(args.views)):
-        counts, _, _ = render_view(caster, cam, pose, cone, args.transport, rc, seed=k)
-        frame_store.append_tracked_frame(scene, counts.astype(np.uint16), 1.0 + k / 10,
-                                         {"CameraToolToTracker": pose}, exposure_s=rc.exposure_s)
+    for k, (counts, tool) in enumerate(zip(acq["frames"], acq["tool_poses"])):
+        frame_store.append_tracked_frame(scene, counts, 1.0 + k / 10,
+                                         {"CameraToolToTracker": tool}, exposure_s=rc.exposure_s)
     path = mrml_io.save_scene(scene, Path(args.out) / "scene.mrml")
     return {"scene": str(path), "frames": args.views, "transport_truth": args.transport,
-            "triangles": caster.n_faces, "image": [cam.width, cam.height]}
+            "triangles": int(acq["surface"].GetNumberOfPolys()), "image": [cam.width, cam.height],
+            "rendered_on": "analytic phantom surface, true poses",
+            "scene_holds": "CBCT-intensity surface, tracked poses, hand-eye with error",
+            "tracking_sd": [args.tracking_mm, args.tracking_deg],
+            "hand_eye_error": [args.hand_eye_mm, args.hand_eye_deg]}
 
 
 def _factor_png(path, vm):
@@ -139,6 +139,14 @@ def register(subparsers):
     p.add_argument("--binning", type=int, default=4)
     p.add_argument("--triangles", type=int, default=62000)
     p.add_argument("--transport", type=float, default=0.3)
+    p.add_argument("--tracking-mm", type=float, default=0.25,
+                   help="tracking error of the camera tool, SD per axis in mm (default 0.25)")
+    p.add_argument("--tracking-deg", type=float, default=0.1,
+                   help="tracking error of the camera tool, SD per axis in degrees (default 0.1)")
+    p.add_argument("--hand-eye-mm", type=float, default=0.3,
+                   help="error of the stored hand-eye calibration, mm (default 0.3)")
+    p.add_argument("--hand-eye-deg", type=float, default=0.15,
+                   help="error of the stored hand-eye calibration, degrees (default 0.15)")
     add_json_flag(p)
     p.set_defaults(func=_synth)
     p = nav.add_parser("correct", help="optical transport, surface flux and classification of one "

@@ -21,7 +21,9 @@ from fluoguide.errors import FluoInputError
 from FluoNavLib.devices import frame_store
 from FluoNavLib.mapping.contours import miss_rate
 from FluoNavLib.mapping.flux_map import (
+    DEFAULT_MAX_MODEL_ERROR,
     ViewModel,
+    model_error,
     accumulate_on_faces,
     surface_flux,
     transport_image,
@@ -85,8 +87,13 @@ def load_context(scene):
     return NavContext(cam, IlluminationCone.from_dict(il["cone"]), rc, caster, poly, t2r, c2t)
 
 
-def correct_frame(scene, ctx, n, min_intensity=0.05):
-    """Transport image, surface flux, weights and miss rates of recorded frame ``n``."""
+def correct_frame(scene, ctx, n, min_intensity=0.05, max_model_error=DEFAULT_MAX_MODEL_ERROR):
+    """Transport image, surface flux, weights and miss rates of recorded frame ``n``.
+
+    Pixels whose predicted model error (``flux_map.model_error``: the surface
+    normal's uncertainty through the light's incidence angle, occluding rims)
+    exceeds ``max_model_error`` are not corrected; they are counted in
+    ``numbers["unreliable"]`` (None: no guard)."""
     img, info, poses = frame_store.read_tracked_frame(scene, n)
     tool = poses.get("CameraToolToTracker")
     if tool is None or not info.get("pose_valid", True):
@@ -102,12 +109,17 @@ def correct_frame(scene, ctx, n, min_intensity=0.05):
     vm = view_model(hits, ctx.cone, world)
     _, valid, saturated, _ = rc.radiance_from_counts(counts, min_snr=3.0)
     S = counts - rc.offset_adu
-    T, ok = transport_image(S, vm, ctx.cone, min_intensity=min_intensity, valid=valid)
+    trusted = valid
+    if max_model_error is not None:
+        trusted = valid & (model_error(hits, vm, ctx.caster) <= max_model_error)
+    T, ok = transport_image(S, vm, ctx.cone, min_intensity=min_intensity, valid=trusted)
     J, jvalid = surface_flux(counts, rc)
     snr = rc.snr(np.maximum(S, 0.0) / rc.gain_adu_per_e)
     w = view_weights(hits, vm, snr)
     numbers = {"frame": int(n), "pixels": int(img.size), "visible": int(hits.visible.sum()),
                "mapped": int(ok.sum()), "saturated": int(saturated.sum()),
+               "unreliable": int((hits.visible & valid & ~trusted).sum()),
+               "max_model_error": max_model_error,
                "transport_median": float(np.median(T[ok])) if ok.any() else None,
                "transport_iqr": ([float(np.percentile(T[ok], 25)), float(np.percentile(T[ok], 75))]
                                  if ok.any() else None)}
