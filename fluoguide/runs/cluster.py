@@ -29,7 +29,8 @@ import uuid
 
 from fluoguide.errors import FluoDeviceError, FluoInputError
 from fluoguide.progress import check_cancel
-from fluoguide.runs.engine import SerialExecutor, _error_text, _finish, call_shared, call_task
+from fluoguide.runs.engine import (SerialExecutor, _error_text, _finish, call_shared, call_task,
+                                   prepare_worker)
 from fluoguide.runs.tasks import Shared
 from fluoguide.threads import ENV_VARS, cpu_count
 
@@ -103,6 +104,13 @@ class DaskExecutor:
 
         client = self.client
         token = uuid.uuid4().hex[:8]
+        modules = sorted({t.func.__module__ for t in todo}
+                         | {s.func.__module__ for t in todo for s in t.shared_closure()})
+        try:
+            client.run(prepare_worker, modules)
+        except Exception as exc:  # noqa: BLE001 - any worker-side failure: say which and why
+            raise FluoDeviceError(f"the Dask workers cannot import {', '.join(modules)} "
+                                  f"({_error_text(exc)}): install FluoGuide on them") from None
         shared_f, need = {}, {}
 
         def submit_shared(s):
@@ -198,11 +206,15 @@ def dask_executor(address=None, workers="auto", threads=1, log=None, dashboard=T
         else:
             n = local_workers(workers, threads)
             # the worker processes start with the same thread limits as each task
-            environ = {"MALLOC_TRIM_THRESHOLD_": 65536}
+            # (and without Dask's MALLOC_TRIM_THRESHOLD_: see engine.prepare_worker)
+            environ = {}
             if threads is not None:
                 environ.update({v: int(threads) for v in ENV_VARS})
+            # the worker's statistical profiler samples every thread's stack each 10 ms
+            # under the GIL: off, the tasks are the workers' only work
             with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
-                                  "distributed.worker.daemon": False}):
+                                  "distributed.worker.daemon": False,
+                                  "distributed.worker.profile.enabled": False}):
                 t0 = time.perf_counter()
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                        host="127.0.0.1",

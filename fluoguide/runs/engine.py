@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 import time
 import traceback
 
@@ -32,6 +33,36 @@ from fluoguide.threads import limited_threads
 
 def _error_text(exc):
     return f"{type(exc).__name__}: {exc}".strip()
+
+
+def prepare_worker(names):
+    """Run on every Dask worker before the tasks: import the task modules (a worker
+    without FluoGuide fails here, once, with a clear message) and undo Dask's
+    malloc setting.
+
+    Dask starts its workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which makes
+    glibc hand every freed block over 64 KiB back to the system and map it anew
+    on the next allocation: our tasks, which allocate and free arrays of a few
+    MB each iteration, spent 2.7x the CPU time in a worker than in a plain
+    process (0.13 against 0.047 s per study-C task, measured). Heap
+    allocations up to 64 MiB and trimming above 128 MiB restore the plain
+    process's speed. glibc only; elsewhere nothing is changed.
+    """
+    import ctypes
+    import importlib
+
+    for name in names:
+        importlib.import_module(name)
+    relaxed = False
+    if os.environ.get("MALLOC_TRIM_THRESHOLD_") and sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL("libc.so.6")
+            m_trim_threshold, m_mmap_threshold = -1, -3          # glibc malloc.h
+            relaxed = bool(libc.mallopt(m_mmap_threshold, 64 << 20)
+                           and libc.mallopt(m_trim_threshold, 128 << 20))
+        except (OSError, AttributeError):
+            relaxed = False
+    return {"modules": len(names), "malloc_relaxed": relaxed}
 
 
 def call_shared(func, threads, *args):
