@@ -132,7 +132,8 @@ def sweep_spec(kind, target=DEFAULT_TARGET, dim=2, values=None, file=None, **axe
     spec = study_spec(None, target=target or DEFAULT_TARGET, dim=dim, file=file, **axes)
     spec.label, spec.sweep = f"sweep {kind}", kind
     axis = SWEEP_AXIS[kind]
-    vals = list(values) if values is not None else getattr(spec, axis)
+    # the sweep's values: given, else the axis as the caller set it, else the defaults
+    vals = list(values) if values is not None else axes.get(axis)
     if vals is None:
         vals = list(SWEEPS[kind])
         if kind == "mesh" and spec.dim == 3:

@@ -129,3 +129,14 @@ def test_study_and_sweep_give_the_same_table_serially_and_on_two_workers(tmp_pat
         assert [[r[c] for c in keep] for r in ra] == [[r[c] for c in keep] for r in rb]
         # the tasks ran on both workers (host:pid), none in this process
         assert len({r["worker"] for r in rb}) == 2
+
+
+def test_named_sweeps_use_their_default_values():
+    from FluoTomoLib.studies.thesis import SWEEPS
+
+    for kind, key in (("lambda", "lambda"), ("noise", "noise_pct"), ("roi", "roi_depth_mm"),
+                      ("mesh", "recon_mm")):
+        tasks = study_tasks(sweep_spec(kind))
+        assert sorted({t.params[key] for t in tasks}) == sorted(SWEEPS[kind]), kind
+        assert {t.params["value"] for t in tasks} == set(SWEEPS[kind])
+    assert {t.params["noise_pct"] for t in study_tasks(sweep_spec("noise", values=[2]))} == {2.0}
