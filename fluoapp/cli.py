@@ -9,7 +9,8 @@ Conventions every subcommand follows:
 - ``--json`` prints exactly one JSON object on stdout (progress goes to stderr).
 - Bad input raises ``FluoInputError``: one line on stderr, exit code 2.
 - A handler returns a dict (the JSON result); without ``--json`` it is printed
-  as readable ``key: value`` lines.
+  as readable ``key: value`` lines. ``"_exit_code": 1`` in it (not printed) says
+  the work partly failed (a run with failed tasks: they are in its table).
 """
 
 from __future__ import annotations
@@ -112,11 +113,14 @@ def main(argv=None):
         return 130
     if result is None:
         return 0
+    # a handler whose work partly failed (a run with failed tasks) returns its
+    # result with "_exit_code": printed as usual, then exit 1
+    rc = int(result.pop("_exit_code", 0)) if isinstance(result, dict) else 0
     if getattr(args, "json", False):
         print(dumps(result))
     else:
         _print_human(result, sys.stdout)
-    return 0
+    return rc
 
 
 if __name__ == "__main__":

@@ -46,3 +46,76 @@ def plot_case(out_dir, index, title, fields):
     fig.savefig(path, dpi=80)
     plt.close(fig)
     return str(path)
+
+
+# parameters that may vary within one study, and how a point's label names them
+_LABELS = (("case", ""), ("lambda", "lambda "), ("noise_pct", "noise "), ("seed", "seed "),
+           ("forward_mm", "fwd "), ("recon_mm", "rec "), ("data_mm", "data "),
+           ("roi_depth_mm", "roi "), ("scheme", ""), ("hp_basis", "basis "))
+_COLOURS = {"NP": "tab:red", "SP": "tab:blue", "HP": "tab:green"}
+
+
+def _point_label(row, varying):
+    parts = []
+    for key, prefix in _LABELS:
+        if key in varying:
+            v = row[key]
+            v = v.split(": ", 1)[-1] if key == "case" else (f"{v:g}" if isinstance(v, float) else v)
+            parts.append(f"{prefix}{v}")
+    return ", ".join(parts)
+
+
+def plot_error_vs_time(rows, out_dir, title="", name="error_vs_time.png"):
+    """PNG of |peak error| and |centroid error| [%] against the time one
+    reconstruction costs [s] (the solver plus its Jacobian, which a fresh
+    model pays once), one colour per method, each point labelled with what
+    varies in the study. Returns the path, or None when no task finished."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
+
+    ok = [r for r in rows if r.get("status", "ok") == "ok" and r.get("peak_error_pct") is not None
+          and r.get("seconds") is not None]
+    if not ok:
+        return None
+    varying = {k for k, _ in _LABELS if len({str(r.get(k)) for r in ok}) > 1}
+    annotate = len(ok) <= 60
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.2))
+    floor = 1e-2     # |error| below 0.01 % is drawn at 0.01 % (log axis)
+    for ax, key, what in ((axes[0], "peak_error_pct", "peak yield"),
+                          (axes[1], "centroid_error_pct", "centroid depth")):
+        for method in sorted({r["method"] for r in ok}):
+            pts = [r for r in ok if r["method"] == method and r.get(key) is not None]
+            if not pts:
+                continue
+            x = [r["seconds"] + (r.get("jacobian_seconds") or 0.0) for r in pts]
+            y = [max(abs(r[key]), floor) for r in pts]
+            ax.scatter(x, y, s=36, color=_COLOURS.get(method, "k"), label=method, alpha=0.85,
+                       edgecolors="k", linewidths=0.4)
+            if annotate and varying:
+                for xi, yi, r in zip(x, y, pts):
+                    ax.annotate(_point_label(r, varying), (xi, yi), textcoords="offset points",
+                                xytext=(4, 3), fontsize=7, color=_COLOURS.get(method, "k"))
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):      # 0.5, 2, 10 rather than 5x10^-1 ...
+            axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            axis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
+        ax.set_xlabel("time per reconstruction incl. its Jacobian [s]")
+        ax.set_ylabel(f"|{what} error| [%] (0.01: below 0.01)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(title="method", fontsize=8)
+    failed = len(rows) - len(ok)
+    fig.suptitle(f"{title}: error against time ({len(ok)} reconstructions"
+                 + (f", {failed} failed: see table.csv" if failed else "") + ")", fontsize=11)
+    fig.tight_layout()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    from fluoguide.atomic import atomic_path
+
+    with atomic_path(out / name) as tmp:
+        fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    return str(out / name)

@@ -70,7 +70,8 @@ def test_sweeps_report_error_and_time():
     out = run_sweep("noise", target=(6.0, 3.5))
     hp = [r for r in out["rows"] if r["method"] == "HP"]
     assert [r["value"] for r in hp] == [0.0, 0.5, 1.0, 2.0, 5.0]
-    assert all(r["case_seconds_including_jacobian"] > 0 for r in hp)
+    assert all(r["seconds"] > 0 and r["jacobian_seconds"] > 0 for r in hp)
+    assert out["shared_inputs"] == 2      # one forward Jacobian, one mapping, for 15 tasks
     assert abs(hp[0]["peak_error_pct"]) < 20  # noise-free: only the model/mesh error
     with pytest.raises(FluoInputError, match="sweep"):
         run_sweep("colour")
