@@ -8,6 +8,13 @@ plain Python with slicer-core, and under pytest.
 """
 
 import logging
+import os
+import sys
+
+try:
+    import fluoguide  # noqa: F401  (installed beside the modules by the extension's CMake)
+except ImportError:  # the module folders of a source checkout on Slicer's module paths
+    sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 try:  # 3D Slicer
     from slicer.ScriptedLoadableModule import (ScriptedLoadableModule,
