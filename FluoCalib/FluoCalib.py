@@ -330,7 +330,7 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         if isinstance(images, str):
             images = image_files(images)
-        images = [str(p) for p in images]
+        images = [p if hasattr(p, "shape") else str(p) for p in images]  # arrays or paths
 
         def job(progress=None, cancel=None):
             return calibrate_camera(images, board, model, holdout, fix_k3=fixK3,

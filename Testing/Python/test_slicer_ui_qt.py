@@ -26,6 +26,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
+FORM_MODULES = [m for m in ("FluoCalib", "FluoNav", "FluoTomo")
+                if (ROOT / m / "Resources" / "UI" / f"{m}.ui").is_file()]
 
 LOADER = r"""
 import json, sys
@@ -72,7 +74,7 @@ def _xml_widgets(name):
     return {w.get("name"): w for w in root.iter("widget")}, root
 
 
-@pytest.mark.parametrize("name", ["FluoCalib", "FluoNav"])
+@pytest.mark.parametrize("name", FORM_MODULES)
 def test_qt_loads_the_form_with_no_warning_but_the_unknown_slicer_classes(name):
     out = _load(name)
     assert out["loaded"]
@@ -98,7 +100,7 @@ def test_qt_loads_the_form_with_no_warning_but_the_unknown_slicer_classes(name):
     assert not unexpected, unexpected
 
 
-@pytest.mark.parametrize("name", ["FluoCalib", "FluoNav"])
+@pytest.mark.parametrize("name", FORM_MODULES)
 def test_qt_widgets_have_their_class_range_and_items(name):
     import importlib
 

@@ -232,13 +232,21 @@ class ReplayTracker(TrackerSession):
         self.last_image = None
         self.last_info = None
 
+    @staticmethod
+    def _valid(info, poses):
+        # a frame recorded without a valid pose keeps the tracker's last numbers
+        # in its log line; they must never reach a transform node
+        return {k: (v if info["pose_valid"] else None) for k, v in poses.items()}
+
     def poll(self):
+        """The next recorded frame's poses (None for every tool of a frame without a
+        valid pose), or None at the end of the recording."""
         try:
             image, info, poses = next(self._frames)
         except StopIteration:
             return None
         self.last_image, self.last_info = image, info
-        return poses
+        return self._valid(info, poses)
 
     def track(self, seconds=None, on_poses=None):
         """Play to the end (or for ``seconds``): frames and frames with a valid pose."""
@@ -249,7 +257,7 @@ class ReplayTracker(TrackerSession):
             n += 1
             valid += bool(info["pose_valid"])
             if on_poses is not None:
-                on_poses(poses, time.monotonic())
+                on_poses(self._valid(info, poses), time.monotonic())
             if t_end is not None and time.monotonic() >= t_end:
                 break
         return {"frames": n, "frames_with_pose": valid, "seconds": time.monotonic() - t0}
