@@ -95,7 +95,9 @@ class NavPanel:
                 room.makeSyntheticAcquisition(views=0, binning=8, triangles=20000)
                 correct = room.prepareFrameCorrection()
                 ctx = correct.context
-                t_end = time.monotonic() + seconds
+                # the stream runs ``seconds`` from its first frame (the first one also
+                # compiles the ray caster and starts the plotting: slow on a busy machine)
+                t_end = time.monotonic() + seconds + 120.0
                 while time.monotonic() < t_end:
                     if cancel is not None:
                         cancel.check()
@@ -116,12 +118,14 @@ class NavPanel:
                                               c["raw_contour"], f"raw (miss {raw:.1f} %)"),
                             "corrected": _image_url(r.transport, r.mapped, c["corrected_contour"],
                                                     f"corrected T (miss {cor:.1f} %)"),
-                            "frame": shown, "pose": pose.tolist(),
+                            "frame": session.last_frame, "pose": pose.tolist(),
                             "miss_raw": round(raw, 1), "miss_corrected": round(cor, 1)}
                     try:
                         frames.put_nowait(item)
                     except queue.Full:
                         pass          # the UI is behind: drop
+                    if not shown:
+                        t_end = time.monotonic() + seconds
                     shown += 1
                     progress(min(1.0, 1 - (t_end - time.monotonic()) / seconds), f"frame {shown}")
                 stats = session.client.stats

@@ -102,6 +102,7 @@ class NDITracker(TrackerSession):
             raise FluoInputError("choose a simulated tracker or a serial port", field="source")
         self.port = port
         self.tool_names = tuple(tool_names)
+        self.last_frame = None   # the device's frame number of the last new frame
         try:
             try:
                 self.client = NDIClient(port).open()
@@ -141,7 +142,11 @@ class NDITracker(TrackerSession):
                     raise
                 self._failures = 0
             return None
-        return None if reply is None else self._poses(reply)
+        if reply is None:
+            return None
+        frames = [p.frame for p in reply.tools.values() if p.frame is not None]
+        self.last_frame = max(frames) if frames else self.last_frame
+        return self._poses(reply)
 
     def track(self, seconds, on_poses=None):
         """Track for ``seconds``; ``on_poses(poses, t_host)`` per new frame.
