@@ -44,14 +44,9 @@ class FluoCalib(ScriptedLoadableModule):
             "optionally, into a calibration JSON file. See docs/slicer.md.")
         self.parent.acknowledgementText = (
             "Method after M. J. Daly, University of Toronto, 2018; OpenCV calibration.")
-        from fluoguide.slicer_compat import in_slicer_application
+        from fluoguide.slicer_samples import register_on_startup
 
-        if in_slicer_application():
-            import slicer
-
-            from fluoguide.slicer_samples import register_sample_data
-
-            slicer.app.connect("startupCompleted()", register_sample_data)
+        register_on_startup()  # the digital phantoms in Sample Data
 
 
 #

@@ -47,14 +47,9 @@ class FluoNav(ScriptedLoadableModule):
             "optical transport and surface flux images, and contour-based classification. "
             "See docs/slicer.md.")
         self.parent.acknowledgementText = "Method after M. J. Daly, University of Toronto, 2018."
-        from fluoguide.slicer_compat import in_slicer_application
+        from fluoguide.slicer_samples import register_on_startup
 
-        if in_slicer_application():
-            import slicer
-
-            from fluoguide.slicer_samples import register_sample_data
-
-            slicer.app.connect("startupCompleted()", register_sample_data)
+        register_on_startup()  # the digital phantoms in Sample Data
 
 
 #

@@ -5,14 +5,14 @@ Sample Data button calls :func:`load_phantom`, which adds the phantom's
 ``CBCT`` and ``CBCTLabels`` (with the ground truth in ``FluoGuide.Truth``) to
 the application's scene and shows them. Registered once per Slicer session by
 :func:`register_sample_data`, which the module files connect to Slicer's
-``startupCompleted()`` signal.
+``startupCompleted()`` signal (:func:`register_on_startup`).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["CATEGORY", "SAMPLES", "load_phantom", "register_sample_data"]
+__all__ = ["CATEGORY", "SAMPLES", "load_phantom", "register_sample_data", "register_on_startup"]
 
 CATEGORY = "FluoGuide"
 #: Sample name -> (phantom name, description)
@@ -68,3 +68,14 @@ def register_sample_data():
             fileNames=f"{phantom_name}.nrrd", nodeNames="CBCT", thumbnailFileName=_thumbnail(),
             customDownloader=loader(phantom_name))
     slicer.modules.fluoguideSampleDataRegistered = True
+
+
+def register_on_startup():
+    """In the Slicer application: register the phantoms once Slicer has started
+    (Sample Data may load after our modules); outside it, nothing."""
+    from fluoguide.slicer_compat import in_slicer_application
+
+    if in_slicer_application():
+        import slicer
+
+        slicer.app.connect("startupCompleted()", register_sample_data)
