@@ -470,8 +470,10 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         if calib is not None:
             stamp += [calib.GetID(), calib.GetMTime()]
         for name in ("TrackerToReference", "CameraToCameraTool", "CameraToTracker"):
-            node = mrml_io.get_node(self.scene, name, required=False)
-            stamp.append(None if node is None else node.GetMTime())
+            # the matrices themselves: setting a transform's matrix leaves the
+            # node's MTime as it was, and a stale pose chain would be a wrong number
+            node = mrml_io.get_node(self.scene, name, "vtkMRMLLinearTransformNode", required=False)
+            stamp.append(None if node is None else mrml_io.transform_matrix(node).tobytes())
         if self._context is None or self._contextKey != stamp:
             self._context = load_context(self.scene, surface, calib)
             self._contextKey = stamp

@@ -48,6 +48,30 @@ def test_correct_frame_refuses_what_it_cannot_use(nav_scene):
         logic.correctFrame(7)
 
 
+def test_a_changed_pose_chain_or_calibration_is_used_at_once(nav_scene):
+    """The logic keeps what frames share between calls; a new hand-eye, registration
+    or calibration must reach the next correction (a stale one is a wrong number)."""
+    from FluoNav import FluoNavLogic
+    from FluoCalibLib.geometry.scene import load_intrinsics, store_intrinsics
+
+    logic = FluoNavLogic(nav_scene)
+    first = logic.correctionContext()
+    assert logic.correctionContext() is first                 # nothing changed: reused
+    moved = np.eye(4)
+    moved[:3, 3] = [0.0, 0.0, 5.0]
+    mrml_io.set_transform_matrix(mrml_io.get_node(nav_scene, "TrackerToReference"), moved)
+    try:
+        ctx = logic.correctionContext()
+        assert ctx is not first
+        np.testing.assert_array_equal(ctx.tracker_to_reference, moved)
+        cam = load_intrinsics(nav_scene)
+        store_intrinsics(nav_scene, cam.binned(2), {"rms_px": 0.0})
+        assert logic.correctionContext().camera.width == cam.width // 2
+        store_intrinsics(nav_scene, cam, {"rms_px": 0.0})
+    finally:
+        mrml_io.set_transform_matrix(mrml_io.get_node(nav_scene, "TrackerToReference"), np.eye(4))
+
+
 def test_a_scene_with_the_old_hand_eye_name_still_corrects(nav_scene, tmp_path):
     """Scenes saved before CameraToCameraTool call the hand-eye CameraToTracker."""
     from FluoNav import FluoNavLogic
