@@ -4,110 +4,42 @@ from ``synth-light``)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import numpy as np
-
 from fluoapp.cli import add_json_flag, cli_group
-from fluoguide.errors import FluoInputError
+from fluoapp.commands import module_logic, save_scene_to, scene_for
 
 
-def _doc(folder, name):
-    p = Path(folder) / name
-    if not p.is_file():
-        raise FluoInputError(f"folder needs {name}", file=p)
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise FluoInputError(f"not valid JSON ({exc.msg}, line {exc.lineno})", file=p) from None
+def _calib(args):
+    """The FluoCalib logic over the ``--scene`` scene (or a new one)."""
+    return module_logic("FluoCalib", scene_for(getattr(args, "scene", None)))
 
 
-def _images(folder, doc, name):
-    from FluoCalibLib.radiometry.camera_response import _read_image
-
-    if not isinstance(doc.get("images"), list) or not doc["images"]:
-        raise FluoInputError("needs a non-empty 'images' list", file=Path(folder) / name,
-                             field="images")
-    return [_read_image(Path(folder) / f).astype(float) for f in doc["images"]]
-
-
-def _save(args, key, doc):
-    from FluoCalibLib.radiometry import scene as light_scene
-
-    if getattr(args, "calibration", None):
-        light_scene.write_calibration_json(args.calibration, key, doc)
-    if getattr(args, "scene", None):
-        from fluoguide import mrml_io
-
-        path = Path(args.scene)
-        scene = mrml_io.load_scene(path) if path.is_file() else mrml_io.new_scene()
-        light_scene.store_calibration(scene, key, doc)
-        mrml_io.save_scene(scene, path)
+def _outputs(args):
+    return {"calibrationJson": getattr(args, "calibration", None)}
 
 
 def _radiometry(args):
-    from FluoCalibLib.radiometry.camera_response import characterize, load_stack
-    from FluoCalibLib.radiometry.scene import RADIOMETRY_KEY
-
-    frames, meta = load_stack(args.stack)
-    res = characterize(frames, bit_depth=args.bits)
-    if args.out:
-        from FluoCalibLib.radiometry.plots import plot_radiometry
-
-        res["plots"] = plot_radiometry(res, args.out)
-    keep = {k: v for k, v in res.items() if k not in ("ptc", "linearity", "dark")}
-    _save(args, RADIOMETRY_KEY, keep)
-    if "truth" in meta:
-        res["truth"] = meta["truth"]
+    logic = _calib(args)
+    res = logic.characterizeCamera(args.stack, bitDepth=args.bits, plotsFolder=args.out,
+                                   **_outputs(args))
+    save_scene_to(logic.scene, args.scene)
     return {k: v for k, v in res.items() if k not in ("ptc", "linearity", "dark")} | (
         {"curves": {k: res[k] for k in ("ptc", "linearity", "dark")}} if args.curves else {})
 
 
 def _illumination(args):
-    from FluoCalibLib.geometry.camera_model import CameraModel
-    from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
-    from FluoCalibLib.radiometry.scene import ILLUMINATION_KEY
-
-    doc = _doc(args.folder, "illumination.json")
-    for k in ("camera", "phantom_to_camera", "rd"):
-        if k not in doc:
-            raise FluoInputError("missing key", file=Path(args.folder) / "illumination.json", field=k)
-    images = _images(args.folder, doc, "illumination.json")
-    res = calibrate_illumination(images, CameraModel.from_dict(doc["camera"]),
-                                 [np.asarray(T, float) for T in doc["phantom_to_camera"]],
-                                 float(doc["rd"]), float(doc.get("offset_adu", 0.0)),
-                                 try_asymmetric=not args.axisymmetric,
-                                 saturation_adu=float(doc.get("saturation_adu", 16383.0)))
-    ratios = res.pop("ratio_images")
-    cone = res.pop("cone")
-    res["cone"] = cone.to_dict()
-    if args.out:
-        from FluoCalibLib.radiometry.plots import plot_ratio_images
-
-        res["plots"] = plot_ratio_images(ratios, args.out)
-    _save(args, ILLUMINATION_KEY, res)
-    if "truth" in doc:
-        res["truth"] = doc["truth"]
-    return res
+    logic = _calib(args)
+    res = logic.calibrateIllumination(args.folder, tryAsymmetric=not args.axisymmetric,
+                                      plotsFolder=args.out, **_outputs(args))
+    save_scene_to(logic.scene, args.scene)
+    return {k: v for k, v in res.items() if k != "ratio_images"}
 
 
 def _laser(args):
-    from FluoCalibLib.geometry.camera_model import CameraModel
-    from FluoCalibLib.radiometry.laser_line import calibrate_laser
-    from FluoCalibLib.radiometry.scene import LASER_KEY
-
-    doc = _doc(args.folder, "laser.json")
-    for k in ("camera", "camera_to_tracker", "laser_to_tracker", "phantom_to_tracker"):
-        if k not in doc:
-            raise FluoInputError("missing key", file=Path(args.folder) / "laser.json", field=k)
-    images = _images(args.folder, doc, "laser.json")
-    res = calibrate_laser(images, CameraModel.from_dict(doc["camera"]), doc["camera_to_tracker"],
-                          doc["laser_to_tracker"], doc["phantom_to_tracker"],
-                          doc.get("pointer_origin_tool_mm"), holdout=args.holdout)
-    _save(args, LASER_KEY, {k: v for k, v in res.items() if k != "spots_px"})
-    if "truth" in doc:
-        res["truth"] = doc["truth"]
+    logic = _calib(args)
+    res = logic.calibrateLaser(args.folder, holdout=args.holdout, **_outputs(args))
+    save_scene_to(logic.scene, args.scene)
     return res
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
-from fluoguide.errors import FluoInputError
+from fluoapp.commands import module_logic
 
 
 def _synth(args):
@@ -17,34 +17,17 @@ def _synth(args):
     are rendered on the phantom's analytic surface from the true poses; the scene
     holds the CBCT-derived surface, tracked poses and a hand-eye with errors."""
     from fluoguide import mrml_io
-    from FluoCalibLib.radiometry import scene as light_scene
-    from FluoCalibLib.geometry.scene import store_intrinsics
 
-    from FluoNavLib.devices import frame_store
-    from FluoNavLib.mapping.synthetic import PoseError, tracked_acquisition
-
-    acq = tracked_acquisition(args.views, args.binning, args.transport,
-                              tracking=PoseError(args.tracking_mm, args.tracking_deg),
-                              hand_eye=PoseError(args.hand_eye_mm, args.hand_eye_deg),
-                              surface_triangles=args.triangles)
-    cam, rc = acq["camera"], acq["radiometric"]
-    scene = mrml_io.new_scene()
-    mrml_io.add_model(scene, "TissueSurface", acq["surface"])
-    store_intrinsics(scene, cam, {"rms_px": 0.0})
-    light_scene.store_calibration(scene, light_scene.ILLUMINATION_KEY,
-                                  {"cone": acq["cone"].to_dict()})
-    light_scene.store_calibration(scene, light_scene.RADIOMETRY_KEY, {"camera": rc.to_dict()})
-    mrml_io.set_transform(scene, "TrackerToReference", np.eye(4))
-    mrml_io.set_transform(scene, "CameraToTracker", acq["hand_eye"])   # hand-eye, as calibrated
-    frame_store.new_recording(scene)
-    for k, (counts, tool) in enumerate(zip(acq["frames"], acq["tool_poses"])):
-        frame_store.append_tracked_frame(scene, counts, 1.0 + k / 10,
-                                         {"CameraToolToTracker": tool}, exposure_s=rc.exposure_s)
-    path = mrml_io.save_scene(scene, Path(args.out) / "scene.mrml")
-    return {"scene": str(path), "frames": args.views, "transport_truth": args.transport,
-            "triangles": int(acq["surface"].GetNumberOfPolys()), "image": [cam.width, cam.height],
-            "rendered_on": "analytic phantom surface, true poses",
-            "scene_holds": "CBCT-intensity surface, tracked poses, hand-eye with error",
+    logic = module_logic("FluoNav")
+    info = logic.makeSyntheticAcquisition(views=args.views, binning=args.binning,
+                                          triangles=args.triangles, transport=args.transport,
+                                          trackingMm=args.tracking_mm,
+                                          trackingDeg=args.tracking_deg,
+                                          handEyeMm=args.hand_eye_mm, handEyeDeg=args.hand_eye_deg)
+    path = mrml_io.save_scene(logic.scene, Path(args.out) / "scene.mrml")
+    return {"scene": str(path), "frames": info["frames"], "transport_truth": args.transport,
+            "triangles": info["triangles"], "image": info["image"],
+            "rendered_on": info["rendered_on"], "scene_holds": info["scene_holds"],
             "tracking_sd": [args.tracking_mm, args.tracking_deg],
             "hand_eye_error": [args.hand_eye_mm, args.hand_eye_deg]}
 
@@ -71,53 +54,36 @@ def _factor_png(path, vm):
 def _correct(args):
     from fluoguide import mrml_io
 
-    from FluoNavLib.devices import frame_store
-    from FluoNavLib.mapping.contours import miss_rate, overlay_png
-    from FluoNavLib.mapping.scene import write_frame_images, write_surface_flux
-    from FluoNavLib.mapping.correct import correct_frame, load_context, map_frames_to_surface
+    from FluoNavLib.mapping.contours import overlay_png
 
     t0 = time.perf_counter()
-    scene = mrml_io.load_scene(args.scene)
-    ctx = load_context(scene)
+    logic = module_logic("FluoNav", mrml_io.load_scene(args.scene))
+    logic.correctionContext()
     t1 = time.perf_counter()
-    r = correct_frame(scene, ctx, args.frame)
+    r = logic.correctFrame(args.frame)
     t_frame = time.perf_counter() - t1
-    results = [r]
-    skipped = []
-    if args.all_frames:
-        for n in range(frame_store.number_of_frames(scene)):
-            if n == args.frame:
-                continue
-            try:
-                results.append(correct_frame(scene, ctx, n))
-            except FluoInputError as exc:          # no valid pose: not mapped, say so
-                skipped.append({"frame": n, "reason": exc.problem})
-    T_face, J_face, w_face, views = map_frames_to_surface(ctx, results)
-    write_surface_flux(scene, ctx.polydata, T_face, J_face, w_face, views)
-    S = r.counts - ctx.radiometric.offset_adu
+    mapped = logic.mapFrames(frames=None if args.all_frames else [args.frame], precomputed=[r])
     numbers = dict(r.numbers)
-    write_frame_images(scene, r.transport, r.mapped, S, numbers)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     files = []
     if r.mapped.any():
-        _, raw_contour, _ = miss_rate(S, r.hits.visible & r.flux_valid)
-        _, cor_contour, _ = miss_rate(r.transport, r.mapped)
-        files += [overlay_png(out / "raw.png", S, raw_contour,
+        classes = logic.classifyContours(r)
+        S = r.counts - r.offset_adu
+        files += [overlay_png(out / "raw.png", S, classes["raw_contour"],
                               f"raw counts above offset, 40 % contour (miss "
                               f"{numbers['miss_rate_raw_pct']:.1f} %)", r.hits.visible),
-                  overlay_png(out / "transport.png", r.transport, cor_contour,
+                  overlay_png(out / "transport.png", r.transport, classes["corrected_contour"],
                               f"optical transport T, 40 % contour (miss "
                               f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped)]
     files.append(_factor_png(out / "factors.png", r.vm))
     np.save(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
     np.save(out / "surface_flux_w_per_mm2.npy", np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
-    scene_path = mrml_io.save_scene(scene, out / "scene.mrml")
-    seen = w_face > 0
+    scene_path = mrml_io.save_scene(logic.scene, out / "scene.mrml")
     numbers.update({
-        "frames_on_surface": [x.frame for x in results], "frames_skipped": skipped,
-        "faces_seen": int(seen.sum()), "faces": int(len(w_face)),
-        "surface_transport_median": float(np.median(T_face[seen])) if seen.any() else None,
+        "frames_on_surface": mapped["frames_on_surface"], "frames_skipped": mapped["frames_skipped"],
+        "faces_seen": mapped["faces_seen"], "faces": mapped["faces"],
+        "surface_transport_median": mapped["surface_transport_median"],
         "frame_seconds": t_frame, "seconds": time.perf_counter() - t0,
         "scene": str(scene_path), "files": files + [str(out / "transport.npy"),
                                                     str(out / "surface_flux_w_per_mm2.npy")]})

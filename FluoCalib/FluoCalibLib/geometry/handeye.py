@@ -7,7 +7,7 @@ Frames (SlicerIGT ``AToB`` = maps coordinates in A into B):
 - ``BoardToTracker``: board (grid) registered to the tracker, e.g. by touching
   4 grid corners with a tracked pointer (:func:`board_to_tracker_from_pointer`).
 - Unknown: ``CameraToTool`` (the thesis' X^-1; stored in the scene as
-  ``CameraToTracker`` under the tool's ``CameraToolToTracker``).
+  ``CameraToCameraTool`` under the tool's ``CameraToolToTracker``).
 
 Loop: ``ToolToTracker_i @ CameraToTool = BoardToTracker @ inv(BoardToCamera_i)``.
 

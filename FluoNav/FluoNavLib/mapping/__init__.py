@@ -21,13 +21,13 @@ from fluoguide.lazy import attach
 __getattr__, __dir__, __all__ = attach(__name__, {
     "benchmark": ["run_mapping_benchmark"],
     "contours": ["miss_rate", "overlay_png"],
-    "correct": ["NavContext", "FrameResult", "load_context", "correct_frame", "map_frames_to_surface"],
+    "correct": ["NavContext", "FrameResult", "load_context", "correct_image", "correct_frame", "map_frames_to_surface"],
     "flux_map": ["ViewModel", "view_model", "forward_image", "transport_image", "surface_flux", "accumulate_on_faces", "plane_hits"],
     "illumination_kernel": ["cone_factors_from_cast"],
     "mismatch": ["MISMATCH_CASES", "mapping_under_mismatch", "mismatch_figure"],
     "pixel_cast": ["SurfaceCaster", "PixelHits", "cast_camera", "reference_cast"],
     "rasterize": ["RayGrid", "raster_cast"],
-    "scene": ["SURFACE_NODE", "TRANSPORT_NODE", "RAW_NODE", "MAPPING_KEY", "write_surface_flux", "write_frame_images"],
+    "scene": ["SURFACE_NODE", "TRANSPORT_NODE", "RAW_NODE", "FLUX_NODE", "MAPPING_KEY", "write_surface_flux", "write_frame_images", "point_means"],
     "surface": ["surface_from_cbct", "surface_from_cbct_node", "surface_from_labelmap", "surface_from_labelmap_node"],
     "synthetic": ["oral_cavity_surface", "open_field_camera", "coupled_light", "view_poses", "render_view", "render_hits", "exact_oral_cavity_hits", "PoseError", "tracked_acquisition"],
 })

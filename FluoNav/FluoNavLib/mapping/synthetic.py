@@ -241,8 +241,8 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
 
     from FluoNavLib.mapping.surface import surface_from_cbct
 
-    if not (isinstance(n_views, (int, np.integer)) and 1 <= n_views <= 64):
-        raise FluoInputError("must be an integer 1..64", field="views", value=n_views)
+    if not (isinstance(n_views, (int, np.integer)) and 0 <= n_views <= 64):
+        raise FluoInputError("must be an integer 0..64", field="views", value=n_views)
     if not (isinstance(binning, (int, np.integer)) and 1 <= binning <= 64):
         raise FluoInputError("must be an integer 1..64", field="binning", value=binning)
     if not (np.isfinite(transport) and 0 < transport <= 10):
