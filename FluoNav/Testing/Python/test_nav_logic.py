@@ -89,7 +89,10 @@ def test_a_scene_with_the_old_hand_eye_name_still_corrects(nav_scene, tmp_path):
     scene = mrml_io.load_scene(old)
     assert mrml_io.get_node(scene, "CameraToCameraTool", required=False) is None
     r = FluoNavLogic(scene).correctFrame(1)
-    np.testing.assert_array_equal(r.transport, new.transport)
+    # the hand-eye carries a calibration error (not the identity), and a saved scene
+    # keeps its matrix to the last bit or so: the same pixels, the same values
+    np.testing.assert_array_equal(r.mapped, new.mapped)
+    np.testing.assert_allclose(r.transport, new.transport, rtol=1e-12, atol=0)
 
 
 def test_replay_through_the_logic_puts_the_recorded_poses_in_the_scene(tmp_path):
