@@ -34,6 +34,12 @@ def _handler(args):
                             dim=args.dim, scheme=args.scheme, hp_basis=args.hp_basis,
                             progress=bar)
     out["seconds"] = time.perf_counter() - t0
+    # every row's reconstruction warnings, where a reader of the JSON sees them
+    out["warnings"] = [f"{r['case']}, {r['method']} lambda {r['lambda']:g}: {w}"
+                       for r in out["rows"] for w in r.get("warnings", [])]
+    from fluoguide.threads import current_threads
+
+    out["threads"] = current_threads()
     if args.out:
         import json
 

@@ -187,7 +187,8 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
             report(progress, 0.5, f"{case}: {method} lambda {lam:g}")
             t0 = time.perf_counter()
             res = reconstruct(J, y, method, lam=lam, prior=prior,
-                              region_jacobian=J_hp if method == "HP" else None, **opts)
+                              region_jacobian=J_hp if method == "HP" else None,
+                              noise_rel=noise_pct / 300.0 if noise_pct > 0 else None, **opts)
             sec = time.perf_counter() - t0
             z, prof = depth_profile(coarse, res.yield_per_mm, line, 0.0, bottom)
             peak, centroid = peak_and_centroid(z, prof)
@@ -198,6 +199,7 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
                 "centroid_error_pct": 100 * (centroid - centre_depth) / centre_depth,
                 "seconds": sec, "iterations": res.iterations,
                 "residual_ss": res.residual, "stop_reason": res.stop_reason,
+                "diagnostics": res.diagnostics, "warnings": res.warnings,
             })
             fields[f"{method} (lambda {lam:g})"] = (coarse, res.yield_per_mm)
     return rows, fields
