@@ -337,13 +337,7 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         # J is fixed for linear data and no normalisation: refactor only when
         # lambda changes; otherwise the linearisation moves every iteration
         if nonlinear or lam_k != cached_lam:
-            col = x.copy() if normalise else None
-            Jc = Jm * col if normalise else Jm
-            Rinv = _inverse_regulariser(method, prior, Jc, lam_k)
-            RJt = Rinv(Jc.T)
-            S = Jc @ RJt
-            S[np.diag_indices_from(S)] += 1.0
-            ds = _DataSpace(S)
+            col, Jc, Rinv, RJt, ds = _step_system(method, prior, Jm, x, normalise, lam_k)
             cached_lam = lam_k
         step = RJt @ ds.solve(resid)
         x_prev, resid_prev, Jm_prev = x, resid, Jm
@@ -398,16 +392,9 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         nonlinear = True            # relinearise the diagnostics at the kept iterate
     elif rose > 1 + rel_tol:
         stop = f"{stop}; residual rose {rose:.3g}x above its lowest (non-negativity clip)"
-    if nonlinear:
+    if nonlinear and (not normalise or np.any(x > 0)):
         # diagnostics and confidence at the final linearisation
-        col = x.copy() if normalise else None
-        Jc = Jm * col if normalise else Jm
-        if np.any(Jc):
-            Rinv = _inverse_regulariser(method, prior, Jc, cached_lam)
-            RJt = Rinv(Jc.T)
-            S = Jc @ RJt
-            S[np.diag_indices_from(S)] += 1.0
-            ds = _DataSpace(S)
+        col, Jc, Rinv, RJt, ds = _step_system(method, prior, Jm, x, normalise, cached_lam)
     diag, warn = diagnose(method, A_s, y_s, x, resid, ds, log_data, sigma if sigma is None
                           else np.ldexp(sigma, -b_exp), history, stop, it, max_iter, rel_tol,
                           x0_given=x0 is not None, x_start=x_start, x_exp=x_exp,
@@ -423,6 +410,19 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     history = [float(np.ldexp(h, 2 * b_exp)) for h in history]    # in the data's units
     return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
                        conf, clipped, stop, diag, warn)
+
+
+def _step_system(method, prior, Jm, x, normalise, lam):
+    """What one step needs at the linearisation ``Jm``: the column scaling (the
+    current yield, normalised Jacobian only), the scaled Jacobian Jc, R^-1,
+    R^-1 Jc^T and the data-space system S = Jc R^-1 Jc^T + I."""
+    col = x.copy() if normalise else None
+    Jc = Jm * col if normalise else Jm
+    Rinv = _inverse_regulariser(method, prior, Jc, lam)
+    RJt = Rinv(Jc.T)
+    S = Jc @ RJt
+    S[np.diag_indices_from(S)] += 1.0
+    return col, Jc, Rinv, RJt, _DataSpace(S)
 
 
 class _DataSpace:
