@@ -30,8 +30,9 @@ NIRFAST = dict(log_data=True, normalise=True, x0=BACKGROUND)
 
 
 @pytest.fixture(scope="module")
-def independent():
-    """J on a 1 mm mesh; y from a 0.5 mm mesh with the exact 4 mm disc 3 mm deep."""
+def meshes():
+    """0.5 mm forward and 1 mm reconstruction meshes of a 40 x 16 mm section, each
+    with its own FEM Jacobian (16 sources on top, pairs > 3 mm apart)."""
     fine = rectangle_mesh(np.linspace(-20, 20, 161), np.linspace(-16, 0, 65))
     coarse = rectangle_mesh(np.linspace(-20, 20, 41), np.linspace(-16, 0, 17))
     src = np.stack([(np.arange(16) - 7.5) * 2.5, np.zeros(16)], axis=1)
@@ -39,6 +40,13 @@ def independent():
     keep = np.linalg.norm(src[:, None] - src[None], axis=2).ravel() > 3.0
     J_f = FluorescenceModel(fine, p, p, src, src).jacobian_yield()[keep]
     J = FluorescenceModel(coarse, p, p, src, src).jacobian_yield()[keep]
+    return fine, coarse, J_f, J
+
+
+@pytest.fixture(scope="module")
+def independent(meshes):
+    """J on a 1 mm mesh; y from a 0.5 mm mesh with the exact 4 mm disc 3 mm deep."""
+    fine, coarse, J_f, J = meshes
     y = J_f @ np.where(np.linalg.norm(fine.nodes_mm - [0, -5], axis=1) <= 2, TARGET, BACKGROUND)
     region = np.where(np.linalg.norm(coarse.nodes_mm - [0, -5], axis=1) <= 2, 2, 1)
     return J, y, RegionPrior(region)
@@ -161,16 +169,10 @@ def test_goodness_of_fit_against_the_noise_model(independent):
         reconstruct(J, y, "HP", prior=prior, noise_sd=np.ones(3))
 
 
-def test_wrong_prior_is_a_poor_fit():
+def test_wrong_prior_is_a_poor_fit(meshes):
     """Study C's situation on the independent problem: the prior is a filled disc,
     the truth an annulus; HP's region value is then far off, and the fit says so."""
-    fine = rectangle_mesh(np.linspace(-20, 20, 161), np.linspace(-16, 0, 65))
-    coarse = rectangle_mesh(np.linspace(-20, 20, 41), np.linspace(-16, 0, 17))
-    src = np.stack([(np.arange(16) - 7.5) * 2.5, np.zeros(16)], axis=1)
-    p = dict(mua_per_mm=0.032, musp_per_mm=1.0, n=1.33)
-    keep = np.linalg.norm(src[:, None] - src[None], axis=2).ravel() > 3.0
-    J_f = FluorescenceModel(fine, p, p, src, src).jacobian_yield()[keep]
-    J = FluorescenceModel(coarse, p, p, src, src).jacobian_yield()[keep]
+    fine, coarse, J_f, J = meshes
     r_f = np.linalg.norm(fine.nodes_mm - [0, -8], axis=1)
     y = J_f @ np.where((r_f <= 6) & (r_f >= 5), TARGET, BACKGROUND)
     prior = RegionPrior(np.where(np.linalg.norm(coarse.nodes_mm - [0, -8], axis=1) <= 6, 2, 1))
