@@ -400,6 +400,8 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
                           x0_given=x0 is not None, x_start=x_start, x_exp=x_exp,
                           region_labels=prior.labels if K is not None else None,
                           lam_final=cached_lam)
+    if diag["over_regularised"]:
+        stop = f"{stop} (stalled by the damping)"
     x = np.ldexp(x, -x_exp)
     x_nodes = K @ x if K is not None else x
     conf = _region_confidence(Jc, Rinv, ds, resid, prior, x_nodes, method, col,
@@ -431,7 +433,7 @@ class _DataSpace:
     made G indefinite (a lambda so small that G dwarfs the identity: SP with
     log data at lambda 1e-10 raised numpy's LinAlgError), the eigen-
     decomposition of G with its negative rounding eigenvalues set to zero.
-    ``spectrum()`` (for the diagnostics) is G's eigen-decomposition."""
+    ``effective_parameters()`` and ``predicted_rss()`` serve the diagnostics."""
 
     def __init__(self, S):
         self.S = S
@@ -455,6 +457,37 @@ class _DataSpace:
         g, V = self._eig
         c = V.T @ b
         return V @ ((c.T / (1.0 + g)).T)
+
+    def effective_parameters(self):
+        """p = trace(I - S^-1) = M - ||L^-1||_F^2 (one triangular inverse, about
+        a Cholesky's cost; an eigen-decomposition costs ~10 of them)."""
+        M = len(self.S)
+        if self.L is None:
+            g, _ = self._eig
+            return float(np.sum(g / (1.0 + g)))
+        from scipy.linalg import solve_triangular
+
+        Linv = solve_triangular(self.L, np.eye(M), lower=True)
+        return float(M - np.einsum("ij,ij->", Linv, Linv))
+
+    def predicted_rss(self, r, t=1.0):
+        """||S_t^-1 r||^2 with S_t = I + t G: the residual sum of squares one
+        linearised step would leave with the damping divided by t."""
+        if t == 1.0 and self.L is not None:
+            z = _chol_solve(self.L, r)
+            return float(z @ z)
+        if self.L is not None:
+            St = t * self.S
+            St[np.diag_indices_from(St)] += 1.0 - t        # I + t (S - I)
+            try:
+                z = _chol_solve(np.linalg.cholesky(St), r)
+                return float(z @ z)
+            except np.linalg.LinAlgError:
+                self.spectrum()
+        g, V = self._eig
+        c = V.T @ r
+        out = max(float(r @ r) - float(c @ c), 0.0)     # r outside G's range
+        return out + float(np.sum((c / (1.0 + t * g)) ** 2))
 
 
 def _noise_model(y, noise_sd, noise_rel):
@@ -506,10 +539,10 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
     """Diagnostics of a reconstruction and the warnings they imply.
 
     All from the final linearisation's data-space matrix S = G + I
-    (G = J R^-1 J^T), whose eigenvalues g_i give, without another solve:
+    (G = J R^-1 J^T) and its Cholesky factor (two more factorisations' cost):
 
-    - ``effective_parameters`` p = sum g/(1+g) (trace of the hat matrix
-      I - S^-1): how many combinations of the unknowns the data determine at
+    - ``effective_parameters`` p = trace(I - S^-1) = sum g/(1+g) over G's
+      eigenvalues g (the trace of the hat matrix): how many combinations of the unknowns the data determine at
       this damping; ``residual_dof`` = M - p.  ``underdetermined``: fewer
       than one residual degree of freedom (the data are fitted exactly, so
       the residual says nothing about the noise and no standard deviation
@@ -523,18 +556,28 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
       ``structure_F``: F statistic of the fit against the best homogeneous
       yield (1 = the extra structure explains no more than noise would).
     - ``homogeneous_yield_per_mm``: the single yield that fits the data best,
-      the units check (outside 1e-9 .. 1 /mm no fluorophore explains them).
+      the units check (outside 1e-9 .. 1 /mm no fluorophore explains them);
+      ``data_to_start_ratio``: data / model at a given start ``x0``.
+    - ``effective_measurements``: linear data, (sum y^2)^2 / sum y^4, how many
+      measurements carry a least-squares fit (a 1e-200 dynamic range: ~1).
+    - ``damped_step_fraction``: the share of the weakly damped step's residual
+      reduction that the damped step achieves (the stall test).
+
+    Thresholds: the module constants PLAUSIBLE_YIELD_PER_MM, MISFIT_WARN,
+    CHI2_WARN, STALL_FRACTION, WEAK_DAMPING, P_EFF_WARN (docs/reconstruction.md,
+    "Diagnostics").  ``A``, ``y``, ``x``, ``resid`` and ``sigma`` are in the
+    solver's rescaled units (``x_exp``: x_scaled = x 2^x_exp).
+
+    Returns (diagnostics dict, list of warning strings).
     """
     M = len(y)
     diag = {"measurements": M, "unknowns": int(A.shape[1])}
     warn = []
-    g, V = ds.spectrum() if ds is not None else (np.zeros(0), np.zeros((M, 0)))
-    p = float(np.sum(g / (1.0 + g)))
+    p = ds.effective_parameters() if ds is not None else 0.0
     nu = M - p
     rss = float(resid @ resid)
     diag["effective_parameters"] = p
     diag["residual_dof"] = nu
-    F = A @ x
     if log_data:
         misfit = float(np.sqrt(rss / M))
     else:
@@ -640,12 +683,10 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
 
     # convergence and the damping
     stalled = False
-    if len(g) and rss > 0:
-        c_eig = V.T @ resid
-        out = rss - float(c_eig @ c_eig)             # part of r outside G's range
-        pred = lambda t: out + float(np.sum((c_eig / (1.0 + t * g)) ** 2))   # noqa: E731
+    if ds is not None and rss > 0:
         # the weak reference: 1e4 x less damping, and at most lambda 1e-4
-        damped, weak = pred(1.0), pred(WEAK_DAMPING * max(1.0, lam_final))
+        damped = ds.predicted_rss(resid)
+        weak = ds.predicted_rss(resid, WEAK_DAMPING * max(1.0, lam_final))
         possible = rss - weak
         floor = noise_var_fit * M if noise_var_fit is not None else 0.0
         diag["damped_step_fraction"] = float((rss - damped) / possible) if possible > 0 else 1.0

@@ -90,6 +90,7 @@ def test_over_regularised_run_is_not_called_converged(independent, lam):
     res = reconstruct(J, y, "HP", lam=lam, prior=prior, **NIRFAST)
     assert target_error(res) < -0.8
     assert res.diagnostics["over_regularised"]
+    assert res.stop_reason.endswith("(stalled by the damping)")
     assert any("over-regularised" in w and "lower lambda" in w for w in res.warnings)
 
 
