@@ -67,7 +67,9 @@ def build_parser():
     from fluoguide import __version__
 
     parser.add_argument("--version", action="version", version=f"fluo {__version__}")
-    parser.add_argument("--threads", default=None, metavar="N",
+    # dest differs from `fluo mesh --threads` (fTetWild's own threads), which
+    # would otherwise overwrite it in the namespace
+    parser.add_argument("--threads", default=None, metavar="N", dest="library_threads",
                         help="threads of the numerical libraries (BLAS, MKL/PARDISO, numba): a "
                         "count, 'auto' (every core) or 'system' (the libraries' own defaults); "
                         "default: $FLUO_THREADS, else 1 (docs/performance.md)")
@@ -103,7 +105,7 @@ def main(argv=None):
     try:
         from fluoguide.threads import configure_threads
 
-        configure_threads(args.threads)
+        configure_threads(args.library_threads)
         result = args.func(args)
     except FluoInputError as exc:
         print(f"fluo: error: {exc}", file=sys.stderr)

@@ -81,3 +81,15 @@ def test_cli_option_and_bad_value(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fluoapp", "phantom", "cylinder-tube", "--out",
                         str(out)], env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "FLUO_THREADS" in r.stderr and not out.exists()
+
+
+def test_library_threads_are_not_ftetwild_threads():
+    """`fluo --threads` (the libraries) and `fluo mesh --threads` (fTetWild) are two
+    options: one must not overwrite the other in the parsed arguments."""
+    from fluoapp.cli import build_parser
+
+    args = build_parser().parse_args(["--threads", "2", "mesh", "labels.nrrd", "--out", "m",
+                                      "--threads", "4"])
+    assert (args.library_threads, args.threads) == ("2", 4)
+    args = build_parser().parse_args(["mesh", "labels.nrrd", "--out", "m", "--threads", "4"])
+    assert args.library_threads is None
