@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from fluoguide.errors import FluoInputError
-from fluoguide.threads import available_cores, resolve_threads
+from fluoguide.threads import cpu_count, resolve_threads
 
 PROBE = r"""
 import json, sys
@@ -40,7 +40,7 @@ def test_sources_and_values(monkeypatch):
     monkeypatch.delenv("FLUO_THREADS", raising=False)
     assert resolve_threads() == (1, "default")
     assert resolve_threads(3) == (3, "argument")
-    assert resolve_threads("auto") == (available_cores(), "argument")
+    assert resolve_threads("auto") == (cpu_count(), "argument")
     assert resolve_threads("system") == (None, "argument")
     monkeypatch.setenv("FLUO_THREADS", "2")
     assert resolve_threads() == (2, "FLUO_THREADS")
@@ -60,13 +60,13 @@ def test_default_reaches_every_library_in_a_fresh_process():
     assert out["pools"] and set(out["pools"].values()) == {1}, out["pools"]
 
 
-@pytest.mark.skipif(available_cores() < 2, reason="needs two cores")
+@pytest.mark.skipif(cpu_count() < 2, reason="needs two cores")
 def test_environment_variable_and_system():
     out = _probe("-", env_value="2")
     assert out["info"] == {**out["info"], "threads": 2, "source": "FLUO_THREADS"}
     assert out["numba"] == 2 and set(out["pools"].values()) == {2}
     untouched = _probe("system")
-    assert untouched["info"]["threads"] is None and untouched["info"]["libraries"] == []
+    assert untouched["info"]["threads"] is None and untouched["info"]["settings"] is None
 
 
 def test_cli_option_and_bad_value(tmp_path):
