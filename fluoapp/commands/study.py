@@ -35,11 +35,13 @@ def _handler(args):
                             progress=bar)
     out["seconds"] = time.perf_counter() - t0
     # every row's reconstruction warnings, where a reader of the JSON sees them
-    out["warnings"] = [f"{r['case']}, {r['method']} lambda {r['lambda']:g}: {w}"
-                       for r in out["rows"] for w in r.get("warnings", [])]
+    # (after any the study itself reported)
+    out["warnings"] = list(out.get("warnings", [])) + [
+        f"{r['case']}, {r['method']} lambda {r['lambda']:g}: {w}"
+        for r in out["rows"] for w in r.get("warnings", [])]
     from fluoguide.threads import current_threads
 
-    out["threads"] = current_threads()
+    out["library_threads"] = current_threads()      # fluo --threads / FLUO_THREADS
     if args.out:
         import json
 

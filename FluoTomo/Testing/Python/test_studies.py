@@ -48,7 +48,7 @@ def test_cli_custom_target_json(tmp_path):
     np_row = next(row for row in doc["rows"] if row["method"] == "NP")
     assert np_row["warnings"] and all(f"NP lambda 10: {w}" in " | ".join(doc["warnings"])
                                       for w in np_row["warnings"])
-    assert doc["threads"] == 1
+    assert doc["library_threads"] == 1
     assert (tmp_path / "study.json").exists() and (tmp_path / "case_00.png").exists()
 
 
