@@ -68,6 +68,12 @@ def build_parser():
     from fluoguide import __version__
 
     parser.add_argument("--version", action="version", version=f"fluo {__version__}")
+    # dest differs from `fluo mesh --threads` (fTetWild's own threads), which
+    # would otherwise overwrite it in the namespace
+    parser.add_argument("--threads", default=None, metavar="N", dest="library_threads",
+                        help="threads of the numerical libraries (BLAS, MKL/PARDISO, numba): a "
+                        "count, 'auto' (every core) or 'system' (the libraries' own defaults); "
+                        "default: $FLUO_THREADS, else 1 (docs/performance.md)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in CLI_MODULES:
@@ -98,6 +104,9 @@ def main(argv=None):
     _quiet_vtk()
     args = parser.parse_args(argv)
     try:
+        from fluoguide.threads import configure_threads
+
+        configure_threads(args.library_threads)
         result = args.func(args)
     except FluoInputError as exc:
         print(f"fluo: error: {exc}", file=sys.stderr)

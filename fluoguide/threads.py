@@ -21,6 +21,14 @@ Three mechanisms, because no single one reaches every library:
 The numbers a task computes do not depend on which of these set the count,
 but they may depend on the count itself (a threaded BLAS sums in another
 order), so a run and its re-run use the same count.
+
+The application's process-wide choice (:func:`configure_threads`, called by
+``fluoapp.cli.main`` before any command, so by the CLI, ``fluo demo`` and
+``fluo app``): ``fluo --threads N|auto|system``, else the environment variable
+``FLUO_THREADS``, else 1.  ``fluo study B`` took 75-473 s with the libraries'
+defaults against 15-61 s with one thread on a loaded 2-core machine
+(docs/performance.md).  A worker thread calls :func:`apply_in_this_thread`
+first (numba's count is per thread; the web app's job runner does).
 """
 
 from __future__ import annotations
@@ -129,3 +137,66 @@ def _check_n(n):
         raise FluoInputError("threads per task must be a whole number from 1 to 4096",
                              field="threads", value=n)
     return int(n)
+
+
+# --- the application's process-wide choice ------------------------------------
+
+ENV_VAR = "FLUO_THREADS"
+DEFAULT = "1"
+_state = {"threads": None, "source": None}
+
+
+def resolve_threads(threads=None):
+    """(count, or None for "system"; where the choice came from).
+
+    ``threads``: a count >= 1, "auto" (every core this process may run on) or
+    "system" (leave the libraries as they are); None: ``FLUO_THREADS``, else 1.
+    """
+    from fluoguide.errors import FluoInputError
+
+    if threads is not None:
+        value, source, field = threads, "argument", "--threads"
+    elif os.environ.get(ENV_VAR, "").strip():
+        value, source, field = os.environ[ENV_VAR].strip(), ENV_VAR, ENV_VAR
+    else:
+        value, source, field = DEFAULT, "default", ENV_VAR
+    text = str(value).strip().lower()
+    if text == "system":
+        return None, source
+    if text == "auto":
+        return cpu_count(), source
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise FluoInputError("threads must be a count >= 1, 'auto' or 'system'", field=field,
+                             value=value)
+    return n, source
+
+
+def configure_threads(threads=None):
+    """Set every numerical library's thread pool for this process (:func:`pin_threads`)
+    from the application's choice (:func:`resolve_threads`).
+
+    Returns a dict: ``threads`` (the count, None for "system"), ``source``
+    (argument, FLUO_THREADS or default) and ``settings`` (:func:`thread_settings`
+    afterwards; None for "system").
+    """
+    n, source = resolve_threads(threads)
+    _state.update(threads=n, source=source)
+    settings = pin_threads(n) if n is not None else None
+    return {"threads": n, "source": source, "settings": settings}
+
+
+def apply_in_this_thread():
+    """Apply the configured count to numba in the calling thread (numba's count
+    is per thread).  Call at the start of a worker thread.  Returns numba's
+    count before, or None when nothing was set."""
+    n = _state["threads"]
+    return None if n is None else _numba_threads(n)
+
+
+def current_threads():
+    """The count :func:`configure_threads` set (None: not configured, or "system")."""
+    return _state["threads"]

@@ -86,6 +86,14 @@ def _handler(args):
         out = run_spec(spec, out_dir=args.out, progress=bar, executor=ex, resume=args.resume,
                        threads=threads)
     out["seconds"] = time.perf_counter() - t0
+    # every row's reconstruction warnings, where a reader of the JSON sees them
+    # (after any the study itself reported)
+    out["warnings"] = list(out.get("warnings", [])) + [
+        f"{r['case']}, {r['method']} lambda {r['lambda']:g}: {w}"
+        for r in out["rows"] for w in r.get("warnings", [])]
+    from fluoguide.threads import current_threads
+
+    out["library_threads"] = current_threads()      # fluo --threads / FLUO_THREADS
     if args.out:
         from fluoguide.atomic import atomic_path
         from fluoguide.jsonable import dumps

@@ -222,6 +222,9 @@ def stage_tomography(ctx):
              - runs[d]["timings"]["camera_frames"] for d in depths])),
         "thesis FEM processing per case [s]": "300-600",
     })
+    summary["reconstruction warnings"] = [
+        f"tube {d:g} mm, {m}: {w}" for d in depths for m in methods
+        for w in runs[d]["results"][m].get("warnings", [])]
     summary["speed-up vs thesis (300 s, median case)"] = 300.0 / summary[
         "processing per case [s] (median): meshing + Jacobian + NP/SP/HP"]
     ctx.metrics["tomography"] = summary
@@ -472,6 +475,8 @@ def stage_oral_tomography(ctx):
                 "mesh nodes forward / reconstruction": [run["mesh_nodes"]["forward"],
                                                         run["mesh_nodes"]["reconstruction"]],
                 "stage times [s]": {k: round(v, 2) for k, v in run["timings"].items()}})
+    out["reconstruction warnings"] = [f"{m}: {w}" for m in methods
+                                      for w in run["results"][m].get("warnings", [])]
     ctx.metrics["oral_tomography"] = out
 
     _section_figure(ctx.out / "oral_sections.png", run, (-16, 26), (-8, -40), sources=True)

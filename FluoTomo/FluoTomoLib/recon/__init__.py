@@ -17,5 +17,5 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "metrics": ["depth_profile", "peak_and_centroid"],
     "partial_volume": ["dual_cells", "node_region_fractions", "PartialVolumePrior"],
     "self_absorption": ["absorbing_mua", "reconstruct_self_absorbing"],
-    "solver": ["ReconResult", "RegionPrior", "region_jacobian", "reconstruct"],
+    "solver": ["ReconResult", "RegionPrior", "diagnose", "region_jacobian", "reconstruct"],
 })

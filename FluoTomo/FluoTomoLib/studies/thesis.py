@@ -222,8 +222,10 @@ def reconstruction_task(params, data, forward, recon):
     if p["method"] == "HP" and p["hp_basis"] == "forward":
         J_hp = region_jacobian(forward["J"], node_regions_from_shape(fine, prior_shape),
                                prior.labels)
+    # the noise model grades the fit (diagnostics), it does not weight it
     res = reconstruct(recon["J"], y, p["method"], lam=p["lambda"], prior=prior,
-                      region_jacobian=J_hp, **opts)
+                      region_jacobian=J_hp,
+                      noise_rel=p["noise_pct"] / 300.0 if p["noise_pct"] > 0 else None, **opts)
     line = 0.0 if dim == 2 else (0.0, 0.0)   # the depth profile through the target
     z, prof = depth_profile(coarse, res.yield_per_mm, line, 0.0, -roi)
     peak, centroid = peak_and_centroid(z, prof)
@@ -238,6 +240,8 @@ def reconstruction_task(params, data, forward, recon):
         if k not in ("method", "lambda") and (v is None or isinstance(v, (int, float, str, bool,
                                                                            np.generic))):
             row.setdefault(k, v)
+    row["warnings"] = list(res.warnings)
+    row["diagnostics"] = res.diagnostics
     row.update({"forward_nodes": fine.n_nodes, "recon_nodes": coarse.n_nodes,
                 "jacobian_seconds": recon["seconds"],
                 "arrays": {"yield_per_mm": res.yield_per_mm}})

@@ -42,6 +42,13 @@ def test_cli_custom_target_json(tmp_path):
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
     assert {row["method"] for row in doc["rows"]} == {"NP", "SP", "HP"}
+    # every reconstruction's diagnostics and warnings reach the JSON; NP's
+    # over-regularised stall is among them (docs/reconstruction.md)
+    assert all("effective_parameters" in row["diagnostics"] for row in doc["rows"])
+    np_row = next(row for row in doc["rows"] if row["method"] == "NP")
+    assert np_row["warnings"] and all(f"NP lambda 10: {w}" in " | ".join(doc["warnings"])
+                                      for w in np_row["warnings"])
+    assert doc["library_threads"] == 1
     assert (tmp_path / "study.json").exists() and (tmp_path / "case_00.png").exists()
 
 
