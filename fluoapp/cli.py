@@ -9,20 +9,17 @@ Conventions every subcommand follows:
 - ``--json`` prints exactly one JSON object on stdout (progress goes to stderr).
 - Bad input raises ``FluoInputError``: one line on stderr, exit code 2.
 - A handler returns a dict (the JSON result); without ``--json`` it is printed
-  as readable ``key: value`` lines.
+  as readable ``key: value`` lines and tables with units (``fluoapp/format.py``).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 
-import numpy as np
-
 from fluoguide.errors import FluoCancelled, FluoError, FluoInputError
-from fluoguide.jsonable import dumps, to_jsonable
+from fluoguide.jsonable import dumps
 
 # Modules that define ``register(subparsers)``.  Order = order in --help.
 CLI_MODULES = [
@@ -74,13 +71,6 @@ def build_parser():
     return parser
 
 
-def _print_human(result, stream):
-    for key, value in result.items():
-        if isinstance(value, (dict, list)):
-            value = json.dumps(to_jsonable(value))
-        print(f"{key}: {value}", file=stream)
-
-
 def _quiet_vtk():
     """VTK/MRML log to stderr on their own; the CLI reports errors itself."""
     try:
@@ -115,7 +105,9 @@ def main(argv=None):
     if getattr(args, "json", False):
         print(dumps(result))
     else:
-        _print_human(result, sys.stdout)
+        from fluoapp.format import command_name, format_result
+
+        print(format_result(result, command_name(args)))
     return 0
 
 

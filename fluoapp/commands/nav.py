@@ -10,6 +10,7 @@ import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
 from fluoguide.errors import FluoInputError
+from fluoguide.progress import TqdmProgress, report
 
 
 def _synth(args):
@@ -40,10 +41,13 @@ def _synth(args):
     mrml_io.set_transform(scene, "TrackerToReference", np.eye(4))
     mrml_io.set_transform(scene, "CameraToTracker", np.eye(4))   # hand-eye: camera = tool frame
     frame_store.new_recording(scene)
-    for k, pose in enumerate(view_poses(args.views)):
-        counts, _, _ = render_view(caster, cam, pose, cone, args.transport, rc, seed=k)
-        frame_store.append_tracked_frame(scene, counts.astype(np.uint16), 1.0 + k / 10,
-                                         {"CameraToolToTracker": pose}, exposure_s=rc.exposure_s)
+    with TqdmProgress("nav synth") as prog:
+        for k, pose in enumerate(view_poses(args.views)):
+            report(prog, k / args.views, f"view {k + 1} of {args.views}")
+            counts, _, _ = render_view(caster, cam, pose, cone, args.transport, rc, seed=k)
+            frame_store.append_tracked_frame(scene, counts.astype(np.uint16), 1.0 + k / 10,
+                                             {"CameraToolToTracker": pose},
+                                             exposure_s=rc.exposure_s)
     path = mrml_io.save_scene(scene, Path(args.out) / "scene.mrml")
     return {"scene": str(path), "frames": args.views, "transport_truth": args.transport,
             "triangles": caster.n_faces, "image": [cam.width, cam.height]}
@@ -85,13 +89,16 @@ def _correct(args):
     results = [r]
     skipped = []
     if args.all_frames:
-        for n in range(frame_store.number_of_frames(scene)):
-            if n == args.frame:
-                continue
-            try:
-                results.append(correct_frame(scene, ctx, n))
-            except FluoInputError as exc:          # no valid pose: not mapped, say so
-                skipped.append({"frame": n, "reason": exc.problem})
+        total = frame_store.number_of_frames(scene)
+        with TqdmProgress("nav correct --all-frames") as prog:
+            for n in range(total):
+                report(prog, n / total, f"frame {n} of {total - 1}")
+                if n == args.frame:
+                    continue
+                try:
+                    results.append(correct_frame(scene, ctx, n))
+                except FluoInputError as exc:          # no valid pose: not mapped, say so
+                    skipped.append({"frame": n, "reason": exc.problem})
     T_face, J_face, w_face, views = map_frames_to_surface(ctx, results)
     write_surface_flux(scene, ctx.polydata, T_face, J_face, w_face, views)
     S = r.counts - ctx.radiometric.offset_adu
@@ -127,33 +134,45 @@ def _correct(args):
 def _bench(args):
     from FluoNavLib.mapping.benchmark import run_mapping_benchmark
 
-    return run_mapping_benchmark(args.repeats, args.binning)
+    with TqdmProgress("bench mapping") as prog:
+        return run_mapping_benchmark(args.repeats, args.binning, progress=prog)
 
 
 def register(subparsers):
     nav = cli_group(subparsers, "nav", "navigated fluorescence: surface-flux mapping of tracked frames")
     p = nav.add_parser("synth", help="synthetic oral-cavity scene with tracked frames of "
                        "homogeneous fluorescence")
-    p.add_argument("--out", required=True)
-    p.add_argument("--views", type=int, default=4)
-    p.add_argument("--binning", type=int, default=4)
-    p.add_argument("--triangles", type=int, default=62000)
-    p.add_argument("--transport", type=float, default=0.3)
+    p.add_argument("--out", required=True, help="folder for scene.mrml and its data")
+    p.add_argument("--views", type=int, default=4,
+                   help="tracked camera views (frames) to render (default %(default)s)")
+    p.add_argument("--binning", type=int, default=4,
+                   help="camera pixel binning of the 1392 x 1040 sensor (default %(default)s: "
+                   "348 x 260 px)")
+    p.add_argument("--triangles", type=int, default=62000,
+                   help="triangles of the oral-cavity surface model (default %(default)s)")
+    p.add_argument("--transport", type=float, default=0.3,
+                   help="optical transport T of the homogeneous tissue, dimensionless "
+                   "(default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_synth)
     p = nav.add_parser("correct", help="optical transport, surface flux and classification of one "
                        "tracked frame")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--frame", type=int, default=0)
+    p.add_argument("--scene", required=True,
+                   help="MRML scene with TissueSurface, calibrations and tracked frames "
+                   "(e.g. from nav synth)")
+    p.add_argument("--frame", type=int, default=0,
+                   help="index of the frame to correct, 0-based (default %(default)s)")
     p.add_argument("--out", required=True, help="folder for the PNGs, arrays and the updated scene")
     p.add_argument("--all-frames", action="store_true",
                    help="map every frame with a valid pose onto the surface (view-weighted)")
     add_json_flag(p)
     p.set_defaults(func=_correct)
-    bench = cli_group(subparsers, "bench", "benchmarks printed as JSON")
+    bench = cli_group(subparsers, "bench", "benchmarks: speed and accuracy together")
     p = bench.add_parser("mapping", help="per-pixel mapping speed and accuracy (full res, binned, "
                          "decimated)")
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--binning", type=int, default=10)
+    p.add_argument("--repeats", type=int, default=5,
+                   help="timed repeats; medians are printed (default %(default)s)")
+    p.add_argument("--binning", type=int, default=10,
+                   help="pixel binning of the binned runs (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_bench)

@@ -24,7 +24,7 @@ def _handler(args):
     from FluoTomoLib.studies.thesis import run_study, run_sweep
 
     t0 = time.perf_counter()
-    with TqdmProgress(f"study {args.study}", force=not args.json) as bar:
+    with TqdmProgress(f"study {args.study}") as bar:
         if args.sweep:
             out = run_sweep(args.sweep, target=target or (6.0, 3.5), dim=args.dim,
                             seed=args.seed, scheme=args.scheme, hp_basis=args.hp_basis,
@@ -53,8 +53,9 @@ def register(sub):
     p.add_argument("study", choices=["A", "B", "C"], help="which study")
     p.add_argument("--dim", type=int, default=2,
                    help="2: discs in a 50 x 30 mm section (default); 3: spheres in a 50 x 30 x 20 mm slab")
-    p.add_argument("--seed", type=int, default=0, help="noise seed")
-    p.add_argument("--target", default=None, help="one custom case: diameter_mm,depth_mm")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default %(default)s)")
+    p.add_argument("--target", default=None, help="one custom case instead of the study's: "
+                   "diameter_mm,top_depth_mm (default: the study's cases)")
     p.add_argument("--sweep", choices=["lambda", "noise", "mesh"], default=None,
                    help="error against time for one target (--target, default 6,3.5) as "
                    "lambda, noise or the reconstruction mesh size varies")
@@ -65,6 +66,7 @@ def register(sub):
     p.add_argument("--hp-basis", choices=["forward", "reconstruction"], default="forward",
                    help="mesh on which HP's region basis is built (default forward: where the "
                    "data were simulated)")
-    p.add_argument("--out", default=None, help="folder for study.json and PNG figures")
+    p.add_argument("--out", default=None,
+                   help="folder for study.json and PNG figures (default: no files)")
     add_json_flag(p)
     p.set_defaults(func=_handler)

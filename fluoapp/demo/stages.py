@@ -1,4 +1,4 @@
-"""The stages of ``fluo demo`` (see demo.py for how they run).
+"""The stages of ``fluo demo`` (``fluoapp/demo/run.py`` runs them).
 
 Each stage is ``fn(ctx)``: it reads what earlier stages left in ``ctx.state``,
 writes files into ``ctx.out``, records numbers in ``ctx.metrics[stage]`` and
@@ -11,6 +11,9 @@ import numpy as np
 
 from fluoguide import mrml_io
 from fluoguide.phantoms import add_phantom_to_scene, make_phantom, write_phantom
+from fluoguide.progress import report, scaled
+
+from fluoapp.demo.run import STAGE_TABLE
 
 TUBE_DEPTHS_MM = [2.7, 3.7, 4.7, 5.7, 6.7]
 
@@ -186,9 +189,12 @@ def stage_tomography(ctx):
     # cannot hold a 2.4 mm tube and would only show meshing error)
     roi_half = (9.0, 21.0) if ctx.quick else (15.0, 25.0)
     runs = {}
-    for d, ph in sorted(ctx.state["tube_phantoms"].items()):
-        runs[d] = simulate_and_reconstruct(ph, roi_half_mm=roi_half,
-                                           seed=ctx.seed)
+    cases = sorted(ctx.state["tube_phantoms"].items())
+    for k, (d, ph) in enumerate(cases):
+        runs[d] = simulate_and_reconstruct(
+            ph, roi_half_mm=roi_half, seed=ctx.seed,
+            progress=scaled(ctx.progress, k / len(cases), (k + 1) / len(cases),
+                            f"case {k + 1} of {len(cases)}, tube at {d:.1f} mm"))
     ctx.state["tomo_runs"] = runs
     depths = sorted(runs)
     methods = ["NP", "SP", "HP"]
@@ -263,9 +269,12 @@ def stage_camera_calibration(ctx):
 
     n_views = 10 if ctx.quick else 16
     data = make_dataset(ctx.out / "calibration-images", board="chessboard:9x6:20",
-                        n_views=n_views, seed=ctx.seed)
+                        n_views=n_views, seed=ctx.seed,
+                        progress=scaled(ctx.progress, 0.0, 0.6, "rendering board views"))
     images = [str(ctx.out / "calibration-images" / n) for n in data["images"]]
-    res = calibrate_camera(images, "chessboard:9x6:20", holdout=2)
+    res = calibrate_camera(images, "chessboard:9x6:20", holdout=2,
+                           progress=scaled(ctx.progress, 0.6, 0.9, "intrinsics"))
+    report(ctx.progress, 0.9, "hand-eye, six methods")
     cam = res.camera
     true = data["camera"]
     out = {
@@ -315,6 +324,7 @@ def stage_light_calibration(ctx):
         synthetic_stack,
     )
 
+    report(ctx.progress, 0.0, "camera response")
     frames, truth = synthetic_stack(seed=ctx.seed)
     rad = characterize(frames)
     cam = truth["camera"]
@@ -329,9 +339,11 @@ def stage_light_calibration(ctx):
         shutil.move(src, ctx.out / name)
     ctx.figure("light_calibration", "radiometry_ptc.png",
                "Photon-transfer curve of the synthetic camera stack (slope = gain).")
+    report(ctx.progress, 0.3, "illumination images")
     imgs, t_il = synthetic_illumination(seed=ctx.seed)
     il = calibrate_illumination(imgs, endoscope_camera(), t_il["phantom_to_camera"], t_il["rd"],
-                                t_il["offset_adu"])
+                                t_il["offset_adu"],
+                                progress=scaled(ctx.progress, 0.4, 0.8, "illumination cone"))
     c = t_il["cone"]
     out["illumination: axis error [deg]"] = float(np.degrees(np.arccos(np.clip(
         np.dot(il["axis"], c["axis"]), -1, 1))))
@@ -346,6 +358,7 @@ def stage_light_calibration(ctx):
     ctx.figure("light_calibration", "illumination_ratio.png",
                "Measured / fitted cone model for the five phantom poses (endoscope light; the "
                "cone leaves the image in the nearest view).")
+    report(ctx.progress, 0.8, "laser line")
     limgs, t_la = synthetic_laser(seed=ctx.seed)
     la = calibrate_laser(limgs, CameraModel.from_dict(t_la["camera"]), t_la["camera_to_tracker"],
                          t_la["laser_to_tracker"], t_la["phantom_to_tracker"],
@@ -389,7 +402,9 @@ def stage_surface_mapping(ctx):
     rc = RadiometricCamera(gain_adu_per_e=1.0)
     cam = open_field_camera(binning=4)
     within, raw_rates, cor_rates = [], [], []
-    for k, pose in enumerate(view_poses(2 if ctx.quick else 4)):
+    poses = view_poses(2 if ctx.quick else 4)
+    for k, pose in enumerate(poses):
+        report(ctx.progress, 0.8 * k / len(poses), f"view {k + 1} of {len(poses)}")
         counts, hits, vm = render_view(caster, cam, pose, cone, 0.3, rc, seed=ctx.seed + k)
         S = counts - rc.offset_adu
         T, ok = transport_image(S, vm, cone)
@@ -403,6 +418,7 @@ def stage_surface_mapping(ctx):
                         f"raw counts, 40 % contour: miss {r_raw:.1f} %", hits.visible)
             overlay_png(ctx.out / "mapping_corrected.png", T, c_cor,
                         f"corrected transport T (truth 0.3): miss {r_cor:.1f} %", ok)
+    report(ctx.progress, 0.8, "timing the per-pixel cast")
     full = open_field_camera()
     pose = view_poses(2)[1]
     ts = []
@@ -441,7 +457,7 @@ def stage_oral_tomography(ctx):
     ph = ctx.state["phantoms"]["oral-cavity"]
     # the same meshes in quick mode: at 2 mm the tongue's 0.7 mm decay length is
     # not resolved (measured: HP's agar value ran away)
-    run = simulate_and_reconstruct_oral(ph, seed=ctx.seed)
+    run = simulate_and_reconstruct_oral(ph, seed=ctx.seed, progress=ctx.progress)
     methods = ["NP", "SP", "HP"]
     out = {}
     for m in methods:
@@ -465,11 +481,6 @@ def stage_oral_tomography(ctx):
     return out
 
 
-STAGES = [
-    ("phantoms", "digital phantoms", stage_phantoms),
-    ("camera_calibration", "camera and hand-eye calibration", stage_camera_calibration),
-    ("light_calibration", "radiometric, illumination and laser calibration", stage_light_calibration),
-    ("surface_mapping", "tracked views and surface-flux mapping", stage_surface_mapping),
-    ("tomography", "tracked acquisition and reconstruction", stage_tomography),
-    ("oral_tomography", "oral-cavity acquisition and reconstruction", stage_oral_tomography),
-]
+# (name, title, function) in the order they run; names, titles and what each
+# stage needs from the others: fluoapp/demo/run.py:STAGE_TABLE
+STAGES = [(name, title, globals()[f"stage_{name}"]) for name, title, _ in STAGE_TABLE]
