@@ -120,7 +120,7 @@ def _forward(args):
 
 def register(sub):
     p = sub.add_parser("analytic", help="closed-form diffusion theory: Rd, R(rho), F",
-                       description="Homogeneous semi-infinite medium (physics.md section 3): "
+                       description="Homogeneous semi-infinite medium (docs/physics.md section 3): "
                        "Rd, mueff, D, A, R(rho) and the exact Robin-boundary surface fluence, "
                        "and total diffuse fluorescence F.")
     p.add_argument("--mua", type=float, required=True, help="absorption [1/mm] (excitation)")

@@ -62,7 +62,8 @@ def register(sub):
     p.add_argument("--scheme", choices=["nirfast", "reference"], default="nirfast",
                    help="nirfast (default): the thesis's NIRFAST fluorescence reconstruction "
                    "(log-amplitude data, Jacobian normalised by the current yield, start at the "
-                   "background); reference: the literal update of physics.md (linear data)")
+                   "background); reference: the literal update of docs/physics.md section 8.3 "
+                   "(linear data)")
     p.add_argument("--hp-basis", choices=["forward", "reconstruction"], default="forward",
                    help="mesh on which HP's region basis is built (default forward: where the "
                    "data were simulated)")

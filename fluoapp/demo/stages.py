@@ -310,7 +310,7 @@ def stage_camera_calibration(ctx):
 
 def stage_light_calibration(ctx):
     """Camera response, broad-beam illumination and laser line from synthetic
-    images with known truth (physics.md sections 5-7)."""
+    images with known truth (docs/physics.md sections 5-7)."""
     from FluoCalibLib.radiometry import scene as light_scene
     from FluoCalibLib.geometry.camera_model import CameraModel
     from FluoCalibLib.radiometry.camera_response import characterize

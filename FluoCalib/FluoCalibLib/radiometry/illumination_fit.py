@@ -1,5 +1,5 @@
 """Calibration of a broad-beam light (cone model of ``illumination_model``) from
-images of a flat phantom of known reflectance, as in ``physics.md`` section 6.
+images of a flat phantom of known reflectance, as in docs/physics.md section 6.2.
 
 Per image: 4x4 median filter, active pixels S > S_min + tau (S_max - S_min),
 boundary = active minus its erosion (pixels on the image border are not the

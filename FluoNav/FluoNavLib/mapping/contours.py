@@ -1,4 +1,4 @@
-"""Contour-based tissue classification and its miss rate (``physics.md`` section 6).
+"""Contour-based tissue classification and its miss rate (docs/physics.md section 6.3).
 
 Fluorescence pixels are those above ``fluo_fraction`` (5 %) of the image's
 peak; the classification contour is drawn at ``contour_fraction`` (40 %) of

@@ -3,7 +3,7 @@
 Modules
 -------
 - ``plots``: Figures of the simulation studies: forward model | NP | SP | HP on one colour scale.
-- ``thesis``: The thesis's 2D simulation studies A, B and C (physics.md section 8).
+- ``thesis``: The thesis's 2D simulation studies A, B and C (docs/physics.md section 8.5).
 """
 
 from fluoguide.lazy import attach
