@@ -88,7 +88,7 @@ def _illumination(args):
     if args.out:
         from FluoCalibLib.radiometry.plots import plot_ratio_images
 
-        res["plots"] = plot_ratio_images(ratios, args.out)
+        res["plots"] = plot_ratio_images(ratios, args.out, doc["phantom_to_camera"])
     _save(args, ILLUMINATION_KEY, res)
     if "truth" in doc:
         res["truth"] = doc["truth"]

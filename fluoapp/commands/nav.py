@@ -53,20 +53,25 @@ def _synth(args):
             "triangles": caster.n_faces, "image": [cam.width, cam.height]}
 
 
-def _factor_png(path, vm):
+def _factor_png(path, vm, frame, distance_mm):
+    """The three factors of the illumination model in this frame's pixels, with the
+    camera-to-surface distances [mm] of the lit pixels."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     for ax, (name, a) in zip(axes, (("angular (cos theta)^alpha", vm.angular),
                                      ("foreshortening cos(beta)", vm.foreshortening),
                                      ("distance 1/(1+gamma d)^2", vm.distance))):
         im = ax.imshow(np.where(vm.lit, a, np.nan), cmap="viridis")
         ax.set_title(name, fontsize=9)
         ax.axis("off")
-        fig.colorbar(im, ax=ax, shrink=0.7)
+        fig.colorbar(im, ax=ax, shrink=0.7, label="factor (dimensionless)")
+    d = distance_mm[vm.lit] if vm.lit.any() else np.array([np.nan])
+    fig.suptitle(f"frame {frame}: camera to surface {np.min(d):.0f}-{np.max(d):.0f} mm "
+                 f"(median {np.median(d):.0f} mm) over the lit pixels", fontsize=10)
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return str(path)
@@ -115,8 +120,9 @@ def _correct(args):
                               f"{numbers['miss_rate_raw_pct']:.1f} %)", r.hits.visible),
                   overlay_png(out / "transport.png", r.transport, cor_contour,
                               f"optical transport T, 40 % contour (miss "
-                              f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped)]
-    files.append(_factor_png(out / "factors.png", r.vm))
+                              f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped,
+                              colorbar_label="optical transport T (dimensionless)")]
+    files.append(_factor_png(out / "factors.png", r.vm, args.frame, r.hits.distance_mm))
     np.save(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
     np.save(out / "surface_flux_w_per_mm2.npy", np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
     scene_path = mrml_io.save_scene(scene, out / "scene.mrml")

@@ -27,6 +27,14 @@ def _plt():
     return plt
 
 
+def _colorbar_beside(fig, ax, im, label, **kw):
+    """A colour bar as tall as the image next to it, with its label (unit)."""
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
+
+    cax = make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08)
+    fig.colorbar(im, cax=cax, label=label, **kw)
+
+
 def stage_phantoms(ctx):
     """Digital phantoms: cylinder-tube at the thesis's tube depths, oral cavity, slab."""
     depths = TUBE_DEPTHS_MM[::2] if ctx.quick else TUBE_DEPTHS_MM
@@ -55,27 +63,32 @@ def stage_phantoms(ctx):
     ctx.metrics["phantoms"] = out
 
     plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.4))
     ph = tubes[depths[0]]
     i = ph.labels.shape[2] // 2
     ext = [ph.origin_mm[1], ph.origin_mm[1] + ph.spacing_mm[1] * ph.labels.shape[1],
            ph.origin_mm[2], ph.origin_mm[2] + ph.spacing_mm[2] * ph.labels.shape[0]]
-    axes[0].imshow(ph.cbct_hu[:, :, i], cmap="gray", vmin=-300, vmax=300, origin="lower", extent=ext)
-    axes[0].set_title(f"cylinder-tube CBCT (tube at {depths[0]} mm), y-z slice")
+    im = axes[0].imshow(ph.cbct_hu[:, :, i], cmap="gray", vmin=-300, vmax=300, origin="lower",
+                        extent=ext)
+    _colorbar_beside(fig, axes[0], im, "CT number [HU]")
+    axes[0].set_title(f"cylinder-tube CBCT, y-z slice\n(tube at {depths[0]} mm)")
     axes[0].set_xlabel("y [mm]")
     axes[0].set_ylabel("z [mm]")
     oc = others["oral-cavity"]
     j = oc.labels.shape[1] // 2 + 5
     ext = [oc.origin_mm[0], oc.origin_mm[0] + oc.spacing_mm[0] * oc.labels.shape[2],
            oc.origin_mm[2], oc.origin_mm[2] + oc.spacing_mm[2] * oc.labels.shape[0]]
-    axes[1].imshow(oc.cbct_hu[:, j, :], cmap="gray", vmin=-300, vmax=300, origin="lower", extent=ext)
+    im = axes[1].imshow(oc.cbct_hu[:, j, :], cmap="gray", vmin=-300, vmax=300, origin="lower",
+                        extent=ext)
+    _colorbar_beside(fig, axes[1], im, "CT number [HU]")
     axes[1].set_title("oral-cavity CBCT, x-z slice")
     axes[1].set_xlabel("x [mm]")
-    axes[2].imshow(oc.labels[:, j, :], cmap="viridis", origin="lower", extent=ext,
-                   interpolation="nearest")
+    im = axes[2].imshow(oc.labels[:, j, :], cmap="viridis", origin="lower", extent=ext,
+                        interpolation="nearest")
+    _colorbar_beside(fig, axes[2], im, "region label", ticks=[0, 1, 2])
     axes[2].set_title("oral-cavity labels (0 air, 1 agar, 2 tongue)")
     axes[2].set_xlabel("x [mm]")
-    fig.tight_layout()
+    fig.tight_layout(w_pad=4.0)
     fig.savefig(ctx.out / "phantoms.png", dpi=90)
     plt.close(fig)
     ctx.figure("phantoms", "phantoms.png", "Digital phantoms: synthetic CBCT (HU) and label maps.")
@@ -127,10 +140,14 @@ def _tomo_figures(ctx, runs):
 
     d = depths[0]
     run = runs[d]
-    _section_figure(ctx.out / "tomo_sections.png", run, (-8, 8), (0, -10))
+    geometry = ctx.state["tube_phantoms"][d].truth()["geometry"]
+    centre = geometry["tube_centre_mm"]
+    _section_figure(ctx.out / "tomo_sections.png", run, (-8, 8), (0, -10),
+                    true_circle=((centre[1], centre[2]), geometry["tube_radius_mm"]))
     ctx.figure("tomography", "tomo_sections.png",
                f"Cross-section through the tube at {d:.1f} mm (x = 0): truth | NP | SP | HP, "
-               "same colour scale.")
+               "same colour scale; cyan: the true tube (2.4 mm circle); the truth panel is the "
+               "tube as the simulation mesh holds it.")
 
     # one rendered camera frame (laser at the middle of the raster), log counts
     frame = run["frame_example"]
@@ -150,9 +167,12 @@ def _tomo_figures(ctx, runs):
                "position, the detectors are ~1 mm^2 ROIs of such frames.")
 
 
-def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8):
+def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8, true_circle=None):
     """y-z section at x = 0 of truth | NP | SP | HP on one colour scale (blank
-    where there is no tissue); ``sources``: mark where the laser entered."""
+    where there is no tissue), the true target outlined in cyan on every panel:
+    ``true_circle`` ((y, z) centre, radius; mm) where its geometry is a circle,
+    else the half-way contour of the simulated true yield; ``sources``: mark where
+    the laser entered."""
     from FluoTomoLib.fem.locate import locator
 
     plt = _plt()
@@ -165,12 +185,23 @@ def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8):
     vmax = max(float(np.max(v)) for _, _, v in panels)
     cmap = plt.get_cmap("inferno").with_extremes(bad="white")
     fig, axes = plt.subplots(1, 4, figsize=(14, 3.4), constrained_layout=True)
+    truth = None
     for ax, (title, mesh, values) in zip(axes, panels):
         P = locator(mesh).interpolation_matrix(pts, outside="nan")
         inside = np.asarray(P.sum(axis=1)).ravel() > 0.5     # rows outside the mesh are empty
         img = np.where(inside, P @ values, np.nan).reshape(yy.shape)
         im = ax.imshow(1e3 * img, extent=(*y_mm, min(z_mm), max(z_mm)), origin="upper",
                        cmap=cmap, vmin=0, vmax=1e3 * vmax, aspect="equal")
+        if true_circle is not None:
+            (cy, cz), radius = true_circle
+            t = np.linspace(0, 2 * np.pi, 181)
+            ax.plot(cy + radius * np.cos(t), cz + radius * np.sin(t), color="cyan", lw=0.9)
+        else:
+            if truth is None:
+                # half-way between the tissue's lowest and highest true yield
+                truth = img
+                level = 0.5 * (np.nanmin(truth) + np.nanmax(truth))
+            ax.contour(yy, zz, truth, levels=[level], colors="cyan", linewidths=0.9)
         if sources:
             ax.plot(run["sources_true_mm"][:, 1], run["sources_true_mm"][:, 2], "c.", ms=3)
         ax.set_title(title)
@@ -352,7 +383,8 @@ def stage_light_calibration(ctx):
         out[f"illumination: {k} error %"] = 100 * (il[k] - c[k]) / c[k]
     out["illumination: ratio mean (SD)"] = [il["ratio_mean"], il["ratio_sd"]]
     out["illumination: model"] = il["model"]
-    shutil.move(plot_ratio_images(il["ratio_images"], ctx.out / "light-plots")[0],
+    shutil.move(plot_ratio_images(il["ratio_images"], ctx.out / "light-plots",
+                                  t_il["phantom_to_camera"])[0],
                 ctx.out / "illumination_ratio.png")
     shutil.rmtree(ctx.out / "light-plots", ignore_errors=True)
     ctx.figure("light_calibration", "illumination_ratio.png",
@@ -417,7 +449,8 @@ def stage_surface_mapping(ctx):
             overlay_png(ctx.out / "mapping_raw.png", S, c_raw,
                         f"raw counts, 40 % contour: miss {r_raw:.1f} %", hits.visible)
             overlay_png(ctx.out / "mapping_corrected.png", T, c_cor,
-                        f"corrected transport T (truth 0.3): miss {r_cor:.1f} %", ok)
+                        f"corrected transport T (truth 0.3): miss {r_cor:.1f} %", ok,
+                        colorbar_label="optical transport T (dimensionless)")
     report(ctx.progress, 0.8, "timing the per-pixel cast")
     full = open_field_camera()
     pose = view_poses(2)[1]
@@ -474,7 +507,8 @@ def stage_oral_tomography(ctx):
     _section_figure(ctx.out / "oral_sections.png", run, (-16, 26), (-8, -40), sources=True)
     ctx.figure("oral_tomography", "oral_sections.png",
                "Oral cavity, section x = 0 through the tongue (the cavity is white: not tissue): "
-               "truth | NP | SP | HP, same colour scale; cyan dots: where the laser entered.")
+               "truth | NP | SP | HP, same colour scale; cyan line: the true tongue; cyan dots: "
+               "where the laser entered.")
     ctx.note("oral_tomography", "A bulk, optically thick target (2 ug/mL ICG: ~2.3 mm "
              "penetration) seen through a voxel-staircase surface: the yields here are far "
              "from the tube study's; docs/tomography.md says why.")
