@@ -83,6 +83,9 @@ def _quiet_vtk():
 
 
 def main(argv=None):
+    from fluoguide.progress import mark_command_start
+
+    mark_command_start()
     parser = build_parser()
     _quiet_vtk()
     args = parser.parse_args(argv)

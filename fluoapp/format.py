@@ -92,7 +92,7 @@ COMMANDS = {
 _UNIT_SUFFIX = re.compile(
     r"(_|^)(mm|mm2|mm3|per_mm|per_mm2|pct|px|deg|rad|s|ms|seconds|hz|fps|adu|e|e_per_s|"
     r"adu_per_e|w_per_mm2|w_per_mm2_sr|sr|ijk|kji|db|bits|um|nm|mw|w)$")
-_UNIT_WORDS = re.compile(r"\[.+\]|%|\((dimensionless|fraction|unit vector|per W|data units|"
+_UNIT_WORDS = re.compile(r"\[.+\]|%|/s\b|\((dimensionless|fraction|unit vector|per W|data units|"
                          r"4x4|nodes|measurements)|^fps_|_per_")
 
 

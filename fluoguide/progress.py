@@ -58,12 +58,25 @@ def scaled(progress, start, stop, prefix=""):
     return part
 
 
+_COMMAND_START = [None]     # time.monotonic() when the running command began
+
+
+def mark_command_start():
+    """Note that a command starts now (``fluo``'s main calls it): progress lines count
+    their seconds from here, so a step that starts late in a long command is shown
+    even when it holds the interpreter for a minute (fTetWild does)."""
+    import time
+
+    _COMMAND_START[0] = time.monotonic()
+
+
 class TqdmProgress:
     """A ``progress(fraction, message)`` reporter on stderr for the command line.
 
     On a terminal it draws a tqdm bar.  Elsewhere (a pipe, a log file, a test) it
-    writes plain lines, ``desc: 42% message (12 s)``, once the work has run
-    ``after_s`` seconds, so a command that ends quickly (or refuses its input at
+    writes plain lines, ``desc: 42% message (12 s)``, once the command has run
+    ``after_s`` seconds (counted from :func:`mark_command_start`, else from this
+    reporter's creation), so a command that ends quickly (or refuses its input at
     once) prints nothing; after that one line whenever the message changes and
     at most one per ``every_s`` seconds otherwise.  ``force`` draws the bar even
     when stderr is not a terminal.  stdout is never written.
@@ -86,6 +99,8 @@ class TqdmProgress:
         self._desc = desc
         self._clock = time.monotonic
         self._t0 = self._clock()
+        if _COMMAND_START[0] is not None:
+            self._t0 = min(self._t0, _COMMAND_START[0])
         self._after, self._every = after_s, every_s
         self._lines = not (force or sys.stderr.isatty())
         self._pending = None          # (fraction, message) not printed yet

@@ -14,7 +14,7 @@ from fluoapp.cli import build_parser, main
 from fluoapp.demo.run import STAGE_NAMES, run_demo, stages_to_run
 from fluoapp.format import format_result, has_unit
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import TqdmProgress, scaled
+from fluoguide.progress import TqdmProgress, mark_command_start, scaled
 
 
 # ------------------------------------------------------------------ help
@@ -170,6 +170,7 @@ def test_study_table_reads_on_a_terminal():
 # ------------------------------------------------------------------ progress
 
 def test_progress_lines_only_after_a_while(capsys):
+    mark_command_start()                         # a command that starts now
     quick = TqdmProgress("x", after_s=60.0)
     quick(0.5, "step")
     quick.close()
