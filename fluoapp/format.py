@@ -67,6 +67,9 @@ KEYS = {
     "initial_residual_ss": "initial_residual_ss (data units^2)",
     # surface mapping
     "visible_within_5pct": "visible_within_5pct (fraction)",
+    "tracking_sd": "tracking_sd (mm, deg)",
+    "hand_eye_error": "hand_eye_error (mm, deg)",
+    "max_model_error": "max_model_error (fraction)",
 }
 
 # Quantities without a unit: printed with "(dimensionless)" after their name.
