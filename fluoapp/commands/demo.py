@@ -18,11 +18,14 @@ def _handler(args):
         return metrics
     # on a terminal: the headline numbers; everything else is in the report
     brief = {"report": metrics["report"], "stage_seconds": metrics["stage_seconds"]}
-    for key in ("camera_calibration", "light_calibration", "surface_mapping", "tomography"):
+    for key in ("camera_calibration", "light_calibration", "surface_mapping", "tomography",
+                "oral_tomography"):
         if key in metrics:
             brief[key] = {k: v for k, v in metrics[key].items()
                           if "error" in k or "per case" in k or "speed-up" in k
                           or "miss rate" in k or "frames/s" in k}
+    if "warnings" in metrics:          # never left out of the short form
+        brief["warnings"] = metrics["warnings"]
     return brief
 
 
