@@ -86,24 +86,27 @@ def _correct(args):
     from FluoNavLib.mapping.correct import correct_frame, load_context, map_frames_to_surface
 
     t0 = time.perf_counter()
+    prog = TqdmProgress("nav correct")      # closed before the return (an error ends the run)
+    report(prog, 0.0, "loading the scene and its surface")
     scene = mrml_io.load_scene(args.scene)
     ctx = load_context(scene)
     t1 = time.perf_counter()
+    report(prog, 0.3, f"correcting frame {args.frame}")
     r = correct_frame(scene, ctx, args.frame)
     t_frame = time.perf_counter() - t1
     results = [r]
     skipped = []
     if args.all_frames:
         total = frame_store.number_of_frames(scene)
-        with TqdmProgress("nav correct --all-frames") as prog:
-            for n in range(total):
-                report(prog, n / total, f"frame {n} of {total - 1}")
-                if n == args.frame:
-                    continue
-                try:
-                    results.append(correct_frame(scene, ctx, n))
-                except FluoInputError as exc:          # no valid pose: not mapped, say so
-                    skipped.append({"frame": n, "reason": exc.problem})
+        for n in range(total):
+            report(prog, 0.4 + 0.4 * n / total, f"frame {n} of {total - 1}")
+            if n == args.frame:
+                continue
+            try:
+                results.append(correct_frame(scene, ctx, n))
+            except FluoInputError as exc:          # no valid pose: not mapped, say so
+                skipped.append({"frame": n, "reason": exc.problem})
+    report(prog, 0.8, "mapping onto the surface, writing images and the scene")
     T_face, J_face, w_face, views = map_frames_to_surface(ctx, results)
     write_surface_flux(scene, ctx.polydata, T_face, J_face, w_face, views)
     S = r.counts - ctx.radiometric.offset_adu
@@ -134,6 +137,7 @@ def _correct(args):
         "frame_seconds": t_frame, "seconds": time.perf_counter() - t0,
         "scene": str(scene_path), "files": files + [str(out / "transport.npy"),
                                                     str(out / "surface_flux_w_per_mm2.npy")]})
+    prog.close()
     return numbers
 
 
