@@ -366,7 +366,7 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         import numpy as np
 
         from fluoguide.errors import FluoInputError
-        from fluoguide.progress import check_cancel, report
+        from fluoguide.progress import check_cancel, report, scaled
         from FluoCalibLib.geometry import handeye as he
         from FluoCalibLib.geometry.boards import parse_board
         from FluoCalibLib.geometry.files import image_files
@@ -398,7 +398,8 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
                 report(progress, 0.05, "intrinsics from the same images")
                 cam = calibrate_camera(images, board_obj, cancel=cancel).camera
             report(progress, 0.3, "detecting the board")
-            views, _ = detect_views(images, board_obj, cancel=cancel)
+            views, _ = detect_views(images, board_obj, progress=scaled(progress, 0.3, 0.6),
+                                    cancel=cancel)
             keep = [i for i, v in enumerate(views) if v.status == "used"]
             rejected = [{"name": v.name, "reason": v.reason} for v in views if v.status != "used"]
             views = view_poses(cam, board_obj, [views[i] for i in keep])
@@ -555,7 +556,7 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         """A job ``job(progress, cancel) -> dict`` (no MRML) of :meth:`calibrateIllumination`."""
         import numpy as np
 
-        from fluoguide.progress import check_cancel, report
+        from fluoguide.progress import check_cancel, report, scaled
         from FluoCalibLib.geometry.camera_model import CameraModel
         from FluoCalibLib.radiometry.datasets import ILLUMINATION_KEYS, read_dataset
         from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
@@ -569,12 +570,14 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
                                          [np.asarray(T, float) for T in doc["phantom_to_camera"]],
                                          float(doc["rd"]), float(doc.get("offset_adu", 0.0)),
                                          try_asymmetric=tryAsymmetric,
-                                         saturation_adu=float(doc.get("saturation_adu", 16383.0)))
+                                         saturation_adu=float(doc.get("saturation_adu", 16383.0)),
+                                         progress=scaled(progress, 0.3, 0.95), cancel=cancel)
             res["cone"] = res["cone"].to_dict()
             if plotsFolder:
                 from FluoCalibLib.radiometry.plots import plot_ratio_images
 
-                res["plots"] = plot_ratio_images(res["ratio_images"], plotsFolder)
+                res["plots"] = plot_ratio_images(res["ratio_images"], plotsFolder,
+                                                 doc["phantom_to_camera"])
             if "truth" in doc:
                 res["truth"] = doc["truth"]
             report(progress, 1.0, "done")

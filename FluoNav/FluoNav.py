@@ -604,7 +604,7 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
                 "surface_transport_median": float(np.median(T_face[seen])) if seen.any() else None}
 
     def classifyContours(self, result, contourFraction=0.4):
-        """Contour classification (physics.md section 6) of a corrected frame: the
+        """Contour classification (docs/physics.md section 6.3) of a corrected frame: the
         ``contourFraction`` contour of the raw counts and of the transport image,
         and their miss rates [%] (None when no pixel was mapped)."""
         from FluoNavLib.mapping.contours import miss_rate

@@ -9,21 +9,19 @@ Conventions every subcommand follows:
 - ``--json`` prints exactly one JSON object on stdout (progress goes to stderr).
 - Bad input raises ``FluoInputError``: one line on stderr, exit code 2.
 - A handler returns a dict (the JSON result); without ``--json`` it is printed
-  as readable ``key: value`` lines. ``"_exit_code": 1`` in it (not printed) says
-  the work partly failed (a run with failed tasks: they are in its table).
+  as readable ``key: value`` lines and tables with units (``fluoapp/format.py``).
+  ``"_exit_code": 1`` in it (not printed) says the work partly failed (a run with
+  failed tasks: they are in its table).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 
-import numpy as np
-
 from fluoguide.errors import FluoCancelled, FluoError, FluoInputError
-from fluoguide.jsonable import dumps, to_jsonable
+from fluoguide.jsonable import dumps
 
 # Modules that define ``register(subparsers)``.  Order = order in --help.
 CLI_MODULES = [
@@ -81,13 +79,6 @@ def build_parser():
     return parser
 
 
-def _print_human(result, stream):
-    for key, value in result.items():
-        if isinstance(value, (dict, list)):
-            value = json.dumps(to_jsonable(value))
-        print(f"{key}: {value}", file=stream)
-
-
 def _quiet_vtk():
     """VTK/MRML log to stderr on their own; the CLI reports errors itself."""
     try:
@@ -100,6 +91,9 @@ def _quiet_vtk():
 
 
 def main(argv=None):
+    from fluoguide.progress import mark_command_start
+
+    mark_command_start()
     parser = build_parser()
     _quiet_vtk()
     args = parser.parse_args(argv)
@@ -128,7 +122,9 @@ def main(argv=None):
     if getattr(args, "json", False):
         print(dumps(result))
     else:
-        _print_human(result, sys.stdout)
+        from fluoapp.format import command_name, format_result
+
+        print(format_result(result, command_name(args)))
     return rc
 
 

@@ -1,6 +1,6 @@
 """Closed-form diffusion solutions for a homogeneous semi-infinite medium.
 
-physics.md section 3.  The fluorescence formula is the 1D solution of the
+docs/physics.md section 3.  The fluorescence formula is the 1D solution of the
 coupled excitation/emission diffusion equations with the Robin boundary,
 the same model the FEM solves, so the two agree for a thick slab
 (Testing: test_analytic.py compares them).  It does not reproduce the
@@ -23,7 +23,7 @@ from FluoTomoLib.optics import (
 
 
 def total_diffuse_reflectance(mua_per_mm, musp_per_mm, n):
-    """Rd for planar unit irradiance (Kim & Wilson 2010 form of physics.md)."""
+    """Rd for planar unit irradiance (Kim & Wilson 2010 form, docs/physics.md section 3.1)."""
     mua, musp = check_properties(mua_per_mm, musp_per_mm, n, warn=False)
     a = reduced_albedo(mua, musp)
     A = robin_A(n)
@@ -115,7 +115,7 @@ def robin_surface_fluence(rho_mm, mua_per_mm, musp_per_mm, n, k_max_per_mm=None,
 def excitation_fluence_1d(z_mm, mua_per_mm, musp_per_mm, n, include_unscattered=False):
     """Diffuse excitation fluence Phi_x(z) for unit planar collimated irradiance.
 
-    Phi(z) = C e^{-mut' z} + B e^{-mueff z} (physics.md section 3), plus the
+    Phi(z) = C e^{-mut' z} + B e^{-mueff z} (docs/physics.md section 3.3), plus the
     unscattered beam e^{-mut' z} when ``include_unscattered``.
     """
     mua, musp = float(mua_per_mm), float(musp_per_mm)

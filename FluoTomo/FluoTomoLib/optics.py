@@ -1,4 +1,4 @@
-"""Diffusion-theory optical quantities (physics.md section 1).
+"""Diffusion-theory optical quantities (docs/physics.md section 1).
 
 All lengths in mm, coefficients in 1/mm.  Functions accept scalars or numpy
 arrays (nodal values) and validate their input: NaN, negative absorption or

@@ -42,6 +42,7 @@ def _camera(args):
 
 
 def _handeye(args):
+    from fluoguide.progress import TqdmProgress
     from FluoCalibLib.geometry.files import (image_files, read_handeye_poses, read_intrinsics,
                                              read_matrix)
 
@@ -53,10 +54,11 @@ def _handeye(args):
     else:
         G = doc["board_to_tracker"]
     logic = _calib(args)
-    out = logic.calibrateHandEye(images, args.board, doc["tool_to_tracker"], camera=camera,
-                                 boardToTracker=G, methods=args.method,
-                                 storeMethod=args.store_method, holdout=args.holdout,
-                                 truthCameraToTool=doc["camera_to_tool"])
+    with TqdmProgress("calib handeye") as prog:
+        out = logic.calibrateHandEye(images, args.board, doc["tool_to_tracker"], camera=camera,
+                                     boardToTracker=G, methods=args.method,
+                                     storeMethod=args.store_method, holdout=args.holdout,
+                                     truthCameraToTool=doc["camera_to_tool"], progress=prog)
     _yaml(args, camera_to_tool=out["camera_to_tool"])
     save_scene_to(logic.scene, args.scene)
     return {k: v for k, v in out.items() if k != "transform_node_id"}
@@ -104,7 +106,7 @@ def _synth(args):
     if args.fisheye:
         cam = CameraModel(cam.fx * 0.7, cam.fy * 0.7, cam.cx, cam.cy,
                           (0.03, -0.01, 0.002, -0.0005), cam.width, cam.height, "fisheye")
-    with TqdmProgress("synth boards") as prog:
+    with TqdmProgress("calib synth-boards") as prog:
         ds = make_dataset(args.out, cam, args.board, args.views, args.seed,
                           blur_sigma_px=args.blur, noise_sigma=args.noise,
                           tracker_noise_mm=args.tracker_noise_mm, motion=args.motion,
@@ -115,46 +117,57 @@ def _synth(args):
 
 
 def register(subparsers):
-    sub = cli_group(subparsers, "calib", "camera and laser calibration")
+    sub = cli_group(subparsers, "calib", "camera, hand-eye, radiometric and light calibrations")
 
     p = sub.add_parser("camera", help="intrinsic calibration from board images")
     p.add_argument("--images", required=True, help="glob of board images, e.g. 'cal/*.png'")
     p.add_argument("--board", required=True,
                    help="chessboard:COLSxROWS:SQUARE_MM or charuco:COLSxROWS:SQ:MARKER:DICT")
     p.add_argument("--fisheye", action="store_true", help="fisheye (wide-angle) lens model")
-    p.add_argument("--holdout", type=int, default=0, help="views held out for validation")
+    p.add_argument("--holdout", type=int, default=0,
+                   help="views held out of the fit for validation (default %(default)s)")
     p.add_argument("--fix-k3", action="store_true", help="hold k3 at 0")
     p.add_argument("--keep-outliers", action="store_true",
                    help="do not reject views with RMS > max(1 px, 3 x median)")
-    p.add_argument("--yaml", help="write OpenCV YAML here")
-    p.add_argument("--scene", help="store in this MRML scene (created if missing)")
+    p.add_argument("--yaml", help="write OpenCV YAML here (default: not written)")
+    p.add_argument("--scene", help="store in this MRML scene, created if missing (default: not "
+                   "stored)")
     add_json_flag(p)
     p.set_defaults(func=_camera)
 
     p = sub.add_parser("handeye", help="hand-eye calibration (camera to tracked tool)")
-    p.add_argument("--images", required=True)
-    p.add_argument("--board", required=True)
+    p.add_argument("--images", required=True,
+                   help="glob of board images, e.g. 'cal/*.png' (sorted by name)")
+    p.add_argument("--board", required=True,
+                   help="chessboard:COLSxROWS:SQUARE_MM or charuco:COLSxROWS:SQ:MARKER:DICT")
     p.add_argument("--poses", required=True,
                    help='JSON with "tool_to_tracker": one 4x4 per image (sorted by name); '
                         'optional "board_to_tracker"')
     p.add_argument("--intrinsics", help="YAML or JSON intrinsics (default: calibrate here)")
-    p.add_argument("--board-to-tracker", help="JSON 4x4 grid registration")
+    p.add_argument("--board-to-tracker", help="JSON 4x4 grid registration (default: the poses "
+                   "file's board_to_tracker, else estimated from the TSAI solution)")
     p.add_argument("--method", default="ALL", help="ALL or one of TSAI, PARK, HORAUD, ANDREFF, "
-                   "DANIILIDIS, PAIRED_POINT")
-    p.add_argument("--store-method", default="PAIRED_POINT", help="method whose result is stored")
+                   "DANIILIDIS, PAIRED_POINT (default %(default)s)")
+    p.add_argument("--store-method", default="PAIRED_POINT",
+                   help="method whose result is stored when several run (default %(default)s)")
     p.add_argument("--holdout", type=int, default=0,
-                   help="views left out of the fit, errors reported separately")
-    p.add_argument("--yaml")
-    p.add_argument("--scene")
+                   help="views left out of the fit, errors reported separately (default "
+                   "%(default)s)")
+    p.add_argument("--yaml", help="write OpenCV YAML (intrinsics and hand-eye) here (default: "
+                   "not written)")
+    p.add_argument("--scene", help="store in this MRML scene, created if missing (default: not "
+                   "stored)")
     add_json_flag(p)
     p.set_defaults(func=_handeye)
 
     p = sub.add_parser("register", help="paired-point rigid registration with FRE/TRE")
     p.add_argument("--moving", required=True, help="points in the moving frame (tracker)")
     p.add_argument("--fixed", required=True, help="the same points in the fixed frame (CBCT)")
-    p.add_argument("--targets-moving")
-    p.add_argument("--targets-fixed")
-    p.add_argument("--scene")
+    p.add_argument("--targets-moving", help="target points in the moving frame, for the target "
+                   "registration error (TRE; default: none)")
+    p.add_argument("--targets-fixed", help="the same targets in the fixed frame (default: none)")
+    p.add_argument("--scene", help="store the registration in this MRML scene, created if "
+                   "missing (default: not stored)")
     add_json_flag(p)
     p.set_defaults(func=_register)
 
@@ -164,16 +177,28 @@ def register(subparsers):
     p.set_defaults(func=_pivot)
 
     p = sub.add_parser("synth-boards", help="render synthetic board images with known truth")
-    p.add_argument("--out", required=True)
-    p.add_argument("--board", default="chessboard:9x6:20")
-    p.add_argument("--views", type=int, default=12)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--width", type=int, default=800)
-    p.add_argument("--height", type=int, default=600)
-    p.add_argument("--fisheye", action="store_true")
-    p.add_argument("--noise", type=float, default=2.0, help="sensor noise SD [grey levels]")
-    p.add_argument("--blur", type=float, default=0.6, help="blur SD [px]")
-    p.add_argument("--tracker-noise-mm", type=float, default=0.1)
-    p.add_argument("--motion", default="general", choices=("general", "translation", "parallel"))
+    p.add_argument("--out", required=True,
+                   help="folder for view_NNN.png and truth.json (camera, hand-eye, tool poses)")
+    p.add_argument("--board", default="chessboard:9x6:20",
+                   help="board: chessboard:COLSxROWS:SQUARE_MM or "
+                   "charuco:COLSxROWS:SQ:MARKER:DICT (default %(default)s)")
+    p.add_argument("--views", type=int, default=12, help="images to render (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the poses and the noise (default %(default)s)")
+    p.add_argument("--width", type=int, default=800, help="image width [px] (default %(default)s)")
+    p.add_argument("--height", type=int, default=600,
+                   help="image height [px] (default %(default)s)")
+    p.add_argument("--fisheye", action="store_true",
+                   help="a wide-angle camera with the fisheye lens model instead of the "
+                   "distorted pinhole")
+    p.add_argument("--noise", type=float, default=2.0,
+                   help="sensor noise SD [grey levels] (default %(default)s)")
+    p.add_argument("--blur", type=float, default=0.6, help="blur SD [px] (default %(default)s)")
+    p.add_argument("--tracker-noise-mm", type=float, default=0.1,
+                   help="SD of the tracked tool's position noise [mm] (default %(default)s)")
+    p.add_argument("--motion", default="general", choices=("general", "translation", "parallel"),
+                   help="camera motion between views: general; translation (one orientation: "
+                   "degenerate for hand-eye and intrinsics); parallel (board always head-on: "
+                   "degenerate for intrinsics) (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_synth)

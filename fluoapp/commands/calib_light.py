@@ -8,6 +8,7 @@ from pathlib import Path
 
 from fluoapp.cli import add_json_flag, cli_group
 from fluoapp.commands import module_logic, save_scene_to, scene_for
+from fluoguide.progress import TqdmProgress, report
 
 
 def _calib(args):
@@ -30,8 +31,9 @@ def _radiometry(args):
 
 def _illumination(args):
     logic = _calib(args)
-    res = logic.calibrateIllumination(args.folder, tryAsymmetric=not args.axisymmetric,
-                                      plotsFolder=args.out, **_outputs(args))
+    with TqdmProgress("calib illumination") as prog:
+        res = logic.calibrateIllumination(args.folder, tryAsymmetric=not args.axisymmetric,
+                                          plotsFolder=args.out, progress=prog, **_outputs(args))
     save_scene_to(logic.scene, args.scene)
     return {k: v for k, v in res.items() if k != "ratio_images"}
 
@@ -55,24 +57,31 @@ def _synth(args):
     )
 
     out = Path(args.out)
-    frames, truth = synthetic_stack(seed=args.seed)
-    # plus frames at several f-numbers and wavelengths (same default camera)
-    extra, t_extra = synthetic_lens_spectral_frames(
-        radiance_w_per_mm2_sr=truth["radiance_w_per_mm2_sr"], seed=args.seed + 1)
-    frames = frames + extra
-    write_stack(out / "stack", frames, {"truth": {**truth, **t_extra}})
-    imgs, t_il = synthetic_illumination(seed=args.seed)
-    write_illumination_set(out / "illumination", imgs, t_il)
-    limgs, t_la = synthetic_laser(seed=args.seed)
-    write_laser_set(out / "laser", limgs, t_la)
+    with TqdmProgress("calib synth-light") as prog:
+        report(prog, 0.0, "camera stack")
+        frames, truth = synthetic_stack(seed=args.seed)
+        # plus frames at several f-numbers and wavelengths (same default camera)
+        extra, t_extra = synthetic_lens_spectral_frames(
+            radiance_w_per_mm2_sr=truth["radiance_w_per_mm2_sr"], seed=args.seed + 1)
+        frames = frames + extra
+        write_stack(out / "stack", frames, {"truth": {**truth, **t_extra}})
+        report(prog, 0.5, "illumination images")
+        imgs, t_il = synthetic_illumination(seed=args.seed)
+        write_illumination_set(out / "illumination", imgs, t_il)
+        report(prog, 0.8, "laser spot images")
+        limgs, t_la = synthetic_laser(seed=args.seed)
+        write_laser_set(out / "laser", limgs, t_la)
+        report(prog, 1.0, "done")
     return {"stack": str(out / "stack"), "illumination": str(out / "illumination"),
             "laser": str(out / "laser"), "frames": len(frames), "illumination_images": len(imgs),
             "laser_images": len(limgs)}
 
 
 def _common(p):
-    p.add_argument("--scene", help="MRML scene to store the result in (created if missing)")
-    p.add_argument("--calibration", help="calibration JSON file to merge the result into")
+    p.add_argument("--scene", help="MRML scene to store the result in, created if missing "
+                   "(default: not stored)")
+    p.add_argument("--calibration", help="calibration JSON file to merge the result into "
+                   "(default: none)")
     add_json_flag(p)
 
 
@@ -81,8 +90,8 @@ def register(subparsers):
     p = calib.add_parser("radiometry", help="camera response (gain, dark current, bias, read "
                          "noise, linearity) from an image stack (EMVA 1288 style)")
     p.add_argument("stack", help="folder with stack.json and the frames")
-    p.add_argument("--bits", type=int, default=14, help="A/D bit depth")
-    p.add_argument("--out", help="folder for PNG plots")
+    p.add_argument("--bits", type=int, default=14, help="A/D bit depth (default %(default)s)")
+    p.add_argument("--out", help="folder for PNG plots (default: no plots)")
     p.add_argument("--curves", action="store_true", help="include the curves in the JSON")
     _common(p)
     p.set_defaults(func=_radiometry)
@@ -91,17 +100,19 @@ def register(subparsers):
     p.add_argument("folder", help="folder with illumination.json and the images")
     p.add_argument("--axisymmetric", action="store_true",
                    help="do not try the crescent (non-axisymmetric) term")
-    p.add_argument("--out", help="folder for the ratio-image PNG")
+    p.add_argument("--out", help="folder for the ratio-image PNG (default: no plot)")
     _common(p)
     p.set_defaults(func=_illumination)
     p = calib.add_parser("laser", help="laser beam line in laser-tool coordinates from spot images")
     p.add_argument("folder", help="folder with laser.json and the images")
-    p.add_argument("--holdout", type=int, default=4, help="images kept out of the fit for accuracy")
+    p.add_argument("--holdout", type=int, default=4,
+                   help="images kept out of the fit to measure accuracy (default %(default)s)")
     _common(p)
     p.set_defaults(func=_laser)
     p = calib.add_parser("synth-light", help="synthetic stack, illumination and laser data sets "
                          "with known truth")
-    p.add_argument("--out", required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True,
+                   help="folder for the three sets: stack/, illumination/, laser/")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_synth)

@@ -115,35 +115,52 @@ def register(subparsers):
     p = subparsers.add_parser("track", help="track tool poses from an NDI tracker or the simulator")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--sim", action="store_true", help="protocol-faithful simulator on a pty")
-    src.add_argument("--serial", metavar="PORT", help="serial port of a real NDI tracker")
-    src.add_argument("--igtl", metavar="HOST:PORT", help="OpenIGTLink server (e.g. PLUS)")
+    src.add_argument("--serial", metavar="PORT", help="serial port of a real NDI tracker "
+                     "(default: none; one of --sim, --serial, --igtl is needed)")
+    src.add_argument("--igtl", metavar="HOST:PORT", help="OpenIGTLink server, e.g. PLUS "
+                     "(default: none)")
     p.add_argument("--rate", type=float, default=None,
-                   help="--igtl: nominal message rate [Hz] for loss counting by timestamps")
-    p.add_argument("--seconds", type=float, default=5.0)
+                   help="--igtl: nominal message rate [Hz], to count losses by timestamps when "
+                   "messages carry no sequence numbers (default: not counted that way)")
+    p.add_argument("--seconds", type=float, default=5.0,
+                   help="how long to track [s] (default %(default)s)")
     p.add_argument("--inject-faults", action="store_true",
                    help="simulator: CRC errors, slow replies, dropouts and a disconnect")
-    p.add_argument("--tools", type=int, default=1, help="passive tools to request (--serial)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tools", type=int, default=1,
+                   help="passive tools to request (--serial; default %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the simulator's faults (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_track)
     p = subparsers.add_parser("record", help="record tracked camera frames (simulated tracker; "
                               "synthetic, image-folder or camera frames) incrementally to a folder")
     p.add_argument("--out", required=True, help="new or empty folder")
     cam = p.add_mutually_exclusive_group()
-    cam.add_argument("--frames", metavar="FOLDER", help="images played as a camera at --fps")
-    cam.add_argument("--camera", type=int, metavar="INDEX", help="OpenCV/UVC camera index")
-    p.add_argument("--seconds", type=float, default=5.0)
-    p.add_argument("--fps", type=float, default=20.0)
-    p.add_argument("--width", type=int, default=348)
-    p.add_argument("--height", type=int, default=260)
-    p.add_argument("--inject-faults", action="store_true")
-    p.add_argument("--seed", type=int, default=0)
+    cam.add_argument("--frames", metavar="FOLDER", help="images played as a camera at --fps "
+                     "(default: synthetic frames)")
+    cam.add_argument("--camera", type=int, metavar="INDEX", help="OpenCV/UVC camera index "
+                     "(default: synthetic frames)")
+    p.add_argument("--seconds", type=float, default=5.0,
+                   help="how long to record [s] (default %(default)s)")
+    p.add_argument("--fps", type=float, default=20.0,
+                   help="camera frame rate [frames/s] (default %(default)s)")
+    p.add_argument("--width", type=int, default=348,
+                   help="synthetic frames: width [px] (default %(default)s)")
+    p.add_argument("--height", type=int, default=260,
+                   help="synthetic frames: height [px] (default %(default)s)")
+    p.add_argument("--inject-faults", action="store_true",
+                   help="simulated tracker: CRC errors, slow replies, dropouts and a disconnect")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the synthetic frames and the tracker's faults (default "
+                   "%(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_record)
     p = subparsers.add_parser("replay", help="replay a recording (poses bit-exact), optionally as "
                               "an MRML scene")
-    p.add_argument("folder")
-    p.add_argument("--max-speed", action="store_true", help="as fast as possible")
-    p.add_argument("--scene", help="also write the recording as an MRML scene (.mrml)")
+    p.add_argument("folder", help="recording folder (from fluo record)")
+    p.add_argument("--max-speed", action="store_true",
+                   help="as fast as possible (default: at the recorded pace)")
+    p.add_argument("--scene", help="also write the recording as an MRML scene (.mrml; default: "
+                   "no scene)")
     add_json_flag(p)
     p.set_defaults(func=_replay)

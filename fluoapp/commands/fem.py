@@ -120,17 +120,20 @@ def _forward(args):
 
 def register(sub):
     p = sub.add_parser("analytic", help="closed-form diffusion theory: Rd, R(rho), F",
-                       description="Homogeneous semi-infinite medium (physics.md section 3): "
+                       description="Homogeneous semi-infinite medium (docs/physics.md section 3): "
                        "Rd, mueff, D, A, R(rho) and the exact Robin-boundary surface fluence, "
                        "and total diffuse fluorescence F.")
     p.add_argument("--mua", type=float, required=True, help="absorption [1/mm] (excitation)")
     p.add_argument("--musp", type=float, required=True, help="reduced scattering [1/mm]")
     p.add_argument("--n", type=float, default=1.33, help="refractive index (default 1.33)")
-    p.add_argument("--rho", default=None, help="source-detector distances [mm], comma-separated")
+    p.add_argument("--rho", default=None, help="source-detector distances [mm], comma-separated: "
+                   "also compute R(rho) and the exact Robin surface fluence (default: none)")
     p.add_argument("--yield", dest="yield_per_mm", type=float, default=None,
-                   help="fluorescence yield eta*mua_f [1/mm]: also compute F")
-    p.add_argument("--mua-m", type=float, default=None, help="emission absorption [1/mm]")
-    p.add_argument("--musp-m", type=float, default=None, help="emission reduced scattering [1/mm]")
+                   help="fluorescence yield eta*mua_f [1/mm]: also compute F (default: none)")
+    p.add_argument("--mua-m", type=float, default=None,
+                   help="emission absorption [1/mm] (default: --mua)")
+    p.add_argument("--musp-m", type=float, default=None,
+                   help="emission reduced scattering [1/mm] (default: --musp)")
     p.add_argument("--unscattered", action="store_true",
                    help="include the unscattered excitation beam in F")
     add_json_flag(p)
@@ -142,11 +145,17 @@ def register(sub):
     p.add_argument("--mesh", required=True, help="mesh file (.vtu, or NIRFAST .node/.elem stem)")
     p.add_argument("--mua", type=float, required=True, help="absorption [1/mm]")
     p.add_argument("--musp", type=float, required=True, help="reduced scattering [1/mm]")
-    p.add_argument("--n", type=float, default=1.33, help="refractive index")
-    p.add_argument("--sources", required=True, help="CSV of source points")
-    p.add_argument("--detectors", required=True, help="CSV of detector points")
+    p.add_argument("--n", type=float, default=1.33, help="refractive index (default %(default)s)")
+    p.add_argument("--sources", required=True,
+                   help="CSV of source points, x,y[,z] mm, one per line")
+    p.add_argument("--detectors", required=True,
+                   help="CSV of detector points, x,y[,z] mm, one per line")
     p.add_argument("--jacobian", action="store_true", help="also compute the mua Jacobian")
-    p.add_argument("--jacobian-out", default=None, help="save the Jacobian as .npy")
-    p.add_argument("--solver", default="auto", help="auto, pardiso, splu or amg")
+    p.add_argument("--jacobian-out", default=None,
+                   help="save the Jacobian as .npy (default: not saved)")
+    p.add_argument("--solver", default="auto",
+                   help="linear solver: pardiso (MKL Cholesky), splu (SuperLU), amg (algebraic "
+                   "multigrid CG, for meshes too large to factorise); default auto: PARDISO "
+                   "when MKL loads, else SuperLU")
     add_json_flag(p)
     p.set_defaults(func=_forward)

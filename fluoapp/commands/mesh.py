@@ -129,9 +129,13 @@ def _quality(args, labels, spacing, origin, direction, roi, t0):
     from FluoTomoLib.meshing.tetwild import mesh_labelmap_quality
     from FluoTomoLib.meshing.vtu_io import write_vtu
 
+    from fluoguide.progress import TqdmProgress
+
     refine = _parse_refine(args.refine) if args.refine else None
-    mesh = mesh_labelmap_quality(labels, spacing, origin, args.size, roi=roi, direction=direction,
-                                 refine=refine, threads=args.threads)
+    with TqdmProgress("mesh (quality)") as prog:
+        mesh = mesh_labelmap_quality(labels, spacing, origin, args.size, roi=roi,
+                                     direction=direction, refine=refine, threads=args.threads,
+                                     progress=prog)
     report = quality_report(mesh, mesh.meta["labelmap_volumes_mm3"])
     write_vtu(mesh, args.out)
     report["file"] = str(Path(args.out).resolve())
@@ -152,12 +156,12 @@ def register(sub):
                    "(.seg.nrrd: segment n -> label n+1) or scene (.mrml)")
     p.add_argument("--out", required=True, help="output mesh (.vtu)")
     p.add_argument("--size", type=float, default=1.6, help="element size [mm] (default 1.6)")
-    p.add_argument("--roi", default=None, help="crop first: x0,x1,y0,y1,z0,z1 (RAS mm); write --roi=-10,10,... "
-                   "when the first value is negative")
+    p.add_argument("--roi", default=None, help="crop first: x0,x1,y0,y1,z0,z1 (RAS mm); write "
+                   "--roi=-10,10,... when the first value is negative (default: the whole label map)")
     p.add_argument("--fast", action="store_true", help="structured voxel-to-tet mesher "
                    "(seconds; staircase surfaces); default: the quality mesher (fTetWild)")
     p.add_argument("--refine", default=None, help="quality mesher: smaller elements in "
-                   "sphere:x,y,z,r,size or box:x0,x1,y0,y1,z0,z1,size (mm)")
+                   "sphere:x,y,z,r,size or box:x0,x1,y0,y1,z0,z1,size (mm; default: none)")
     p.add_argument("--threads", type=int, default=None, help="fTetWild threads (default: all)")
     add_json_flag(p)
     p.set_defaults(func=_handler)

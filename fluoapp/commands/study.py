@@ -81,8 +81,7 @@ def _handler(args):
     study_tasks(spec)                 # every task's parameters checked before any work
     spec.warnings.clear()
     t0 = time.perf_counter()
-    with TqdmProgress(f"study {spec.label}", force=not args.json) as bar, \
-            executor_for(args, threads) as ex:
+    with TqdmProgress(f"study {spec.label}") as bar, executor_for(args, threads) as ex:
         out = run_spec(spec, out_dir=args.out, progress=bar, executor=ex, resume=args.resume,
                        threads=threads)
     out["seconds"] = time.perf_counter() - t0
@@ -119,24 +118,29 @@ def register(sub):
     p.add_argument("--dim", type=int, default=None,
                    help="2: discs in a 50 x 30 mm section (default); 3: spheres in a 50 x 30 x 20 mm slab")
     p.add_argument("--seed", type=int, default=None, help="noise seed (default 0)")
-    p.add_argument("--target", default=None, help="one custom case: diameter_mm,depth_mm")
+    p.add_argument("--target", default=None, help="one custom case instead of the study's: "
+                   "diameter_mm,top_depth_mm (default: the study's cases)")
     p.add_argument("--sweep", choices=["lambda", "noise", "mesh", "roi"], default=None,
                    help="error against time for one target (--target, default 6,3.5) as lambda, "
                    "noise [%%], the mesh sizes (reconstruction and forward; data from a finer "
-                   "mesh) or the modelled depth below the surface (roi [mm]) varies")
+                   "mesh) or the modelled depth below the surface (roi [mm]) varies "
+                   "(default: no sweep)")
     p.add_argument("--values", default=None, metavar="V1,V2,...",
-                   help="the sweep's values instead of its defaults")
+                   help="the sweep's values instead of its defaults (default: the sweep's own)")
     p.add_argument("--grid", action="append", metavar="KEY=V1,V2,...",
-                   help="one axis of the grid (repeatable): " + ", ".join(GRID_KEYS))
+                   help="one axis of the grid (repeatable; default: the study's own grid): "
+                   + ", ".join(GRID_KEYS))
     p.add_argument("--scheme", choices=["nirfast", "reference"], default=None,
                    help="nirfast (default): the thesis's NIRFAST fluorescence reconstruction "
                    "(log-amplitude data, Jacobian normalised by the current yield, start at the "
-                   "background); reference: the literal update of physics.md (linear data)")
+                   "background); reference: the literal update of docs/physics.md section 8.3 "
+                   "(linear data)")
     p.add_argument("--hp-basis", choices=["forward", "reconstruction"], default=None,
                    help="mesh on which HP's region basis is built (default forward: where the "
                    "data were simulated)")
     p.add_argument("--out", default=None,
-                   help="run folder: table.csv, tasks/, study.json, PNG figures")
+                   help="run folder: table.csv, tasks/, study.json, PNG figures (default: no "
+                   "files)")
     add_run_options(p)
     add_json_flag(p)
     p.set_defaults(func=_handler)

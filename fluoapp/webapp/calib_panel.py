@@ -159,7 +159,7 @@ class CalibPanel:
                 im = ax.imshow(res["ratio_images"][0], vmin=0.8, vmax=1.2, cmap="coolwarm")
                 ax.set_title("measured / model (nearest view)", fontsize=9)
                 ax.axis("off")
-                fig.colorbar(im, ax=ax, shrink=0.8)
+                fig.colorbar(im, ax=ax, shrink=0.8, label="measured / model (dimensionless)")
                 plot = png_data_url(fig)
             else:
                 keys = ("error_3d_mm", "error_2d_px", "line_fit_rms_mm")

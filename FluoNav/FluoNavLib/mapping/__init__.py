@@ -4,9 +4,9 @@ model, transport and surface-flux images, contour classification, frame correcti
 Modules
 -------
 - ``benchmark``: Speed and accuracy of per-pixel surface mapping (``fluo bench mapping``, ``python -m benchmarks mapping``): full-resolution and binned frames, full and decimated surfaces, on the oral-cavity phantom with homogeneous fluorescence.
-- ``contours``: Contour-based tissue classification and its miss rate (``physics.md`` section 6).
+- ``contours``: Contour-based tissue classification and its miss rate (docs/physics.md section 6.3).
 - ``correct``: Correct recorded tracked frames with the navigated illumination model (``fluo nav correct``): everything it needs comes from the MRML scene.
-- ``flux_map``: The navigated illumination model on ray-cast pixels (``physics.md`` section 6).
+- ``flux_map``: The navigated illumination model on ray-cast pixels (docs/physics.md section 6.1).
 - ``illumination_kernel``: The illumination cone evaluated per pixel in one compiled pass (video rate).
 - ``mismatch``: Surface-flux mapping validated on data it did not make itself: frames rendered on a finer true surface from true poses, corrected with the CBCT surface and tracked poses (tracking and hand-eye error).
 - ``pixel_cast``: Every camera pixel's ray cast onto the tissue surface.

@@ -1,4 +1,4 @@
-"""The navigated illumination model on ray-cast pixels (``physics.md`` section 6).
+"""The navigated illumination model on ray-cast pixels (docs/physics.md section 6.1).
 
 For a light coupled to the camera (cone in the camera frame) or tracked on its
 own (``light_to_world``):

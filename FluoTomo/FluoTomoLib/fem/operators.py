@@ -1,7 +1,7 @@
 """Finite-element CW diffusion on linear triangles (2D) and tetrahedra (3D).
 
 Weak form of -div(D grad Phi) + mua Phi = q with the Robin boundary
-Phi + 2 A D dPhi/dn = 0 (physics.md sections 1-2):
+Phi + 2 A D dPhi/dn = 0 (docs/physics.md sections 1-2):
 
     (K + M_mua + B / (2A)) Phi = b
 
@@ -71,7 +71,7 @@ class _Geometry:
     def pardiso_pattern(self):
         """The PARDISO analysis of this mesh's pattern, shared by its operators.
 
-        Meshes on a grid (structured_mesh, voxel_mesh: meta "method" =
+        Meshes on a grid (meshing.structured, meshing.voxel: meta "method" =
         "structured") are ordered by geometric nested dissection (0.05 s, fill
         within 2 % of METIS or below it, 0.13-0.22 s less analysis on 60-86k
         nodes);
@@ -296,7 +296,7 @@ def snap_to_surface(mesh, points_mm, max_snap_mm=5.0, what="source"):
 
 def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_mm=5.0):
     """Buried isotropic sources: one transport MFP below the nearest surface point,
-    along the inward normal (physics.md section 2)."""
+    along the inward normal (docs/physics.md section 2.2)."""
     q, facet, bary = snap_to_surface(mesh, surface_points_mm, max_snap_mm, "source")
     mua = _nodal(mesh, mua_per_mm, "mua_per_mm")
     musp = _nodal(mesh, musp_per_mm, "musp_per_mm")

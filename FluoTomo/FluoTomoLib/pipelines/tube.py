@@ -58,11 +58,11 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=1.0, n_sources=16,
     directly (the data-space solver makes a 10^4-10^5 node reconstruction
     mesh affordable, so the thesis's mapping from the forward mesh is not
     needed; using two different meshes keeps the simulation from being an
-    inverse crime).  ``camera_gain`` is G of physics.md section 5 in ADU per (W/mm^2/sr); by
+    inverse crime).  ``camera_gain`` is G of docs/physics.md section 5.1 in ADU per (W/mm^2/sr); by
     default it is chosen so the brightest pixel farther than ``exclude_mm``
     from the active source sits at ~60 % of a 14-bit range (what a user does
     with the exposure time); ``camera_binning`` and ``camera_distance_mm`` set
-    the rendered frames (igft_steps.acquire).  Returns a dict of
+    the rendered frames (``steps.acquire``).  Returns a dict of
     numbers, profiles and the meshes/fields for figures and the scene.
 
     ``recon_labels = (labels_kji, spacing_mm, origin_mm)`` is the label map the

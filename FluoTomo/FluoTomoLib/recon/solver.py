@@ -1,6 +1,6 @@
 """Reconstruction of fluorescence yield: no priors, soft priors, hard priors.
 
-physics.md section 8.  The update of the reference,
+docs/physics.md section 8.3.  The update of the reference,
 
     d_mu = (J^T J + R)^-1 J^T (y - F(mu)),
 

@@ -4,8 +4,8 @@ Modules
 -------
 - ``plots``: Figures of the simulation studies: forward model | NP | SP | HP on one colour
   scale; error against time.
-- ``thesis``: The thesis's 2D simulation studies A, B and C (physics.md section 8): meshes,
-  shared Jacobians, the reconstruction task, run_study / run_sweep.
+- ``thesis``: The thesis's 2D simulation studies A, B and C (docs/physics.md section 8.5):
+  meshes, shared Jacobians, the reconstruction task, run_study / run_sweep.
 - ``spec``: Studies as data: a grid (study file, --grid, named sweeps) expanded into tasks.
 """
 

@@ -1,4 +1,4 @@
-"""The thesis's 2D simulation studies A, B and C (physics.md section 8).
+"""The thesis's 2D simulation studies A, B and C (docs/physics.md section 8.5).
 
 50 x 30 mm tissue (top edge y = 0, depth downwards), forward mesh 0.5 mm,
 reconstruction mesh 1.0 mm (structured triangles: 6,161 / 12,000 and
@@ -19,7 +19,7 @@ node regions.
 Reconstruction scheme (``scheme``): "nirfast" (default) is what the thesis ran,
 NIRFAST's fluorescence reconstruction: log-amplitude data, the Jacobian
 normalised by the current yield, fixed lambda for NP and SP, started from the
-known background yield.  "reference" is the literal update of physics.md
+known background yield.  "reference" is the literal update of docs/physics.md section 8.3
 (linear data, zero start), kept for comparison.  HP's region basis
 (``hp_basis``) is built on the forward mesh by default, where the data live
 (NIRFAST's reconstruct_fl_region also works on the forward mesh).

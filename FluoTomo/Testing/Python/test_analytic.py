@@ -1,4 +1,4 @@
-"""Closed-form diffusion theory (physics.md sections 1 and 3) and `fluo analytic`."""
+"""Closed-form diffusion theory (docs/physics.md sections 1 and 3) and `fluo analytic`."""
 
 import json
 import warnings
@@ -29,7 +29,7 @@ from FluoTomoLib.optics import (
     transport_mfp_mm,
 )
 
-# physics.md table (thesis Table 2-5): ICG, mua_x, musp_x, mua_f,x, mua_m, musp_m
+# docs/physics.md section 3.4 (thesis Table 2-5): ICG, mua_x, musp_x, mua_f,x, mua_m, musp_m
 ICG_ROWS = [
     (0.0, 0.0026, 0.89, 0.0, 0.0029, 0.81),
     (0.4, 0.016, 0.89, 0.013, 0.0068, 0.81),
@@ -52,7 +52,7 @@ def test_boundary_coefficients():
 
 
 def test_derived_quantities_of_the_2d_study():
-    # physics.md section 8: "penetration depth at excitation 3.1 mm"
+    # docs/physics.md section 8.5: the thesis quotes "penetration depth at excitation 3.1 mm"
     assert penetration_depth_mm(0.032, 1.0) == pytest.approx(3.18, abs=0.01)
     assert diffusion_coefficient(0.032, 1.0) == pytest.approx(1 / (3 * 1.032))
     assert mueff(0.032, 1.0) == pytest.approx(np.sqrt(3 * 0.032 * 1.032))
@@ -83,7 +83,8 @@ def test_fluorescence_closed_form_equals_quadrature(unscattered):
 
 
 def test_fluorescence_values_of_the_diffusion_model():
-    # physics.md: 1D FEM of the coupled equations gives these (not the thesis column)
+    # docs/physics.md section 3.4: 1D FEM of the coupled equations gives these (not the
+    # thesis column, section 9)
     rows = [ICG_ROWS[1], ICG_ROWS[2], ICG_ROWS[5]]
     diffuse = [total_diffuse_fluorescence((r[1], r[2]), (r[4], r[5]), ETA * r[3], 1.33)
                for r in rows]

@@ -27,6 +27,11 @@ def test_study_a_rows_and_prior_benefit(tmp_path):
         by = {r["method"]: r for r in rows if r["case"] == case}
         assert abs(by["HP"]["peak_error_pct"]) < abs(by["NP"]["peak_error_pct"])
     assert len(out["figures"]) == 4
+    # four panels two a row, each ~500 px wide: readable (they were ~140 x 70 px)
+    from matplotlib.image import imread
+
+    height, width = imread(out["figures"][0]).shape[:2]
+    assert width >= 1000 and height >= 550
     # thesis: NP underestimates the small target (-68 %) and overestimates the 15 mm
     # one (+108 %); SP and HP within 10 % for targets >= 5 mm
     np_err = {r["case"]: r["peak_error_pct"] for r in rows if r["method"] == "NP"}
