@@ -414,17 +414,17 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         import numpy as np
 
         from fluoguide import mrml_io
-        from fluoguide.progress import check_cancel, report
+        from fluoguide.progress import check_cancel, report, scaled
         from FluoCalibLib.geometry.scene import calibration_node, store_handeye, store_intrinsics
         from FluoCalibLib.radiometry import scene as light_scene
         from FluoNavLib.devices import frame_store
         from FluoNavLib.mapping.synthetic import PoseError, tracked_acquisition
 
-        report(progress, 0.05, "rendering the tracked views")
         acq = tracked_acquisition(views, binning, transport,
                                   tracking=PoseError(trackingMm, trackingDeg),
                                   hand_eye=PoseError(handEyeMm, handEyeDeg),
-                                  surface_triangles=triangles)
+                                  surface_triangles=triangles, progress=scaled(progress, 0.0, 0.9),
+                                  cancel=cancel)
         check_cancel(cancel)
         cam, rc = acq["camera"], acq["radiometric"]
         surface = mrml_io.add_model(self.scene, "TissueSurface", acq["surface"])

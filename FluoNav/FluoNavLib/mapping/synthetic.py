@@ -221,7 +221,8 @@ def exact_oral_cavity_hits(camera, camera_to_world, geometry, max_view_deg=89.0)
 
 
 def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(0.25, 0.1),
-                        hand_eye=PoseError(0.3, 0.15), surface_triangles=62000, seed=0):
+                        hand_eye=PoseError(0.3, 0.15), surface_triangles=62000, seed=0,
+                        progress=None, cancel=None):
     """A navigated acquisition as the operating room makes it, for ``fluo nav synth``.
 
     The frames are rendered on the oral-cavity phantom's analytic surface from
@@ -238,6 +239,7 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
     (vtkPolyData), ``camera``, ``cone``, ``radiometric``, ``geometry``.
     """
     from fluoguide.phantoms import make_phantom
+    from fluoguide.progress import check_cancel, report
 
     from FluoNavLib.mapping.surface import surface_from_cbct
 
@@ -248,6 +250,7 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
     if not (np.isfinite(transport) and 0 < transport <= 10):
         raise FluoInputError("must be a finite number in (0, 10]", field="transport",
                              value=transport)
+    report(progress, 0.0, "the CBCT surface")
     phantom = make_phantom("oral-cavity", seed=seed)
     ijk = np.diag([*phantom.spacing_mm, 1.0])
     ijk[:3, 3] = phantom.origin_mm
@@ -260,6 +263,8 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
     hand_eye_reported = hand_eye.fixed(rng)
     frames, tool_poses, true_poses = [], [], []
     for k, pose in enumerate(view_poses(n_views)):
+        check_cancel(cancel)
+        report(progress, 0.2 + 0.8 * k / n_views, f"view {k + 1} of {n_views}")
         counts, _ = render_hits(exact_oral_cavity_hits(cam, pose, geometry), cone, pose,
                                 transport, rc, seed=seed + k)
         frames.append(counts.astype(np.uint16))
