@@ -190,7 +190,8 @@ def _mc_fluorescence(args):
                                                      "emission_se")}
         meta = data
     boundaries = ("empirical", "fresnel") if args.boundary == "both" else (args.boundary,)
-    fem = {b: compare.fem_acquisition(case, A=robin_A(1.37, b), detector_radius_mm=radius)
+    n = float(case["optics_x"][1][2])
+    fem = {b: compare.fem_acquisition(case, A=robin_A(n, b), detector_radius_mm=radius)
            for b in boundaries}
     src = np.asarray(case["sources_ras"])
     det = np.asarray(case["detectors_ras"])
@@ -255,7 +256,7 @@ def register(sub):
     p.add_argument("--boundary", choices=["both", "empirical", "fresnel"], default="both",
                    help="boundary constant(s) A for the FEM: empirical Reff polynomial, exact "
                    "Fresnel integrals, or both (default)")
-    p.add_argument("--mesh-level", choices=["coarse", "normal", "fine"], default="normal",
+    p.add_argument("--mesh-level", choices=["test", "coarse", "normal"], default="normal",
                    help="FEM mesh of the quarter box (default normal: 0.25 mm at the beam, "
                    "1 mm to 35 mm)")
     p.add_argument("--mc-in", default=None,

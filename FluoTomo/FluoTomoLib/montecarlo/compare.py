@@ -225,8 +225,11 @@ def fem_acquisition(case, A=None, detector_radius_mm=2.0, fine_mm=0.5):
 
 # ---------------------------------------------------------------- the comparison table
 
-# FEM vs MC: agreement means |FEM/MC - 1| <= AGREE_PCT + 2 MC standard errors
+# FEM vs MC: agreement means |FEM/MC - 1| <= AGREE_PCT + AGREE_SE MC standard errors.
+# 3 standard errors: with ~26 annuli from 5 to 30 mm, a 2-sigma margin fails one of
+# them by chance about half the time.
 AGREE_PCT = 3.0
+AGREE_SE = 3.0
 
 
 def _pct(a, b):
@@ -240,15 +243,16 @@ def _annulus_mean(f, rho, width, n_r=4):
     return float(np.dot(w, f(r)) / w.sum())
 
 
-def agreement_from_mm(rows, value_key, mc_key="mc", se_key="mc_se", tol_pct=AGREE_PCT):
-    """Smallest rho from which every row agrees: |value/mc - 1| <= tol + 2 se/mc."""
+def agreement_from_mm(rows, value_key, mc_key="mc", se_key="mc_se", tol_pct=AGREE_PCT,
+                      n_se=AGREE_SE):
+    """Smallest rho from which every row agrees: |value/mc - 1| <= tol + n_se se/mc."""
     ok = []
     for r in rows:
         mc, v, se = r[mc_key], r[value_key], r[se_key]
         if not (mc and np.isfinite(v)):
             ok.append(False)
             continue
-        lim = tol_pct + 200.0 * (se / mc if np.isfinite(se) else 0.0)
+        lim = tol_pct + 100.0 * n_se * (se / mc if np.isfinite(se) else 0.0)
         ok.append(abs(v / mc - 1) * 100 <= lim)
     start = None
     for i in range(len(rows) - 1, -1, -1):
@@ -266,7 +270,7 @@ def validate_halfspace(medium, merged, boundaries=("empirical", "fresnel"), leve
 
     Returns a dict: ``rows`` (R per annulus), ``fluence_rows``, ``A`` (boundary ->
     value), ``agree_from_mm`` (boundary -> the smallest rho from which the FEM agrees
-    with MC within AGREE_PCT % + 2 MC standard errors), ``reference`` summary,
+    with MC within AGREE_PCT % + AGREE_SE MC standard errors), ``reference`` summary,
     ``warnings``, ``fem_seconds``.
     """
     from fluoguide.progress import report
@@ -349,13 +353,15 @@ def validate_halfspace(medium, merged, boundaries=("empirical", "fresnel"), leve
         frows.append(row)
     agree = {b: agreement_from_mm(rows, f"fem_{b}") for b in fems}
     near = [r for r in rows if agree[main] is None or r["rho_mm"] < agree[main]]
-    if near:
-        worst = max(near, key=lambda r: abs(r["fem_vs_mc_pct"] or 0))
+    if agree[main] is None:
+        warnings.append(f"the FEM ({main}) does not agree with Monte Carlo within "
+                        f"{AGREE_PCT:g} % + {AGREE_SE:g} MC errors at the far end of R(rho)")
+    elif near:
+        txt = ", ".join(f"{r['fem_vs_mc_pct']:+.1f} % at {r['rho_mm']:g} mm" for r in near[-3:])
         warnings.append(
-            f"near the beam diffusion is not transport: the FEM differs from Monte Carlo by "
-            f"{worst['fem_vs_mc_pct']:+.1f} % at {worst['rho_mm']:g} mm; it agrees within "
-            f"{AGREE_PCT:g} % (+ 2 MC errors) from "
-            f"{agree[main] if agree[main] is not None else 'no'} mm outwards")
+            f"near the beam diffusion is not transport: the FEM ({main}) differs from Monte "
+            f"Carlo by {txt}; it agrees within {AGREE_PCT:g} % (+ {AGREE_SE:g} MC errors) from "
+            f"{agree[main]:g} mm outwards")
     noisy = [r["rho_mm"] for r in rows if r["mc_rel_se_pct"] and r["mc_rel_se_pct"] > AGREE_PCT]
     if noisy:
         warnings.append(f"Monte Carlo standard error above {AGREE_PCT:g} % at rho "

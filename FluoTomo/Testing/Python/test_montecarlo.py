@@ -173,11 +173,13 @@ def test_our_mc_agrees_with_the_independent_run():
 
 @pytest.fixture(scope="module")
 def fem_n137():
+    from FluoTomoLib import optics
     from FluoTomoLib.montecarlo.compare import validate_halfspace
 
     data = reference.read_set(reference.set_path("halfspace_n137"))
     med = reference.medium_of_set(data)
-    return validate_halfspace(med, reference.merged_of_set(data), level="test")
+    return validate_halfspace(med, reference.merged_of_set(data), level="test",
+                              boundaries=(optics.DEFAULT_BOUNDARY,))
 
 
 def test_fem_matches_stored_mc_from_5_mm_at_n137(fem_n137):
@@ -189,15 +191,18 @@ def test_fem_matches_stored_mc_from_5_mm_at_n137(fem_n137):
         if 5 <= rho <= 25:
             assert abs(r["fem_vs_mc_pct"]) <= 4.0 + 2 * r["mc_rel_se_pct"], (rho, r)
     assert rows[2.0]["fem_vs_mc_pct"] > 3.0
-    assert any("near the beam" in w for w in fem_n137["warnings"])
+    assert fem_n137["agree_from_mm"][fem_n137["boundary"]] <= 5.0
 
 
 def test_stored_fluorescence_set_against_the_fem():
     """Emission (reciprocity MC) and excitation against the FEM on the same label map.
 
-    Tolerances: 10 % + 2 MC errors for emission (diffusion near the 4 mm inclusion,
-    7 mm deep, under 0-10 mm optodes; docs/validation.md has the measured numbers)
-    and excitation pairs 10 mm or more apart."""
+    Measured with the 0.5 mm FEM mesh (docs/validation.md): emission within 5 % for
+    both boundary constants, the spread between mirror-image pairs (+-3 %) being the
+    diffusion model's near-source error of the optode above the inclusion (its top 3
+    mm deep); excitation 10 mm apart within 5.2 %.  Tolerance 8 % + 2 MC errors
+    (the test mesh is 0.75 mm).  Pairs 20 mm apart are not tested: fewer than 10
+    photons per run reach a 2 mm disc there."""
     from FluoTomoLib.montecarlo.compare import fem_acquisition
 
     data = reference.read_set(reference.set_path(reference.FLUORESCENCE_SET))
@@ -207,12 +212,13 @@ def test_stored_fluorescence_set_against_the_fem():
     fem = fem_acquisition(case, detector_radius_mm=data["detector_radius_mm"], fine_mm=0.75)
     em, em_se = np.array(data["emission"]), np.array(data["emission_se"])
     rel = np.abs(fem["emission"] / em - 1)
-    assert np.all(rel <= 0.10 + 2 * em_se / em), rel
+    assert np.all(rel <= 0.08 + 2 * em_se / em), rel
     ex, ex_se = np.array(data["excitation"]), np.array(data["excitation_se"])
     src, det = np.array(case["sources_ras"]), np.array(case["detectors_ras"])
-    far = np.linalg.norm(src[:, None] - det[None], axis=2) >= 10
-    rel_x = np.abs(fem["excitation"][far] / ex[far] - 1)
-    assert np.all(rel_x <= 0.10 + 2 * ex_se[far] / ex[far]), rel_x
+    dist = np.linalg.norm(src[:, None] - det[None], axis=2)
+    pair = (dist >= 5) & (dist <= 15)
+    rel_x = np.abs(fem["excitation"][pair] / ex[pair] - 1)
+    assert np.all(rel_x <= 0.08 + 2 * ex_se[pair] / ex[pair]), rel_x
 
 
 # ---------------------------------------------------------------- CLI
@@ -234,7 +240,7 @@ def test_cli_validate_mc_on_a_stored_set(tmp_path):
     row = out["rows"][5]
     for key in ("rho_mm", "mc", "mc_se", "fem", "fem_vs_mc_pct"):
         assert key in row
-    assert out["agree_from_mm"]["empirical"] <= 6.0
+    assert out["agree_from_mm"]["empirical"] <= 6.0  # n 1.0: +3.5 % at 5 mm (issue 19)
     assert (tmp_path / "validate_mc.png").stat().st_size > 10_000
     assert (tmp_path / "validate_mc_reflectance.csv").read_text().startswith("rho_mm,")
 
