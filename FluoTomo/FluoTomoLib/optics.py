@@ -8,6 +8,7 @@ albedo outside diffusion's range (musp/mua < 10) warns.
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 
 import numpy as np
@@ -54,6 +55,23 @@ def check_properties(mua_per_mm, musp_per_mm, n=None, where="optical properties"
 # integrated exactly (fresnel_moments).  docs/validation.md compares both with Monte Carlo.
 BOUNDARY_METHODS = ("empirical", "fresnel")
 DEFAULT_BOUNDARY = "empirical"
+
+
+@contextlib.contextmanager
+def boundary_method(method):
+    """Within the block, ``robin_A(n)`` (and so the FEM and the closed forms) uses
+    ``method``: to reproduce work made with another boundary constant (the thesis's
+    tables used "empirical").  Not thread-safe: it sets the module default."""
+    global DEFAULT_BOUNDARY
+    if method not in BOUNDARY_METHODS:
+        raise FluoInputError(f"unknown boundary method; use one of {', '.join(BOUNDARY_METHODS)}",
+                             field="boundary", value=method)
+    old = DEFAULT_BOUNDARY
+    DEFAULT_BOUNDARY = method
+    try:
+        yield
+    finally:
+        DEFAULT_BOUNDARY = old
 
 
 def reff(n):
