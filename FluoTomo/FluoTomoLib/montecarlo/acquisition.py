@@ -243,17 +243,19 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
     seeds = []
     t0 = time.perf_counter()
     total = runs * (S + D)
-    k = 0
     warnings = []
+
+    def next_seed(message):
+        check_cancel(cancel)
+        report(progress, len(seeds) / total, f"Monte Carlo: {message}")
+        seeds.append(seed + len(seeds))
+        return seeds[-1]
+
     area = np.pi * detector_radius_mm ** 2
     for r in range(runs):
         adj = []
         for d, (pos, n_in) in enumerate(launch_d):
-            check_cancel(cancel)
-            report(progress, k / total, f"Monte Carlo: detector {d + 1}/{D}, repeat {r + 1}/{runs}")
-            s_ = seed + k
-            seeds.append(s_)
-            k += 1
+            s_ = next_seed(f"detector {d + 1}/{D}, repeat {r + 1}/{runs}")
             lab = geo.labels_ijk[tuple(np.floor(pos).astype(int))]
             n_det = rows_m[lab - 1][2]
             res = eng.run(_cfg(geo, rows_m, g, photons, s_, pos, n_in,
@@ -261,11 +263,7 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
             adj.append((_fluence(res, geo, mua_m) * (detector_acceptance(n_det) / (4 * np.pi)),
                         n_det))
         for s, (pos, n_in) in enumerate(launch_s):
-            check_cancel(cancel)
-            report(progress, k / total, f"Monte Carlo: source {s + 1}/{S}, repeat {r + 1}/{runs}")
-            s_ = seed + k
-            seeds.append(s_)
-            k += 1
+            s_ = next_seed(f"source {s + 1}/{S}, repeat {r + 1}/{runs}")
             res = eng.run(_cfg(geo, rows_x, g, photons, s_, pos, n_in))
             phi_x = _fluence(res, geo, mua_x)
             dp = res.get("detp") or {}
