@@ -31,6 +31,7 @@ CLI_MODULES = [
     "fluoapp.commands.app",
     "fluoapp.commands.fem",
     "fluoapp.commands.study",
+    "fluoapp.commands.validate",
     "fluoapp.commands.mesh",
     "fluoapp.commands.calib_geometry",
     "fluoapp.commands.calib_light",
