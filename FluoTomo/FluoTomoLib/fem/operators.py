@@ -183,7 +183,9 @@ def _check_resolution(mesh, mua, musp, name):
     from FluoTomoLib.fem.resolution import element_sizes
     from FluoTomoLib.optics import mueff
 
-    h = float(np.median(element_sizes(mesh)))
+    # the median of at most ~20k elements: this runs on every operator
+    h = float(np.median(element_sizes(mesh, np.arange(0, mesh.n_elements,
+                                                      max(1, mesh.n_elements // 20000)))))
     me = float(np.max(mueff(mua, musp)))
     if h * me >= NEGATIVE_FROM_MUEFF_H:
         warnings.warn(f"{name}: elements (~{h:.2g} mm) are coarse for a decay length 1/mueff = "
@@ -357,8 +359,7 @@ def _inward_directions(mesh, q, facet, bary, tol=1e-9):
     out = nrm[facet].copy()
     for i in np.flatnonzero(np.any(bary <= tol, axis=1)):
         on = bf[facet[i]][bary[i] > tol]          # the nodes spanning q's edge or vertex
-        around = np.flatnonzero(np.all(np.isin(bf, on).sum(axis=1, keepdims=True) >= len(on),
-                                       axis=1))
+        around = np.flatnonzero(np.isin(bf, on).sum(axis=1) == len(on))
         if len(on) == 1 and mesh.dim == 3:
             # vertex: each facet weighted by its angle there
             w = np.empty(len(around))

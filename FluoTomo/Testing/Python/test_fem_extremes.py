@@ -49,8 +49,11 @@ def _cell_mesh(mua, musp, h, rho):
 
 
 def run_cell(mua, musp, n, h, rho=RHO, max_nodes=150_000):
-    """One cell of the matrix; returns its outcome ("met", "warned", "refused",
-    "skipped": too large a mesh for this test) and checks the contract."""
+    """One cell of the matrix; checks the contract and returns its outcome
+    ("met": every pair within its estimate, "warned": some pairs named in the
+    warnings, the others met, "refused", "skipped": too large a mesh for this
+    test) and the number of pairs checked against their estimate (or the
+    refusal's text, or the mesh size)."""
     mesh, src, det = _cell_mesh(mua, musp, h, rho)
     if mesh.n_nodes > max_nodes:
         return "skipped", mesh.n_nodes
@@ -78,9 +81,9 @@ def run_cell(mua, musp, n, h, rho=RHO, max_nodes=150_000):
     assert np.all(actual[quiet] <= np.log1p(worst[quiet]) + sides + 1e-3), (
         mua, musp, n, h, actual, worst, sides)
     if np.all(quiet):
-        return "met", float(np.max(actual))
+        return "met", int(quiet.sum())
     assert any("may be off by more than 5 %" in w for w in acc["warnings"]), acc["warnings"]
-    return "warned", float(np.max(actual))
+    return "warned", int(quiet.sum())
 
 
 FAST = [(0.01, 1.0, 1.37, 0.25), (0.01, 1.0, 1.37, 1.0), (2.0, 200.0, 1.6, 1.0),
@@ -95,14 +98,18 @@ def test_forward_extremes_sample(mua, musp, n, h):
 
 @pytest.mark.slow
 def test_forward_extremes_matrix():
-    outcomes = {}
+    outcomes, checked = {}, 0
     for mua, musp, n, h in itertools.product(MUA, MUSP, (1.0, 1.6), H):
-        outcomes[(mua, musp, n, h)] = run_cell(mua, musp, n, h)[0]
+        outcome, detail = run_cell(mua, musp, n, h)
+        outcomes[(mua, musp, n, h)] = outcome
+        checked += detail if outcome in ("met", "warned") else 0
     counts = {k: sum(v == k for v in outcomes.values()) for k in ("met", "warned", "refused",
                                                                   "skipped")}
-    # the matrix must exercise every outcome, and skip little
-    assert counts["met"] and counts["warned"] and counts["refused"], counts
-    assert counts["skipped"] <= len(outcomes) // 4, counts
+    # every cell has rho = 0.5 mm, within an element or two of its source, so
+    # none is "met" as a whole; the pairs the guard calls accurate were checked
+    # (2026-11-24: 32 cells warned, 60 refused, 4 skipped, 10 pairs checked)
+    assert counts["warned"] and counts["refused"] and checked >= 5, (counts, checked)
+    assert counts["skipped"] <= len(outcomes) // 10, counts
 
 
 def test_analytic_extremes_matrix(capsys):

@@ -208,9 +208,9 @@ def test_cli_mesh_grades_to_the_optodes(tmp_path, capsys):
 
     from FluoTomoLib.meshing.vtu_io import read_mesh
 
-    lab = np.ones((30, 60, 60), np.uint8)                 # z, y, x: 60 x 60 x 30 mm slab
+    lab = np.ones((16, 36, 36), np.uint8)                 # z, y, x: 36 x 36 x 16 mm slab
     img = sitk.GetImageFromArray(lab)
-    img.SetOrigin((-29.5, -29.5, -29.5))                  # LPS: x, y flip to RAS
+    img.SetOrigin((-17.5, -17.5, -15.5))                  # LPS: x, y flip to RAS
     sitk.WriteImage(img, str(tmp_path / "slab.nrrd"))
     (tmp_path / "s.csv").write_text("x,y,z\n-4,0,0\n")
     (tmp_path / "d.csv").write_text("x,y,z\n4,0,0\n8,0,0\n")
@@ -235,3 +235,39 @@ def test_cli_mesh_grades_to_the_optodes(tmp_path, capsys):
     assert main(base + ["--out", str(tmp_path / "x.vtu"), "--optodes", str(tmp_path / "s.csv"),
                         "--fine-size", "3"]) == 2
     assert "--fine-size" in capsys.readouterr().err
+
+
+def _exact_2d(x, mua, musp, n):
+    """Robin half-plane surface fluence of a line source buried 1/mut' (the 2D
+    FEM's model): the line of images with G = K0(mueff r) / (2 pi D)."""
+    from scipy.integrate import quad
+    from scipy.special import k1e
+
+    from FluoTomoLib.optics import robin_A
+
+    mut = mua + musp
+    D, z0, me = 1 / (3 * mut), 1 / mut, np.sqrt(3 * mua * mut)
+    zb = 2 * robin_A(n) * D
+
+    def f(s):
+        Z = z0 + s
+        r = np.hypot(x, Z)
+        return np.exp(-s / zb - me * r) * me * k1e(me * r) * Z / (2 * np.pi * D * r)
+    return 2 * quad(f, 0, np.inf, limit=500, epsabs=0, epsrel=1e-12)[0]
+
+
+@pytest.mark.parametrize("h, mua, musp", [(1.0, 0.02, 1.0), (0.5, 0.05, 3.0)])
+def test_two_dimensional_meshes_stay_within_the_three_dimensional_estimate(h, mua, musp):
+    """The table was measured in 3D; triangles use it too.  Spot check: the 2D
+    errors against the exact half-plane solution are within the estimate."""
+    from FluoTomoLib.meshing.structured import rectangle_mesh
+
+    m = rectangle_mesh(np.linspace(-40, 40, int(80 / h) + 1), np.linspace(-30, 0, int(30 / h) + 1))
+    p = dict(mua_per_mm=mua, musp_per_mm=musp, n=1.37)
+    x0 = -5.0 + 0.37 * h                                  # off the grid
+    rho = np.array([3.0, 5.0, 10.0, 20.0])
+    fm = FluorescenceModel(m, p, p, [[x0, 0.0]], [[x0 + r, 0.0] for r in rho])
+    actual = np.abs(np.log(fm.excitation_data()[0]
+                           / np.array([_exact_2d(r, mua, musp, 1.37) for r in rho])))
+    est = np.log1p(np.array(fm.accuracy()["estimated_rel_err"]["excitation"]["worst_case"][0]))
+    assert np.all(actual <= est)
