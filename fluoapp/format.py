@@ -44,6 +44,8 @@ KEYS = {
     "A": "boundary_coefficient_A",
     "R_rho": "reflectance_per_mm2",
     "robin_surface_fluence": "robin_surface_fluence_per_mm2",
+    "ln_robin_surface_fluence": "ln_robin_surface_fluence [ln of 1/mm^2]",
+    "rho_diffusive": "diffusive (dimensionless)",
     "F": "diffuse_fluorescence_F",
     "detector_fluence": "detector_fluence_per_mm2 (per W of source power)",
     "jacobian_mua_norm": "jacobian_mua_norm_per_mm",
@@ -87,7 +89,8 @@ DIMENSIONLESS = re.compile(
 # lists groups of equal-length lists printed side by side as one table;
 # ``group_rows_by`` splits a table into one per value of that column.
 COMMANDS = {
-    "analytic": {"columns": [("rho_mm", "R_rho", "robin_surface_fluence")]},
+    "analytic": {"columns": [("rho_mm", "R_rho", "robin_surface_fluence",
+                              "ln_robin_surface_fluence", "rho_diffusive")]},
     "study": {"group_rows_by": "case"},
 }
 
@@ -127,6 +130,10 @@ def _scalar(v):
 def _numeric_list(v):
     return isinstance(v, list) and all(
         x is None or (isinstance(x, (int, float)) and not isinstance(x, bool)) for x in v)
+
+
+def _flag_list(v):
+    return isinstance(v, list) and len(v) > 0 and all(isinstance(x, bool) for x in v)
 
 
 def _matrix(v):
@@ -188,7 +195,9 @@ class _Writer:
         """The command's column groups: equal-length lists become one table."""
         for group in self.columns:
             present = [k for k in group if k in d]
-            if len(present) > 1 and all(_numeric_list(d[k]) for k in present) and \
+            # numbers and yes/no flags side by side (bools are not numeric elsewhere)
+            if len(present) > 1 and all(_numeric_list(d[k]) or _flag_list(d[k])
+                                        for k in present) and \
                     len({len(d[k]) for k in present}) == 1:
                 rows = [{k: d[k][i] for k in present} for i in range(len(d[present[0]]))]
                 d = {(_Table(rows) if k == present[0] else k): v for k, v in d.items()

@@ -78,6 +78,41 @@ def boundary_method(method):
         DEFAULT_BOUNDARY = old
 
 
+# Below this many transport mean free paths from a pencil beam, diffusion theory
+# over-predicts the reflectance by more than ~3-5 %: Monte Carlo (MCX, mua 0.01,
+# musp 1, n 1.37; montecarlo/data/independent_reflectance_n137.csv) against the exact
+# Robin solution:
+# +7.0 % at 1 MFP', +7.8 % at 2, +4.0 % at 3, +1.4 % at 4, within 2 % from 5
+# (docs/fem.md).
+NEAR_SOURCE_MFP = 4.0
+
+
+def diffusion_validity(mua_per_mm, musp_per_mm, rho_mm=None):
+    """Where diffusion theory may be wrong by more than a few percent.
+
+    Returns a list of messages (empty when valid): a reduced albedo below
+    diffusion's range (musp/mua < 10) and distances within
+    :data:`NEAR_SOURCE_MFP` transport mean free paths of the source.
+    """
+    mua = np.atleast_1d(np.asarray(mua_per_mm, float))
+    musp = np.atleast_1d(np.asarray(musp_per_mm, float))
+    out = []
+    if np.any(musp < 10 * mua):
+        ratio = float(np.min(musp / np.maximum(mua, 1e-300)))
+        out.append(f"musp/mua = {ratio:.3g} < 10: not a diffusive medium, diffusion theory "
+                   "is inaccurate here")
+    if rho_mm is not None:
+        rho = np.atleast_1d(np.asarray(rho_mm, float))
+        near_mm = NEAR_SOURCE_MFP * float(np.max(transport_mfp_mm(mua, musp)))
+        close = rho < near_mm
+        if np.any(close):
+            out.append(f"{int(close.sum())} of {rho.size} distance(s) are within "
+                       f"{NEAR_SOURCE_MFP:g} transport mean free paths ({near_mm:.3g} mm) of the "
+                       "source, where diffusion theory over-predicts the reflectance by 4-8 % "
+                       "(Monte Carlo, docs/fem.md)")
+    return out
+
+
 def reff(n):
     """Effective reflection coefficient of a tissue-air boundary, relative index n
     (empirical polynomial fit, docs/physics.md section 1)."""

@@ -115,9 +115,11 @@ def test_analytic_prints_lines_with_units(capsys):
 
     rd = float(total_diffuse_reflectance(0.016, 0.89, 1.33))
     assert f"diffuse_reflectance_Rd (dimensionless): {rd:.4g}" in text
-    # rho and R(rho) side by side: one row per distance
+    # rho, R(rho), the exact surface fluence, its log and the diffusive flag side by
+    # side: one row per distance
     rows = [ln.split() for ln in text.splitlines() if ln.startswith(("3 ", "10 "))]
-    assert [r[0] for r in rows] == ["3", "10"] and all(len(r) == 3 for r in rows)
+    assert [r[0] for r in rows] == ["3", "10"] and all(len(r) == 5 for r in rows)
+    assert [r[-1] for r in rows] == ["no", "yes"]     # 3 mm is within 4 MFP' (4.4 mm)
 
 
 def test_json_is_unchanged_by_the_text_form(capsys):
@@ -126,7 +128,8 @@ def test_json_is_unchanged_by_the_text_form(capsys):
     doc = json.loads(capsys.readouterr().out)
     assert set(doc) == {"mua_per_mm", "musp_per_mm", "n", "Rd", "mueff",
                         "penetration_depth_mm", "D", "A", "rho_mm", "R_rho",
-                        "robin_surface_fluence"}
+                        "robin_surface_fluence", "ln_robin_surface_fluence", "rho_diffusive",
+                        "diffusion_valid", "warnings"}
     from FluoTomoLib.analytic import spatially_resolved_reflectance
 
     # the numbers are the library's, to the last digit (the text form rounds, JSON never)

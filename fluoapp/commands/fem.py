@@ -21,20 +21,25 @@ def _floats(text, field):
 
 def _analytic(args):
     from FluoTomoLib.analytic import (
-        robin_surface_fluence,
+        log_robin_surface_fluence,
         spatially_resolved_reflectance,
         total_diffuse_fluorescence,
         total_diffuse_reflectance,
     )
     from FluoTomoLib.optics import (
+        NEAR_SOURCE_MFP,
         check_properties,
         diffusion_coefficient,
+        diffusion_validity,
         mueff,
         penetration_depth_mm,
         robin_A,
+        transport_mfp_mm,
     )
 
-    check_properties(args.mua, args.musp, args.n, where="--mua/--musp/--n")
+    check_properties(args.mua, args.musp, args.n, where="--mua/--musp/--n", warn=False)
+    rho = np.array(_floats(args.rho, "--rho")) if args.rho else None
+    warnings = diffusion_validity(args.mua, args.musp, rho)
     out = {
         "mua_per_mm": args.mua, "musp_per_mm": args.musp, "n": args.n,
         "Rd": float(total_diffuse_reflectance(args.mua, args.musp, args.n)),
@@ -42,20 +47,33 @@ def _analytic(args):
         "penetration_depth_mm": float(penetration_depth_mm(args.mua, args.musp)),
         "D": float(diffusion_coefficient(args.mua, args.musp)),
         "A": float(robin_A(args.n)),
+        "diffusion_valid": args.musp >= 10 * args.mua,
     }
-    if args.rho:
-        rho = np.array(_floats(args.rho, "--rho"))
+    if rho is not None:
         out["rho_mm"] = rho.tolist()
         out["R_rho"] = spatially_resolved_reflectance(rho, args.mua, args.musp, args.n).tolist()
-        out["robin_surface_fluence"] = robin_surface_fluence(rho, args.mua, args.musp,
-                                                             args.n).tolist()
+        log_phi = log_robin_surface_fluence(rho, args.mua, args.musp, args.n)
+        with np.errstate(under="ignore"):
+            out["robin_surface_fluence"] = np.exp(log_phi).tolist()
+        # values below the smallest double underflow to 0; their logs stay exact
+        out["ln_robin_surface_fluence"] = log_phi.tolist()
+        out["rho_diffusive"] = (rho >= NEAR_SOURCE_MFP * transport_mfp_mm(args.mua, args.musp)
+                                ).tolist()
+        if np.any(log_phi < np.log(np.finfo(float).tiny)):
+            warnings.append(f"{int(np.sum(log_phi < np.log(np.finfo(float).tiny)))} fluence "
+                            "value(s) are below 1e-308 and print as 0: use "
+                            "ln_robin_surface_fluence")
     if args.yield_per_mm is not None:
         mua_m = args.mua_m if args.mua_m is not None else args.mua
         musp_m = args.musp_m if args.musp_m is not None else args.musp
+        check_properties(mua_m, musp_m, args.n, where="--mua-m/--musp-m", warn=False)
+        warnings += [f"emission: {w}" for w in diffusion_validity(mua_m, musp_m)]
+        out["diffusion_valid"] = out["diffusion_valid"] and musp_m >= 10 * mua_m
         out["F"] = total_diffuse_fluorescence((args.mua, args.musp), (mua_m, musp_m),
                                               args.yield_per_mm, args.n,
                                               include_unscattered=args.unscattered)
         out["F_includes_unscattered_beam"] = bool(args.unscattered)
+    out["warnings"] = warnings
     return out
 
 
@@ -88,8 +106,12 @@ def _read_points_csv(path, field):
 
 
 def _forward(args):
+    import warnings
+
     from FluoTomoLib.fem.forward import FluorescenceModel, safe_log
+    from FluoTomoLib.fem.halfspace import half_space_check, half_space_excitation_data
     from FluoTomoLib.meshing.vtu_io import read_mesh
+    from FluoTomoLib.optics import check_properties
 
     t0 = time.perf_counter()
     mesh = read_mesh(args.mesh)
@@ -99,11 +121,52 @@ def _forward(args):
         if pts.shape[1] != mesh.dim:
             raise FluoInputError(f"points are {pts.shape[1]}D but the mesh is {mesh.dim}D",
                                  file=getattr(args, name), field=name)
+    check_properties(args.mua, args.musp, args.n, where="--mua/--musp/--n", warn=False)
     props = dict(mua_per_mm=args.mua, musp_per_mm=args.musp, n=args.n)
-    fm = FluorescenceModel(mesh, props, props, src, det, solver=args.solver)
-    data = fm.excitation_data()
     out = {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "sources": len(src),
-           "detectors": len(det), "detector_fluence": data.tolist()}
+           "detectors": len(det)}
+    check = None
+    if args.model in ("auto", "analytic"):
+        if args.jacobian and args.model == "analytic":
+            raise FluoInputError("the Jacobian needs the FEM (--model fem or auto)",
+                                 field="--model", value=args.model)
+        check = half_space_check(mesh, args.mua, args.musp, args.n, src, det)
+        out["analytic_check"] = check
+        if args.model == "analytic" and not check["usable"]:
+            raise FluoInputError(f"the analytic half-space model does not apply: "
+                                 f"{check['reason']}", file=args.mesh, field="--model",
+                                 value="analytic")
+    if check is not None and check["usable"] and not args.jacobian:
+        from FluoTomoLib.optics import diffusion_validity, transport_mfp_mm
+        from FluoTomoLib.optics import NEAR_SOURCE_MFP
+
+        data = half_space_excitation_data(mesh, args.mua, args.musp, args.n, src, det)
+        out["model"] = "analytic"
+        out["detector_fluence"] = data.tolist()
+        notes = diffusion_validity(args.mua, args.musp)
+        rho = np.linalg.norm(src[:, None, :] - det[None, :, :], axis=2)
+        near = rho < NEAR_SOURCE_MFP * transport_mfp_mm(args.mua, args.musp)
+        if near.any():
+            notes.append(f"{int(near.sum())} pair(s) are within {NEAR_SOURCE_MFP:g} transport "
+                         "mean free paths: diffusion theory itself over-predicts there")
+        out["accuracy"] = {"model_error_bound_rel": check["boundary_effect_bound"],
+                           "what": "the exact Robin half-space solution; other boundaries of "
+                                   "the mesh change the data by at most this much"}
+        out["warnings"] = notes
+        out["log_valid_fraction"] = float(safe_log(data)[1].mean())
+        out["seconds"] = time.perf_counter() - t0
+        return out
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fm = FluorescenceModel(mesh, props, props, src, det, solver=args.solver)
+        acc = fm.accuracy()
+    if acc["refuse"] and not args.force:
+        raise FluoInputError("; ".join(acc["refuse"]) + _size_hint(acc) + " (--force to output "
+                             "the data anyway, with these warnings)", file=args.mesh,
+                             field="elements")
+    data = fm.excitation_data()
+    out["model"] = "fem"
+    out["detector_fluence"] = data.tolist()
     if args.jacobian:
         J = fm.jacobian_mua_x()
         out["jacobian_shape"] = list(J.shape)
@@ -112,10 +175,27 @@ def _forward(args):
             np.save(args.jacobian_out, J)
             out["jacobian_file"] = str(Path(args.jacobian_out).resolve())
     out["log_valid_fraction"] = float(safe_log(data)[1].mean())
+    out["accuracy"] = {k: acc[k] for k in ("target_rel_err", "estimated_rel_err",
+                                            "element_size_needed_mm")}
+    out["negative_nodes"] = acc["negative_nodes"]
+    notes = acc["refuse"] + acc["warnings"]
+    for w in caught:                      # the operators' own warnings, once each
+        text = str(w.message)
+        if text not in notes:
+            notes.append(text)
+    out["warnings"] = notes
+    out["forced"] = bool(acc["refuse"]) and bool(args.force)
     out["solver"] = fm.solver_name
     out["timings"] = fm.timings
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def _size_hint(acc):
+    size = acc.get("element_size_needed_mm")
+    if size is None or not np.isfinite(size):
+        return ""
+    return f"; elements of at most {size:.3g} mm near the optodes would do"
 
 
 def register(sub):
@@ -155,7 +235,16 @@ def register(sub):
                    help="save the Jacobian as .npy (default: not saved)")
     p.add_argument("--solver", default="auto",
                    help="linear solver: pardiso (MKL Cholesky), splu (SuperLU), amg (algebraic "
-                   "multigrid CG, for meshes too large to factorise); default auto: PARDISO "
-                   "when MKL loads, else SuperLU")
+                   "multigrid CG, only for meshes too large to factorise: docs/fem.md); default "
+                   "auto: PARDISO when MKL loads, else SuperLU")
+    p.add_argument("--model", default="auto", choices=("auto", "fem", "analytic"),
+                   help="auto (default): the exact half-space solution when the check in the "
+                   "JSON's analytic_check says the tissue under the optodes is one (homogeneous, "
+                   "flat, other boundaries changing the data by < 1 %%) and no Jacobian is asked "
+                   "for, else the FEM; fem or analytic to choose")
+    p.add_argument("--force", action="store_true",
+                   help="output FEM data even where they are unusable (negative fluence, "
+                   "elements beyond the measured range), with the reasons in warnings (default: "
+                   "refuse)")
     add_json_flag(p)
     p.set_defaults(func=_forward)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
+
 from fluoapp.cli import add_json_flag
 from fluoguide.errors import FluoInputError
 
@@ -96,8 +98,6 @@ def _parse_refine(text):
 
 
 def _handler(args):
-    import numpy as np
-
     from FluoTomoLib.meshing.report import quality_report
     from FluoTomoLib.meshing.voxel import labelmap_region_volumes, mesh_labelmap_structured
     from FluoTomoLib.meshing.vtu_io import write_vtu
@@ -106,11 +106,15 @@ def _handler(args):
     labels, spacing, origin, direction = _read_labelmap(args.labelmap)
     roi = _parse_floats(args.roi, "--roi", 6) if args.roi else None
     if not args.fast:
+        if args.optodes:
+            raise FluoInputError("optode grading needs the structured mesher (--fast)",
+                                 field="--optodes")
         return _quality(args, labels, spacing, origin, direction, roi, t0)
     if args.refine:
         raise FluoInputError("--refine needs the quality mesher (drop --fast)", field="--refine")
+    edges = _optode_edges(args, labels, spacing, origin, direction) if args.optodes else None
     mesh = mesh_labelmap_structured(labels, spacing, origin, args.size, roi=roi,
-                                    direction=direction)
+                                    direction=direction, edges_mm=edges)
     if roi is None:
         lo, hi = mesh.bounds()
         roi = [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]
@@ -120,8 +124,41 @@ def _handler(args):
     write_vtu(mesh, args.out)
     report["file"] = str(Path(args.out).resolve())
     report["method"] = "structured (Kuhn, 6 tets per cell)"
+    if edges is not None:
+        report["optode_grading"] = {"fine_mm": _fine_sizes(args.fine_size), "coarse_mm": args.size,
+                                    "grid_lines": [len(e) for e in mesh.meta["edges_mm"]]}
     report["seconds"] = time.perf_counter() - t0
     return report
+
+
+def _fine_sizes(text):
+    vals = _parse_floats(text, "--fine-size", len(str(text).split(",")))
+    if len(vals) not in (1, 3) or not all(np.isfinite(v) and v > 0 for v in vals):
+        raise FluoInputError("needs one size or x,y,z sizes > 0 [mm]", field="--fine-size",
+                             value=text)
+    return vals * 3 if len(vals) == 1 else vals
+
+
+def _optode_edges(args, labels, spacing, origin, direction):
+    """Grid lines fine at the optodes' coordinates, growing to --size away
+    (structured.optode_axis), over the label map's extent."""
+    from fluoapp.commands.fem import _read_points_csv
+    from FluoTomoLib.meshing.structured import optode_axis
+
+    pts = np.concatenate([_read_points_csv(f, "--optodes") for f in args.optodes.split(",")])
+    if pts.shape[1] != 3:
+        raise FluoInputError("optodes must be x,y,z points [mm]", file=args.optodes,
+                             field="--optodes")
+    fine = _fine_sizes(args.fine_size)
+    if any(f > args.size for f in fine):
+        raise FluoInputError("must not be larger than --size", field="--fine-size",
+                             value=args.fine_size)
+    shape = np.array(labels.shape[::-1])
+    corners = np.array([[i, j, k] for i in (-0.5, shape[0] - 0.5) for j in (-0.5, shape[1] - 0.5)
+                        for k in (-0.5, shape[2] - 0.5)])
+    ras = origin + (corners * spacing) @ np.asarray(direction, float).T
+    lo, hi = ras.min(axis=0), ras.max(axis=0)
+    return [optode_axis(lo[a], hi[a], pts[:, a], fine[a], args.size) for a in range(3)]
 
 
 def _quality(args, labels, spacing, origin, direction, roi, t0):
@@ -163,5 +200,11 @@ def register(sub):
     p.add_argument("--refine", default=None, help="quality mesher: smaller elements in "
                    "sphere:x,y,z,r,size or box:x0,x1,y0,y1,z0,z1,size (mm; default: none)")
     p.add_argument("--threads", type=int, default=None, help="fTetWild threads (default: all)")
+    p.add_argument("--optodes", default=None, help="--fast: grade the grid to the optodes: "
+                   "CSV file(s) of x,y,z points (sources,detectors); elements --fine-size at "
+                   "their coordinates, growing by 1.2 per step to --size away from them "
+                   "(docs/fem.md: optode-aware grading; default: a uniform grid)")
+    p.add_argument("--fine-size", default="0.4", help="with --optodes: element size at the "
+                   "optodes [mm], one value or x,y,z (default 0.4)")
     add_json_flag(p)
     p.set_defaults(func=_handler)

@@ -65,10 +65,12 @@ def _closest_count(cum_after, before, target):
     return int(np.argmin(np.abs(options - target)))
 
 
-def _cell_labels(labels_kji, spacing, origin, roi, size_mm, anchor_mm=None, refine=None):
+def _cell_labels(labels_kji, spacing, origin, roi, size_mm, anchor_mm=None, refine=None,
+                 edges_mm=None):
     """Label of each cell (about size_mm wide) inside roi (x0, x1, y0, y1, z0, z1),
     RAS mm; ``anchor_mm`` (x, y, z) or None: a point that is a node of the grid;
-    ``refine``: per axis None or (a, b, h_fine), see _axis_edges."""
+    ``refine``: per axis None or (a, b, h_fine), see _axis_edges; ``edges_mm``:
+    per axis None or the grid lines themselves (clipped to the roi)."""
     lo = np.array(roi[0::2], float)
     hi = np.array(roi[1::2], float)
     if np.any(hi <= lo):
@@ -77,6 +79,10 @@ def _cell_labels(labels_kji, spacing, origin, roi, size_mm, anchor_mm=None, refi
     refine = refine or (None, None, None)
     edges = [_axis_edges(lo[a], hi[a], size_mm, None if anchor_mm is None else anchor_mm[a],
                          refine[a]) for a in range(3)]
+    for a, given in enumerate(edges_mm or (None, None, None)):
+        if given is not None:
+            g = np.asarray(given, float)
+            edges[a] = np.unique(np.concatenate([[lo[a]], g[(g > lo[a]) & (g < hi[a])], [hi[a]]]))
     n_cells = np.array([len(e) - 1 for e in edges])
     # Cells narrower than a voxel (a refined band) may hold no voxel centre:
     # count sub-voxel samples instead (each voxel split s times per axis).
@@ -148,7 +154,7 @@ def _cell_labels(labels_kji, spacing, origin, roi, size_mm, anchor_mm=None, refi
 
 def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=None,
                              direction=None, anchor_mm=None, refine=None, progress=None,
-                             cancel=None, name="voxel-mesh"):
+                             cancel=None, name="voxel-mesh", edges_mm=None):
     """Tetrahedral mesh of the non-zero labels of a label map.
 
     Parameters
@@ -167,6 +173,9 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
         with smaller cells (the grid stays rectilinear, so the band runs
         through the whole roi along the other axes; refine only the axes a
         target is thin in)
+    edges_mm : per axis (x, y, z) None or increasing grid-line coordinates
+        [mm] (e.g. ``structured.optode_axis``: fine at the optodes, coarse
+        away from them); they replace that axis's uniform lines
 
     Returns
     -------
@@ -218,7 +227,19 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
                                                      or not r[1] > r[0]) for r in refine):
             raise FluoInputError("refine must be three entries of None or (a_mm, b_mm, "
                                  "size_mm) with a < b, size > 0", field="refine", value=refine)
-    cell, edges = _cell_labels(labels, spacing, origin, roi, size_mm, anchor_mm, refine)
+    if edges_mm is not None:
+        if len(edges_mm) != 3 or any(e is not None and (np.ndim(e) != 1 or len(e) < 2
+                                                        or not np.all(np.isfinite(e))
+                                                        or np.any(np.diff(e) <= 0))
+                                     for e in edges_mm):
+            raise FluoInputError("edges must be three entries of None or increasing finite "
+                                 "coordinates", field="edges_mm")
+        n_est = np.prod([len(e) if e is not None else (roi[2 * a + 1] - roi[2 * a]) / size_mm
+                         for a, e in enumerate(edges_mm)])
+        if n_est > 3e6:
+            raise FluoInputError(f"about {n_est:.3g} cells: coarser grading or a smaller roi",
+                                 field="edges_mm")
+    cell, edges = _cell_labels(labels, spacing, origin, roi, size_mm, anchor_mm, refine, edges_mm)
     check_cancel(cancel)
     ci, cj, ck = np.nonzero(cell > 0)
     if len(ci) == 0:
@@ -238,7 +259,7 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     mesh.meta["method"] = "structured"
     mesh.meta["size_mm"] = float(size_mm)
     mesh.meta["roi"] = roi.tolist()
-    if anchor_mm is not None or refine is not None:
+    if anchor_mm is not None or refine is not None or edges_mm is not None:
         mesh.meta["edges_mm"] = [e.tolist() for e in edges]   # the grid lines (non-uniform)
     report(progress, 1.0, "mesh done")
     return mesh

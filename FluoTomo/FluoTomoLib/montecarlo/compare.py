@@ -303,7 +303,7 @@ def validate_halfspace(medium, merged, boundaries=("empirical", "fresnel"), leve
             row[f"fem_{b}"] = float(f["J"][i])
             row[f"fem_{b}_vs_mc_pct"] = _pct(f["J"][i], mc)
         dip = _annulus_mean(lambda x: spatially_resolved_reflectance(x, mua, musp, n), rho, w)
-        rob = _annulus_mean(lambda x: robin_surface_fluence(x, mua, musp, n, n_k=40001), rho,
+        rob = _annulus_mean(lambda x: robin_surface_fluence(x, mua, musp, n), rho,
                             w) / (2 * A_main)
         row.update({"dipole": dip, "dipole_vs_mc_pct": _pct(dip, mc),
                     "robin_exact": rob, "robin_exact_vs_mc_pct": _pct(rob, mc)})
