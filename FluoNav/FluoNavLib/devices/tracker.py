@@ -14,6 +14,7 @@ FluoInputError; a device that answers nothing usable is a FluoDeviceError.
 
 from __future__ import annotations
 
+import abc
 import math
 import time
 
@@ -47,16 +48,18 @@ def parse_host_port(address, field="--igtl"):
     return host, int(port)
 
 
-class TrackerSession:
+class TrackerSession(abc.ABC):
     """A connected pose source (see the module docstring)."""
 
     source = ""
 
+    @abc.abstractmethod
     def poll(self):
-        raise NotImplementedError
+        """The latest poses {tool name: 4x4 or None}, or None when nothing new."""
 
+    @abc.abstractmethod
     def track(self, seconds, on_poses=None):
-        raise NotImplementedError
+        """Track for ``seconds``; ``on_poses(poses)`` per frame; returns the statistics."""
 
     def close(self):
         pass
