@@ -14,7 +14,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade "pip>=24"
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[test]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[test,mc]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -23,11 +23,15 @@ demo: $(STAMP)
 demo-quick: $(STAMP)
 	$(VENV)/bin/fluo demo --quick --out $(DEMO_OUT)
 
+# one thread per library, as the fluo CLI's default (docs/performance.md): on a busy
+# 2-core machine the libraries' own defaults ran a reconstruction 7-11x slower
+TEST_THREADS := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
+
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(TEST_THREADS) $(PY) -m pytest -q
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow and not browser"
+	$(TEST_THREADS) $(PY) -m pytest -q -m "not slow and not browser"
 
 bench: $(STAMP)
 	$(PY) -m benchmarks

@@ -29,36 +29,19 @@ def _slab(h_xy, half=30.0, depth=30.0):
     return box_mesh(x, x, z, name="slab")
 
 
-def _refined_axis(half, centres, fine, fine_half, coarse, grow=1.2):
-    """Coordinates on [-half, half], symmetric about 0: ``fine`` steps within
-    ``fine_half`` of each centre (and its mirror), growing by ``grow`` per step
-    away from them up to ``coarse``."""
-    pts = []
-    for c in centres:
-        for sign in (1.0, -1.0):
-            a, step = [c], fine
-            while (a[-1] < half) if sign > 0 else (a[-1] > 0.0):
-                if abs(a[-1] - c) >= fine_half:
-                    step = min(step * grow, coarse)
-                a.append(min(half, max(0.0, a[-1] + sign * step)))
-            pts.extend(a)
-    pos = np.unique(np.round(pts, 9))
-    # where marches from two centres meet, drop points closer than half a fine step
-    keep = np.concatenate([[True], np.diff(pos) > 0.5 * fine])
-    pos = pos[keep]
-    return np.unique(np.concatenate([pos, -pos]))
+def _optode_slab(fine=(1.0, 0.4, 0.5), coarse=2.5):
+    """The same slab graded to the optodes (structured.optode_axis, the grid
+    `fluo mesh --fast --optodes` builds): ``fine`` (x, y, z) at the source and
+    detector coordinates (the rows along x at y = -3 and +3, the surface),
+    growing by 1.2 per step to ``coarse`` away from them."""
+    from FluoTomoLib.meshing.structured import box_mesh, optode_axis
 
-
-def _optode_slab():
-    """The same slab refined where the optodes are: 0.4 mm across the source and
-    detector rows (y = -3, +3), 1.0 mm along them (|x| <= 25 mm), growing to
-    2.5 mm away from them; depth graded as in _slab, to 3 mm deep."""
-    from FluoTomoLib.meshing.structured import box_mesh, graded_axis
-
-    x = _refined_axis(30.0, [0.0], 1.0, 25.0, 2.5)
-    y = _refined_axis(30.0, [3.0], 0.4, 1.5, 2.5)
-    z = graded_axis(-30.0, 0.0, 0.5, 3.0, 3.0)
-    return box_mesh(x, y, z, name="optode-slab")
+    src, det = _optodes()
+    pts = np.concatenate([src, det])
+    axes = [optode_axis(-30.0, 30.0, pts[:, 0], fine[0], coarse),
+            optode_axis(-30.0, 30.0, pts[:, 1], fine[1], coarse),
+            optode_axis(-30.0, 0.0, pts[:, 2], fine[2], 3.0)]
+    return box_mesh(*axes, name="optode-slab")
 
 
 def _optodes():
@@ -211,6 +194,88 @@ def _compare(title, make, src, det, repeats, skip_redbird, pure_repeats):
               "redbirdpy (pure Python)")
 
 
+TRADE_MESHES = (
+    ("uniform h 3.0", partial(_slab, 3.0)), ("uniform h 2.0", partial(_slab, 2.0)),
+    ("uniform h 1.5", partial(_slab, 1.5)), ("uniform h 1.2", partial(_slab, 1.2)),
+    ("uniform h 1.0", partial(_slab, 1.0)), ("uniform h 0.8", partial(_slab, 0.8)),
+    ("optodes 1.0/0.4/0.5", partial(_optode_slab)),
+    ("optodes 0.6", partial(_optode_slab, (0.6, 0.6, 0.5))),
+    ("optodes 0.4", partial(_optode_slab, (0.4, 0.4, 0.4))),
+)
+
+
+def trade_row(make, repeats=1):
+    """One mesh of the trade table: size, error against the exact solution
+    (3-25 mm pairs), the resolution guard's estimate for the same pairs, and
+    the median time of forward + mua Jacobian over ``repeats`` fresh meshes."""
+    from FluoTomoLib.fem.forward import FluorescenceModel
+
+    src, det = _optodes()
+    times = []
+    for _ in range(repeats):
+        mesh = make()
+        data, _, t = run_ours(mesh, src, det)
+        times.append(t["forward_plus_jacobian_s"])
+    a = _accuracy(data, src, det)
+    p = dict(mua_per_mm=MUA, musp_per_mm=MUSP, n=N)
+    acc = FluorescenceModel(mesh, p, p, src, det).accuracy()["estimated_rel_err"]["excitation"]
+    rho = np.linalg.norm(src[:, None, :] - det[None, :, :], axis=2)
+    sel = (rho >= 3) & (rho <= 25)
+    worst = np.array(acc["worst_case"], float)[sel]
+    median = np.array(acc["median_case"], float)[sel]
+    return {"nodes": mesh.n_nodes, "median_err_pct": a["median_abs_err_pct"],
+            "max_err_pct": a["max_abs_err_pct"], "guard_worst_max_pct": 100 * float(worst.max()),
+            "guard_median_max_pct": 100 * float(median.max()), "seconds": float(np.median(times))}
+
+
+def trade_table(repeats=3, meshes=TRADE_MESHES):
+    return [(name, trade_row(make, repeats)) for name, make in meshes]
+
+
+def print_trade(rows):
+    print("\naccuracy vs time (16 x 16 optodes, pairs at 3-25 mm; forward + mua Jacobian):")
+    print(f"{'mesh':>20} {'nodes':>7} {'median %':>9} {'max %':>7} {'guard worst %':>14} "
+          f"{'guard median %':>15} {'s':>6}")
+    for name, r in rows:
+        print(f"{name:>20} {r['nodes']:7d} {r['median_err_pct']:9.2f} {r['max_err_pct']:7.2f} "
+              f"{r['guard_worst_max_pct']:14.1f} {r['guard_median_max_pct']:15.1f} "
+              f"{r['seconds']:6.2f}", flush=True)
+
+
+def amg_check(h=1.0):
+    """solver="amg" against PARDISO on a long slab: one source at one end,
+    detectors 5-60 mm away; relative errors of the current AMG (tolerance
+    following the detectors) and of a fixed 1e-10 residual."""
+    import pyamg
+
+    from FluoTomoLib.fem.forward import FluorescenceModel
+    from FluoTomoLib.meshing.structured import box_mesh, graded_axis
+
+    x = np.linspace(-35, 35, int(round(70 / h)) + 1)
+    y = np.linspace(-10, 10, int(round(20 / h)) + 1)
+    m = box_mesh(x, y, graded_axis(-15, 0, min(0.5, h / 2), 2.5, 3.0))
+    p = dict(mua_per_mm=0.02, musp_per_mm=1.0, n=N)
+    rho = np.array([5.0, 10, 20, 30, 40, 50, 60])
+    src, det = [[-30.0, 0.0, 0.0]], [[-30.0 + r, 0.0, 0.0] for r in rho]
+    out = {}
+    for solver in ("pardiso", "amg"):
+        t0 = time.perf_counter()
+        fm = FluorescenceModel(m, p, p, src, det, solver=solver)
+        out[solver] = (fm.excitation_data()[0], time.perf_counter() - t0, fm.op_x.unconverged)
+    t0 = time.perf_counter()
+    ml = pyamg.smoothed_aggregation_solver(fm.op_x.K.tocsr(), symmetry="symmetric")
+    y_old = fm.P @ ml.solve(fm.q.toarray()[:, 0], tol=1e-10, accel="cg", maxiter=500)
+    t_old = time.perf_counter() - t0
+    ref = out["pardiso"][0]
+    print(f"\nAMG against PARDISO, h {h} ({m.n_nodes} nodes): PARDISO {out['pardiso'][1]:.2f} s, "
+          f"AMG {out['amg'][1]:.2f} s, AMG with a fixed 1e-10 residual {t_old:.2f} s; "
+          f"unconverged: {out['amg'][2]}")
+    print("  rho mm        " + " ".join(f"{r:9.0f}" for r in rho))
+    print("  value / peak  " + " ".join(f"{v:9.1e}" for v in ref / ref[0]))
+    print("  AMG now       " + " ".join(f"{v:+9.1e}" for v in out["amg"][0] / ref - 1))
+    print("  AMG 1e-10     " + " ".join(f"{v:+9.1e}" for v in y_old / ref - 1))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m benchmarks fem")
     ap.add_argument("--repeats", type=int, default=5)
@@ -218,7 +283,18 @@ def main(argv=None):
     ap.add_argument("--pure-repeats", type=int, default=1,
                     help="also time redbirdpy with numba hidden (0: skip; ~30 s each)")
     ap.add_argument("--h", type=float, default=1.2, help="lateral element size of the main slab [mm]")
+    ap.add_argument("--trade-only", action="store_true",
+                    help="only the accuracy-versus-time table (no redbirdpy)")
+    ap.add_argument("--trade-repeats", type=int, default=3)
+    ap.add_argument("--amg-only", action="store_true", help="only AMG against PARDISO")
     args = ap.parse_args(argv)
+    if args.amg_only:
+        for h in (1.5, 1.0):
+            amg_check(h)
+        return 0
+    if args.trade_only:
+        print_trade(trade_table(repeats=args.trade_repeats))
+        return 0
     src, det = _optodes()
     print(f"mua {MUA}, musp {MUSP}, n {N}; 16 sources x 16 detectors; medians of "
           f"{args.repeats} repeats, each on a fresh mesh, after one untimed run of each code")
@@ -229,19 +305,7 @@ def main(argv=None):
                ("optode-refined slab", partial(_optode_slab), 0)]
     for title, make, pure_repeats in configs:
         _compare(title, make, src, det, args.repeats, args.skip_redbird, pure_repeats)
-    print("\nmesh size vs error vs time (FluoGuide, forward + Jacobian):")
-    print(f"{'h_xy mm':>8} {'nodes':>8} {'median err %':>13} {'max err %':>10} {'seconds':>8}")
-    for h in (3.0, 2.0, 1.5, 1.2, 1.0):
-        m = _slab(h)
-        d, _, t = run_ours(m, src, det)  # one run per size: a guide, not a median
-        a = _accuracy(d, src, det)
-        print(f"{h:8.1f} {m.n_nodes:8d} {a['median_abs_err_pct']:13.2f} {a['max_abs_err_pct']:10.2f} "
-              f"{t['forward_plus_jacobian_s']:8.2f}", flush=True)
-    m = _optode_slab()
-    d, _, t = run_ours(m, src, det)
-    a = _accuracy(d, src, det)
-    print(f"{'optodes':>8} {m.n_nodes:8d} {a['median_abs_err_pct']:13.2f} {a['max_abs_err_pct']:10.2f} "
-          f"{t['forward_plus_jacobian_s']:8.2f}   (1.0 x 0.4 mm at the optode rows)", flush=True)
+    print_trade(trade_table(repeats=args.trade_repeats))
     return 0
 
 

@@ -1,3 +1,5 @@
+"""``python -m fluoapp``: the ``fluo`` command line (``fluoapp/cli.py``)."""
+
 import sys
 
 from fluoapp.cli import main

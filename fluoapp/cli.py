@@ -9,20 +9,19 @@ Conventions every subcommand follows:
 - ``--json`` prints exactly one JSON object on stdout (progress goes to stderr).
 - Bad input raises ``FluoInputError``: one line on stderr, exit code 2.
 - A handler returns a dict (the JSON result); without ``--json`` it is printed
-  as readable ``key: value`` lines.
+  as readable ``key: value`` lines and tables with units (``fluoapp/format.py``).
+  ``"_exit_code": 1`` in it (not printed) says the work partly failed (a run with
+  failed tasks: they are in its table).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 
-import numpy as np
-
 from fluoguide.errors import FluoCancelled, FluoError, FluoInputError
-from fluoguide.jsonable import dumps, to_jsonable
+from fluoguide.jsonable import dumps
 
 # Modules that define ``register(subparsers)``.  Order = order in --help.
 CLI_MODULES = [
@@ -32,6 +31,7 @@ CLI_MODULES = [
     "fluoapp.commands.app",
     "fluoapp.commands.fem",
     "fluoapp.commands.study",
+    "fluoapp.commands.validate",
     "fluoapp.commands.mesh",
     "fluoapp.commands.tomo",
     "fluoapp.commands.calib_geometry",
@@ -68,18 +68,17 @@ def build_parser():
     from fluoguide import __version__
 
     parser.add_argument("--version", action="version", version=f"fluo {__version__}")
+    # dest differs from `fluo mesh --threads` (fTetWild's own threads), which
+    # would otherwise overwrite it in the namespace
+    parser.add_argument("--threads", default=None, metavar="N", dest="library_threads",
+                        help="threads of the numerical libraries (BLAS, MKL/PARDISO, numba): a "
+                        "count, 'auto' (every core) or 'system' (the libraries' own defaults); "
+                        "default: $FLUO_THREADS, else 1 (docs/performance.md)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in CLI_MODULES:
         importlib.import_module(name).register(sub)
     return parser
-
-
-def _print_human(result, stream):
-    for key, value in result.items():
-        if isinstance(value, (dict, list)):
-            value = json.dumps(to_jsonable(value))
-        print(f"{key}: {value}", file=stream)
 
 
 def _quiet_vtk():
@@ -94,10 +93,16 @@ def _quiet_vtk():
 
 
 def main(argv=None):
+    from fluoguide.progress import mark_command_start
+
+    mark_command_start()
     parser = build_parser()
     _quiet_vtk()
     args = parser.parse_args(argv)
     try:
+        from fluoguide.threads import configure_threads
+
+        configure_threads(args.library_threads)
         result = args.func(args)
     except FluoInputError as exc:
         print(f"fluo: error: {exc}", file=sys.stderr)
@@ -113,11 +118,16 @@ def main(argv=None):
         return 130
     if result is None:
         return 0
+    # a handler whose work partly failed (a run with failed tasks) returns its
+    # result with "_exit_code": printed as usual, then exit 1
+    rc = int(result.pop("_exit_code", 0)) if isinstance(result, dict) else 0
     if getattr(args, "json", False):
         print(dumps(result))
     else:
-        _print_human(result, sys.stdout)
-    return 0
+        from fluoapp.format import command_name, format_result
+
+        print(format_result(result, command_name(args)))
+    return rc
 
 
 if __name__ == "__main__":

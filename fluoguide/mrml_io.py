@@ -157,13 +157,29 @@ def set_transform(scene, name, matrix, parent=None):
     matrix : (4, 4) array, homogeneous, mm
     parent : str, optional
         Name of a transform node to nest under (SlicerIGT chains such as
-        ``CameraToTracker`` under ``TrackerToReference``).
+        ``CameraToolToTracker`` under ``TrackerToReference``).
     """
     node = _get_or_add(scene, "vtkMRMLLinearTransformNode", name)
     node.SetMatrixTransformToParent(_matrix_to_vtk(matrix))
     if parent is not None:
         node.SetAndObserveTransformNodeID(get_node(scene, parent).GetID())
     return node
+
+
+def set_transform_matrix(node, matrix):
+    """Set a linear transform node's matrix to parent (finite 4x4, mm); returns the node."""
+    if node is None or not node.IsA("vtkMRMLLinearTransformNode"):
+        raise FluoInputError("not a linear transform node", field=getattr(node, "GetName", str)()
+                             if node is not None else "transform")
+    node.SetMatrixTransformToParent(_matrix_to_vtk(matrix))
+    return node
+
+
+def transform_matrix(node):
+    """The 4x4 matrix (to parent) of a linear transform node."""
+    vm = _vtk().vtkMatrix4x4()
+    node.GetMatrixTransformToParent(vm)
+    return _vtk_to_matrix(vm)
 
 
 def get_transform(scene, name):
@@ -209,8 +225,18 @@ def add_volume(scene, name, array_kji, spacing, origin, direction=None, labelmap
         identity if None
     labelmap : bool, make a ``vtkMRMLLabelMapVolumeNode``
     """
-    from vtk.util import numpy_support
+    cls = "vtkMRMLLabelMapVolumeNode" if labelmap else "vtkMRMLScalarVolumeNode"
+    arr = _volume_input(name, array_kji, spacing)
+    node = get_node(scene, name, required=False)
+    if node is not None and node.GetClassName() != cls:
+        remove_node(scene, name)
+        node = None
+    if node is None:
+        node = _get_or_add(scene, cls, name)
+    return set_volume_array(node, arr, spacing, origin, direction)
 
+
+def _volume_input(name, array_kji, spacing):
     arr = np.ascontiguousarray(array_kji)
     if arr.ndim != 3:
         raise FluoInputError("volume array must be 3D (K, J, I)", field=name, value=arr.shape)
@@ -220,19 +246,24 @@ def add_volume(scene, name, array_kji, spacing, origin, direction=None, labelmap
     if spacing.shape != (3,) or np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
         raise FluoInputError("spacing must be 3 positive numbers (mm)", field=f"{name}.spacing",
                              value=spacing.tolist())
+    return arr
+
+
+def set_volume_array(node, array_kji, spacing, origin, direction=None):
+    """Fill an existing (caller-chosen) volume node with a numpy array and its geometry.
+
+    Same arguments as :func:`add_volume`; returns the node.
+    """
+    from vtk.util import numpy_support
+
+    arr = _volume_input(node.GetName(), array_kji, spacing)
+    spacing = np.asarray(spacing, float)
     vtk = _vtk()
     img = vtk.vtkImageData()
     img.SetDimensions(arr.shape[2], arr.shape[1], arr.shape[0])
     scalars = numpy_support.numpy_to_vtk(arr.ravel(), deep=True,
                                          array_type=getattr(vtk, _VTK_TYPES[arr.dtype]))
     img.GetPointData().SetScalars(scalars)
-    cls = "vtkMRMLLabelMapVolumeNode" if labelmap else "vtkMRMLScalarVolumeNode"
-    node = get_node(scene, name, required=False)
-    if node is not None and node.GetClassName() != cls:
-        remove_node(scene, name)
-        node = None
-    if node is None:
-        node = _get_or_add(scene, cls, name)
     node.SetAndObserveImageData(img)
     node.SetSpacing(*spacing.tolist())
     node.SetOrigin(*np.asarray(origin, float).tolist())
@@ -244,7 +275,7 @@ def add_volume(scene, name, array_kji, spacing, origin, direction=None, labelmap
     node.SetIJKToRASDirectionMatrix(vm)
     # Label maps get their display node (and colour table) from the viewer:
     # slicer-core alone has no default label colour table to point it at.
-    if not labelmap and node.GetDisplayNodeID() is None:
+    if not node.IsA("vtkMRMLLabelMapVolumeNode") and node.GetDisplayNodeID() is None:
         node.CreateDefaultDisplayNodes()
     return node
 
@@ -313,6 +344,16 @@ def add_model(scene, name, points_or_polydata, triangles=None, color=(0.9, 0.7, 
     if node.GetDisplayNode() is None:
         node.CreateDefaultDisplayNodes()
     node.GetDisplayNode().SetColor(*color)
+    return node
+
+
+def set_model_polydata(node, polydata, color=None):
+    """Show ``polydata`` in an existing (caller-chosen) model node; returns the node."""
+    node.SetAndObservePolyData(polydata)
+    if node.GetDisplayNode() is None:
+        node.CreateDefaultDisplayNodes()
+    if color is not None:
+        node.GetDisplayNode().SetColor(*color)
     return node
 
 

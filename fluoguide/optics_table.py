@@ -1,4 +1,4 @@
-"""Optical properties of the reference ICG phantoms (physics.md section 3).
+"""Optical properties of the reference ICG phantoms (docs/physics.md section 3.4).
 
 The liquid-phantom table of the thesis (Table 2-5) is linear in ICG
 concentration to the printed digits, so properties at any concentration in

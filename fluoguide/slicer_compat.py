@@ -46,12 +46,25 @@ class _Parent:
         self.hidden = False
 
 
+def _module_folder(python_module_name):
+    import sys
+    from pathlib import Path
+
+    module = sys.modules.get(python_module_name)
+    path = getattr(module, "__file__", None)
+    return Path(path).resolve().parent if path else None
+
+
 class ScriptedLoadableModule:
     """Module descriptor: title, categories, help text (no GUI outside Slicer)."""
 
     def __init__(self, parent=None):
         self.parent = parent if parent is not None else _Parent()
         self.moduleName = self.__class__.__name__
+
+    def resourcePath(self, filename):
+        """``<module folder>/Resources/<filename>``, as in Slicer."""
+        return str(_module_folder(self.__class__.__module__) / "Resources" / filename)
 
     def getDefaultModuleDocumentationLink(self, docPage=None):
         return "See docs/ in the FluoGuide repository."
@@ -82,6 +95,10 @@ class ScriptedLoadableModuleWidget:
             self.moduleName = self.moduleName[: -len("Widget")]
         self.developerMode = False
 
+    def resourcePath(self, filename):
+        """``<module folder>/Resources/<filename>``, as in Slicer."""
+        return str(_module_folder(self.__class__.__module__) / "Resources" / filename)
+
     def setup(self):
         self._setup_done = True
 
@@ -98,11 +115,20 @@ class ScriptedLoadableModuleLogic:
 
     def __init__(self, parent=None):
         self.parent = parent
+        self.moduleName = self.__class__.__name__
+        if self.moduleName.endswith("Logic"):
+            self.moduleName = self.moduleName[: -len("Logic")]
+        self.isSingletonParameterNode = True
 
     def getParameterNode(self):
-        # Parameter nodes come from Slicer's application logic, absent here;
-        # FluoGuide logics keep their parameters in the nodes of docs/scene.md.
-        raise RuntimeError("parameter nodes exist only inside the 3D Slicer application")
+        """The module's parameter node in the logic's own scene (``self.scene``),
+        made as Slicer's base class makes it (``fluoguide.parameters``)."""
+        from fluoguide.parameters import parameter_node
+
+        scene = getattr(self, "scene", None)
+        if scene is None:
+            raise RuntimeError(f"{self.__class__.__name__} has no scene for its parameter node")
+        return parameter_node(scene, self.moduleName)
 
 
 class ScriptedLoadableModuleTest(unittest.TestCase):

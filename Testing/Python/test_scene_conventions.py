@@ -55,16 +55,28 @@ def _scenario_fluocalib(scene, tmp_path):
     from FluoCalib import FluoCalibLogic
 
     logic = FluoCalibLogic(scene)
-    logic.setCameraToTracker(np.eye(4))
+    logic.setHandEye(np.eye(4))
     p = tmp_path / "calib.json"
     p.write_text(json.dumps({"fx": 1000.0}))
     logic.loadCalibrationJson(p)
+    pts = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
+    logic.registerTrackerToReference(pts, pts + 1.0)
+    logic.getParameterNode()
 
 
 def _scenario_fluonav(scene):
     from FluoNav import FluoNavLogic
 
-    FluoNavLogic(scene).buildSurface()
+    logic = FluoNavLogic(scene)
+    logic.buildSurface()
+    logic.getParameterNode()
+    logic.connectTracker("ndi-sim")
+    try:
+        while not logic.updateTracker():
+            pass
+    finally:
+        logic.disconnect()
+    logic.showTrackedCamera()
 
 
 def _scenario_fluotomo(scene):
@@ -92,6 +104,28 @@ def test_module_writes_only_documented_nodes(module, tmp_path):
     after = _data_nodes(scene)
     assert after >= before
     _check(module, before, after)
+
+
+def test_frame_correction_and_mapping_write_documented_nodes():
+    """FluoNav's results (transport, flux and raw images, the mapped surface) are
+    the nodes docs/scene.md lists; the synthetic acquisition they start from is
+    FluoGuide's and FluoCalib's (surface, calibration, recording)."""
+    from FluoNav import FluoNavLogic
+
+    scene = mrml_io.new_scene()
+    logic = FluoNavLogic(scene)
+    logic.makeSyntheticAcquisition(views=2, binning=8, triangles=8000)
+    before = _data_nodes(scene)
+    for name, cls in before:
+        assert any(fnmatch.fnmatchcase(name, pat) and cls == c
+                   for pat, c, _ in documented_nodes()), (name, cls)
+    logic.correctFrame(0)
+    logic.mapFrames()
+    after = _data_nodes(scene)
+    assert {("FluoNavTransport", "vtkMRMLScalarVolumeNode"),
+            ("FluoNavFlux", "vtkMRMLScalarVolumeNode"),
+            ("FluoNavSurfaceFlux", "vtkMRMLModelNode")} <= after - before
+    _check("FluoNav", before, after)
 
 
 @pytest.mark.slow

@@ -149,6 +149,15 @@ def test_tomo_reconstruction_job_overlays_the_result(app):
     assert node.GetDisplayNode().GetApplyThreshold()
     assert mrml_io.get_node(app.scene, "FluoTomoYieldSurface") is not None
     assert float(app.state.tomo_colorbar["max"]) > 0
+    assert res["warnings"] == [] and app.state.fluo_message_color == "success"
+    # an over-regularised run is shown with its warning, not as a success
+    app.state.tomo_lambda = 1e6
+    app.ctrl.tomo_reconstruct()
+    _wait(app.jobs, 300)
+    res = app.state.tomo_result
+    assert any("over-regularised" in w for w in res["warnings"]), res
+    assert app.state.fluo_message_color == "warning"
+    assert "over-regularised" in app.state.fluo_message
 
 
 def test_nav_stream_from_the_simulated_tracker(app):

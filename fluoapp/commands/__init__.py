@@ -14,3 +14,34 @@ Modules
 - ``scene``: ``fluo scene info SCENE.mrml``: what a scene holds (nodes, attributes, data).
 - ``study``: ``fluo study A|B|C``: the thesis's 2D simulation studies.
 """
+
+
+def module_logic(module, scene=None):
+    """``<module>Logic`` of a module file (``FluoCalib``, ``FluoNav``, ``FluoTomo``)
+    on ``scene`` (a new empty scene when None): the API every handler calls."""
+    from fluoguide import mrml_io
+    from fluoguide.slicer_compat import import_module_file
+
+    return getattr(import_module_file(module), f"{module}Logic")(
+        scene if scene is not None else mrml_io.new_scene())
+
+
+def scene_for(path):
+    """The MRML scene a ``--scene`` option names: loaded when the file exists, else new
+    (saved there by :func:`save_scene_to`); a new scene when no path is given."""
+    from pathlib import Path
+
+    from fluoguide import mrml_io
+
+    if path and Path(path).is_file():
+        return mrml_io.load_scene(path)
+    return mrml_io.new_scene()
+
+
+def save_scene_to(scene, path):
+    """Save ``scene`` to ``path`` when a ``--scene`` option was given."""
+    if path:
+        from fluoguide import mrml_io
+
+        mrml_io.save_scene(scene, path)
+

@@ -28,8 +28,9 @@ def register(subparsers):
     p = subparsers.add_parser("app", help="web application (trame-slicer) on the shared MRML scene",
                               description="Serve the FluoGuide web app: slice and 3D views, the "
                               "segment editor and one panel per module.")
-    p.add_argument("--scene", help="MRML scene to open (.mrml)")
-    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--scene", help="MRML scene to open (.mrml; default: an empty scene)")
+    p.add_argument("--port", type=int, default=8080,
+                   help="TCP port to serve on (default %(default)s)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1: this machine only)")
     p.set_defaults(func=_app)

@@ -2,185 +2,98 @@
 
 from __future__ import annotations
 
-import glob
-import json
 from pathlib import Path
 
 import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
+from fluoapp.commands import module_logic, save_scene_to, scene_for
 from fluoguide.errors import FluoInputError
 
 __all__ = ["register"]
 
 
-def _images(pattern):
-    files = sorted(glob.glob(pattern))
-    if not files:
-        raise FluoInputError("no files match", field="--images", value=pattern)
-    return files
+def _calib(args):
+    """The FluoCalib logic over the ``--scene`` scene (or a new one)."""
+    return module_logic("FluoCalib", scene_for(getattr(args, "scene", None)))
 
 
-def _load_json(path, field):
-    p = Path(path)
-    if not p.is_file():
-        raise FluoInputError("file not found", file=p, field=field)
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise FluoInputError(f"not valid JSON ({exc.msg}, line {exc.lineno})", file=p,
-                             field=field) from None
-
-
-def _load_points(path, field):
-    """(N, 3) points [mm] from JSON (list or {"points": list}) or CSV/TXT."""
-    p = Path(path)
-    if p.suffix.lower() == ".json":
-        doc = _load_json(p, field)
-        doc = doc.get("points", doc) if isinstance(doc, dict) else doc
-        arr = np.asarray(doc, dtype=float)
-    else:
-        if not p.is_file():
-            raise FluoInputError("file not found", file=p, field=field)
-        try:
-            arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
-        except ValueError as exc:
-            raise FluoInputError(f"cannot parse points ({exc})", file=p, field=field) from None
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise FluoInputError("points must be N rows of x, y, z [mm]", file=p, field=field,
-                             value=arr.shape)
-    return arr
-
-
-def _store(args, camera=None, camera_to_tool=None, info=None, rms=None, registration=None):
+def _yaml(args, camera=None, camera_to_tool=None, rms=None):
     if getattr(args, "yaml", None) and (camera is not None or camera_to_tool is not None):
         from FluoCalibLib.geometry.opencv_yaml import write_calibration_yaml
 
         write_calibration_yaml(args.yaml, camera, camera_to_tool, rms_px=rms)
-    if getattr(args, "scene", None):
-        from fluoguide import mrml_io
-
-        from FluoCalibLib.geometry import scene as gs
-
-        path = Path(args.scene)
-        scene = mrml_io.load_scene(path) if path.is_file() else mrml_io.new_scene()
-        if camera is not None:
-            gs.store_intrinsics(scene, camera, {"rms_px": rms})
-        if camera_to_tool is not None:
-            gs.store_handeye(scene, camera_to_tool, info)
-        if registration is not None:
-            gs.store_registration(scene, registration, info)
-        mrml_io.save_scene(scene, path)
 
 
 def _camera(args):
     from fluoguide.progress import TqdmProgress
 
-    from FluoCalibLib.geometry.intrinsics import calibrate_camera
+    from FluoCalibLib.geometry.files import image_files
 
+    logic = _calib(args)
     with TqdmProgress("calib camera") as prog:
-        res = calibrate_camera(_images(args.images), args.board,
-                               "fisheye" if args.fisheye else "pinhole", args.holdout,
-                               fix_k3=args.fix_k3, reject_outliers=not args.keep_outliers,
-                               progress=prog)
-    _store(args, camera=res.camera, rms=res.rms_px)
+        res = logic.calibrateCamera(image_files(args.images), args.board,
+                                    "fisheye" if args.fisheye else "pinhole", args.holdout,
+                                    fixK3=args.fix_k3, rejectOutliers=not args.keep_outliers,
+                                    progress=prog)
+    _yaml(args, camera=res.camera, rms=res.rms_px)
+    save_scene_to(logic.scene, args.scene)
     return res.to_dict()
 
 
-def _intrinsics_from(args, images):
-    if args.intrinsics:
-        p = Path(args.intrinsics)
-        if p.suffix.lower() in (".yaml", ".yml", ".xml"):
-            from FluoCalibLib.geometry.opencv_yaml import read_calibration_yaml
-
-            cam = read_calibration_yaml(p)["camera"]
-            if cam is None:
-                raise FluoInputError("no camera_matrix in file", file=p, field="--intrinsics")
-            return cam
-        from FluoCalibLib.geometry.camera_model import CameraModel
-
-        doc = _load_json(p, "--intrinsics")
-        return CameraModel.from_dict(doc.get("camera", doc))
-    from FluoCalibLib.geometry.intrinsics import calibrate_camera
-
-    return calibrate_camera(images, args.board).camera
-
-
 def _handeye(args):
-    from FluoCalibLib.geometry import handeye as he
-    from FluoCalibLib.geometry.boards import parse_board
-    from FluoCalibLib.geometry.intrinsics import detect_views, view_poses
+    from fluoguide.progress import TqdmProgress
+    from FluoCalibLib.geometry.files import (image_files, read_handeye_poses, read_intrinsics,
+                                             read_matrix)
 
-    board = parse_board(args.board)
-    images = _images(args.images)
-    doc = _load_json(args.poses, "--poses")
-    if not isinstance(doc, dict) or "tool_to_tracker" not in doc:
-        raise FluoInputError('poses file needs a "tool_to_tracker" list of 4x4 matrices',
-                             file=args.poses, field="tool_to_tracker")
-    poses = [np.asarray(T, dtype=float) for T in doc["tool_to_tracker"]]
-    if len(poses) != len(images):
-        raise FluoInputError(f"{len(images)} images but {len(poses)} tool poses: each image "
-                             "needs one synchronised pose", file=args.poses,
-                             field="tool_to_tracker", value=(len(images), len(poses)))
-    camera = _intrinsics_from(args, images)
-    views, _ = detect_views(images, board)
-    keep = [i for i, v in enumerate(views) if v.status == "used"]
-    rejected = [{"name": v.name, "reason": v.reason} for v in views if v.status != "used"]
-    views = view_poses(camera, board, [views[i] for i in keep])
-    poses = [poses[i] for i in keep]
+    images = image_files(args.images)
+    doc = read_handeye_poses(args.poses)
+    camera = read_intrinsics(args.intrinsics) if args.intrinsics else None
     if args.board_to_tracker:
-        g = _load_json(args.board_to_tracker, "--board-to-tracker")
-        G = np.asarray(g.get("board_to_tracker", g) if isinstance(g, dict) else g, dtype=float)
-    elif "board_to_tracker" in doc:
-        G = np.asarray(doc["board_to_tracker"], dtype=float)
+        G = read_matrix(args.board_to_tracker, "--board-to-tracker", key="board_to_tracker")
     else:
-        G = None
-    B = [v.board_to_camera for v in views]
-    methods = he.METHODS if args.method.upper() == "ALL" else (args.method.upper(),)
-    if G is None:
-        # no grid registration: estimate it from the first method's solution
-        X0 = he.solve_handeye(B, poses, "TSAI")
-        G = he.estimate_board_to_tracker(B, poses, X0)
-    truth = doc.get("camera_to_tool")
-    cmp = he.compare_methods(camera, board, B, poses, [(v.ids, v.image_points) for v in views],
-                             G, methods, truth_camera_to_tool=truth, holdout=args.holdout)
-    best = methods[0] if len(methods) == 1 else args.store_method.upper()
-    if best not in cmp:
-        raise FluoInputError("stored method was not run", field="--store-method", value=best)
-    X = cmp[best]["camera_to_tool"]
-    info = {"method": best, **{k: v for k, v in cmp[best].items() if k != "camera_to_tool"}}
-    _store(args, camera_to_tool=X, info=info)
-    return {"camera_to_tool": X, "method": best, "views_used": [v.name for v in views],
-            "views_rejected": rejected, "methods": cmp}
+        G = doc["board_to_tracker"]
+    logic = _calib(args)
+    with TqdmProgress("calib handeye") as prog:
+        out = logic.calibrateHandEye(images, args.board, doc["tool_to_tracker"], camera=camera,
+                                     boardToTracker=G, methods=args.method,
+                                     storeMethod=args.store_method, holdout=args.holdout,
+                                     truthCameraToTool=doc["camera_to_tool"], progress=prog)
+    _yaml(args, camera_to_tool=out["camera_to_tool"])
+    save_scene_to(logic.scene, args.scene)
+    return {k: v for k, v in out.items() if k != "transform_node_id"}
 
 
 def _register(args):
-    from FluoCalibLib.geometry.registration import register_points, target_registration_error
+    from FluoCalibLib.geometry.files import read_points
 
-    moving = _load_points(args.moving, "--moving")
-    fixed = _load_points(args.fixed, "--fixed")
-    res = register_points(moving, fixed)
-    out = {"transform": res.transform, "fre_mm": res.fre_mm, "residuals_mm": res.residuals_mm}
-    if args.targets_moving or args.targets_fixed:
-        if not (args.targets_moving and args.targets_fixed):
-            raise FluoInputError("give both --targets-moving and --targets-fixed",
-                                 field="--targets-fixed")
-        tre = target_registration_error(res.transform,
-                                        _load_points(args.targets_moving, "--targets-moving"),
-                                        _load_points(args.targets_fixed, "--targets-fixed"))
-        out["tre_mm"] = tre
-        out["tre_mean_mm"] = float(tre.mean())
-    info = {k: v for k, v in out.items() if k in ("fre_mm", "tre_mean_mm")}
-    _store(args, registration=res.transform, info=info)
+    moving = read_points(args.moving, "--moving")
+    fixed = read_points(args.fixed, "--fixed")
+    tm = read_points(args.targets_moving, "--targets-moving") if args.targets_moving else None
+    tf_ = read_points(args.targets_fixed, "--targets-fixed") if args.targets_fixed else None
+    logic = _calib(args)
+    out = logic.registerTrackerToReference(moving, fixed, tm, tf_)
+    save_scene_to(logic.scene, args.scene)
     return out
 
 
 def _pivot(args):
+    from fluoguide.jsonable import read_json
+
     from FluoCalibLib.geometry.registration import pivot_calibration
 
-    doc = _load_json(args.poses, "--poses")
+    doc = read_json(args.poses, expect=None, field="--poses")
     poses = doc.get("tool_to_tracker", doc) if isinstance(doc, dict) else doc
-    return pivot_calibration([np.asarray(T, dtype=float) for T in poses])
+    if not isinstance(poses, list):
+        raise FluoInputError("poses must be a list of 4x4 matrices", file=args.poses,
+                             field="tool_to_tracker")
+    try:
+        return pivot_calibration([np.asarray(T, dtype=float) for T in poses])
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, FluoInputError):
+            raise
+        raise FluoInputError(f"poses must be 4x4 matrices of numbers ({exc})", file=args.poses,
+                             field="tool_to_tracker") from None
 
 
 def _synth(args):
@@ -193,7 +106,7 @@ def _synth(args):
     if args.fisheye:
         cam = CameraModel(cam.fx * 0.7, cam.fy * 0.7, cam.cx, cam.cy,
                           (0.03, -0.01, 0.002, -0.0005), cam.width, cam.height, "fisheye")
-    with TqdmProgress("synth boards") as prog:
+    with TqdmProgress("calib synth-boards") as prog:
         ds = make_dataset(args.out, cam, args.board, args.views, args.seed,
                           blur_sigma_px=args.blur, noise_sigma=args.noise,
                           tracker_noise_mm=args.tracker_noise_mm, motion=args.motion,
@@ -204,46 +117,57 @@ def _synth(args):
 
 
 def register(subparsers):
-    sub = cli_group(subparsers, "calib", "camera and laser calibration")
+    sub = cli_group(subparsers, "calib", "camera, hand-eye, radiometric and light calibrations")
 
     p = sub.add_parser("camera", help="intrinsic calibration from board images")
     p.add_argument("--images", required=True, help="glob of board images, e.g. 'cal/*.png'")
     p.add_argument("--board", required=True,
                    help="chessboard:COLSxROWS:SQUARE_MM or charuco:COLSxROWS:SQ:MARKER:DICT")
     p.add_argument("--fisheye", action="store_true", help="fisheye (wide-angle) lens model")
-    p.add_argument("--holdout", type=int, default=0, help="views held out for validation")
+    p.add_argument("--holdout", type=int, default=0,
+                   help="views held out of the fit for validation (default %(default)s)")
     p.add_argument("--fix-k3", action="store_true", help="hold k3 at 0")
     p.add_argument("--keep-outliers", action="store_true",
                    help="do not reject views with RMS > max(1 px, 3 x median)")
-    p.add_argument("--yaml", help="write OpenCV YAML here")
-    p.add_argument("--scene", help="store in this MRML scene (created if missing)")
+    p.add_argument("--yaml", help="write OpenCV YAML here (default: not written)")
+    p.add_argument("--scene", help="store in this MRML scene, created if missing (default: not "
+                   "stored)")
     add_json_flag(p)
     p.set_defaults(func=_camera)
 
     p = sub.add_parser("handeye", help="hand-eye calibration (camera to tracked tool)")
-    p.add_argument("--images", required=True)
-    p.add_argument("--board", required=True)
+    p.add_argument("--images", required=True,
+                   help="glob of board images, e.g. 'cal/*.png' (sorted by name)")
+    p.add_argument("--board", required=True,
+                   help="chessboard:COLSxROWS:SQUARE_MM or charuco:COLSxROWS:SQ:MARKER:DICT")
     p.add_argument("--poses", required=True,
                    help='JSON with "tool_to_tracker": one 4x4 per image (sorted by name); '
                         'optional "board_to_tracker"')
     p.add_argument("--intrinsics", help="YAML or JSON intrinsics (default: calibrate here)")
-    p.add_argument("--board-to-tracker", help="JSON 4x4 grid registration")
+    p.add_argument("--board-to-tracker", help="JSON 4x4 grid registration (default: the poses "
+                   "file's board_to_tracker, else estimated from the TSAI solution)")
     p.add_argument("--method", default="ALL", help="ALL or one of TSAI, PARK, HORAUD, ANDREFF, "
-                   "DANIILIDIS, PAIRED_POINT")
-    p.add_argument("--store-method", default="PAIRED_POINT", help="method whose result is stored")
+                   "DANIILIDIS, PAIRED_POINT (default %(default)s)")
+    p.add_argument("--store-method", default="PAIRED_POINT",
+                   help="method whose result is stored when several run (default %(default)s)")
     p.add_argument("--holdout", type=int, default=0,
-                   help="views left out of the fit, errors reported separately")
-    p.add_argument("--yaml")
-    p.add_argument("--scene")
+                   help="views left out of the fit, errors reported separately (default "
+                   "%(default)s)")
+    p.add_argument("--yaml", help="write OpenCV YAML (intrinsics and hand-eye) here (default: "
+                   "not written)")
+    p.add_argument("--scene", help="store in this MRML scene, created if missing (default: not "
+                   "stored)")
     add_json_flag(p)
     p.set_defaults(func=_handeye)
 
     p = sub.add_parser("register", help="paired-point rigid registration with FRE/TRE")
     p.add_argument("--moving", required=True, help="points in the moving frame (tracker)")
     p.add_argument("--fixed", required=True, help="the same points in the fixed frame (CBCT)")
-    p.add_argument("--targets-moving")
-    p.add_argument("--targets-fixed")
-    p.add_argument("--scene")
+    p.add_argument("--targets-moving", help="target points in the moving frame, for the target "
+                   "registration error (TRE; default: none)")
+    p.add_argument("--targets-fixed", help="the same targets in the fixed frame (default: none)")
+    p.add_argument("--scene", help="store the registration in this MRML scene, created if "
+                   "missing (default: not stored)")
     add_json_flag(p)
     p.set_defaults(func=_register)
 
@@ -253,16 +177,28 @@ def register(subparsers):
     p.set_defaults(func=_pivot)
 
     p = sub.add_parser("synth-boards", help="render synthetic board images with known truth")
-    p.add_argument("--out", required=True)
-    p.add_argument("--board", default="chessboard:9x6:20")
-    p.add_argument("--views", type=int, default=12)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--width", type=int, default=800)
-    p.add_argument("--height", type=int, default=600)
-    p.add_argument("--fisheye", action="store_true")
-    p.add_argument("--noise", type=float, default=2.0, help="sensor noise SD [grey levels]")
-    p.add_argument("--blur", type=float, default=0.6, help="blur SD [px]")
-    p.add_argument("--tracker-noise-mm", type=float, default=0.1)
-    p.add_argument("--motion", default="general", choices=("general", "translation", "parallel"))
+    p.add_argument("--out", required=True,
+                   help="folder for view_NNN.png and truth.json (camera, hand-eye, tool poses)")
+    p.add_argument("--board", default="chessboard:9x6:20",
+                   help="board: chessboard:COLSxROWS:SQUARE_MM or "
+                   "charuco:COLSxROWS:SQ:MARKER:DICT (default %(default)s)")
+    p.add_argument("--views", type=int, default=12, help="images to render (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the poses and the noise (default %(default)s)")
+    p.add_argument("--width", type=int, default=800, help="image width [px] (default %(default)s)")
+    p.add_argument("--height", type=int, default=600,
+                   help="image height [px] (default %(default)s)")
+    p.add_argument("--fisheye", action="store_true",
+                   help="a wide-angle camera with the fisheye lens model instead of the "
+                   "distorted pinhole")
+    p.add_argument("--noise", type=float, default=2.0,
+                   help="sensor noise SD [grey levels] (default %(default)s)")
+    p.add_argument("--blur", type=float, default=0.6, help="blur SD [px] (default %(default)s)")
+    p.add_argument("--tracker-noise-mm", type=float, default=0.1,
+                   help="SD of the tracked tool's position noise [mm] (default %(default)s)")
+    p.add_argument("--motion", default="general", choices=("general", "translation", "parallel"),
+                   help="camera motion between views: general; translation (one orientation: "
+                   "degenerate for hand-eye and intrinsics); parallel (board always head-on: "
+                   "degenerate for intrinsics) (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_synth)

@@ -4,110 +4,44 @@ from ``synth-light``)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import numpy as np
-
 from fluoapp.cli import add_json_flag, cli_group
-from fluoguide.errors import FluoInputError
+from fluoapp.commands import module_logic, save_scene_to, scene_for
+from fluoguide.progress import TqdmProgress, report
 
 
-def _doc(folder, name):
-    p = Path(folder) / name
-    if not p.is_file():
-        raise FluoInputError(f"folder needs {name}", file=p)
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise FluoInputError(f"not valid JSON ({exc.msg}, line {exc.lineno})", file=p) from None
+def _calib(args):
+    """The FluoCalib logic over the ``--scene`` scene (or a new one)."""
+    return module_logic("FluoCalib", scene_for(getattr(args, "scene", None)))
 
 
-def _images(folder, doc, name):
-    from FluoCalibLib.radiometry.camera_response import _read_image
-
-    if not isinstance(doc.get("images"), list) or not doc["images"]:
-        raise FluoInputError("needs a non-empty 'images' list", file=Path(folder) / name,
-                             field="images")
-    return [_read_image(Path(folder) / f).astype(float) for f in doc["images"]]
-
-
-def _save(args, key, doc):
-    from FluoCalibLib.radiometry import scene as light_scene
-
-    if getattr(args, "calibration", None):
-        light_scene.write_calibration_json(args.calibration, key, doc)
-    if getattr(args, "scene", None):
-        from fluoguide import mrml_io
-
-        path = Path(args.scene)
-        scene = mrml_io.load_scene(path) if path.is_file() else mrml_io.new_scene()
-        light_scene.store_calibration(scene, key, doc)
-        mrml_io.save_scene(scene, path)
+def _outputs(args):
+    return {"calibrationJson": getattr(args, "calibration", None)}
 
 
 def _radiometry(args):
-    from FluoCalibLib.radiometry.camera_response import characterize, load_stack
-    from FluoCalibLib.radiometry.scene import RADIOMETRY_KEY
-
-    frames, meta = load_stack(args.stack)
-    res = characterize(frames, bit_depth=args.bits)
-    if args.out:
-        from FluoCalibLib.radiometry.plots import plot_radiometry
-
-        res["plots"] = plot_radiometry(res, args.out)
-    keep = {k: v for k, v in res.items() if k not in ("ptc", "linearity", "dark")}
-    _save(args, RADIOMETRY_KEY, keep)
-    if "truth" in meta:
-        res["truth"] = meta["truth"]
+    logic = _calib(args)
+    res = logic.characterizeCamera(args.stack, bitDepth=args.bits, plotsFolder=args.out,
+                                   **_outputs(args))
+    save_scene_to(logic.scene, args.scene)
     return {k: v for k, v in res.items() if k not in ("ptc", "linearity", "dark")} | (
         {"curves": {k: res[k] for k in ("ptc", "linearity", "dark")}} if args.curves else {})
 
 
 def _illumination(args):
-    from FluoCalibLib.geometry.camera_model import CameraModel
-    from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
-    from FluoCalibLib.radiometry.scene import ILLUMINATION_KEY
-
-    doc = _doc(args.folder, "illumination.json")
-    for k in ("camera", "phantom_to_camera", "rd"):
-        if k not in doc:
-            raise FluoInputError("missing key", file=Path(args.folder) / "illumination.json", field=k)
-    images = _images(args.folder, doc, "illumination.json")
-    res = calibrate_illumination(images, CameraModel.from_dict(doc["camera"]),
-                                 [np.asarray(T, float) for T in doc["phantom_to_camera"]],
-                                 float(doc["rd"]), float(doc.get("offset_adu", 0.0)),
-                                 try_asymmetric=not args.axisymmetric,
-                                 saturation_adu=float(doc.get("saturation_adu", 16383.0)))
-    ratios = res.pop("ratio_images")
-    cone = res.pop("cone")
-    res["cone"] = cone.to_dict()
-    if args.out:
-        from FluoCalibLib.radiometry.plots import plot_ratio_images
-
-        res["plots"] = plot_ratio_images(ratios, args.out)
-    _save(args, ILLUMINATION_KEY, res)
-    if "truth" in doc:
-        res["truth"] = doc["truth"]
-    return res
+    logic = _calib(args)
+    with TqdmProgress("calib illumination") as prog:
+        res = logic.calibrateIllumination(args.folder, tryAsymmetric=not args.axisymmetric,
+                                          plotsFolder=args.out, progress=prog, **_outputs(args))
+    save_scene_to(logic.scene, args.scene)
+    return {k: v for k, v in res.items() if k != "ratio_images"}
 
 
 def _laser(args):
-    from FluoCalibLib.geometry.camera_model import CameraModel
-    from FluoCalibLib.radiometry.laser_line import calibrate_laser
-    from FluoCalibLib.radiometry.scene import LASER_KEY
-
-    doc = _doc(args.folder, "laser.json")
-    for k in ("camera", "camera_to_tracker", "laser_to_tracker", "phantom_to_tracker"):
-        if k not in doc:
-            raise FluoInputError("missing key", file=Path(args.folder) / "laser.json", field=k)
-    images = _images(args.folder, doc, "laser.json")
-    res = calibrate_laser(images, CameraModel.from_dict(doc["camera"]), doc["camera_to_tracker"],
-                          doc["laser_to_tracker"], doc["phantom_to_tracker"],
-                          doc.get("pointer_origin_tool_mm"), holdout=args.holdout)
-    _save(args, LASER_KEY, {k: v for k, v in res.items() if k != "spots_px"})
-    if "truth" in doc:
-        res["truth"] = doc["truth"]
+    logic = _calib(args)
+    res = logic.calibrateLaser(args.folder, holdout=args.holdout, **_outputs(args))
+    save_scene_to(logic.scene, args.scene)
     return res
 
 
@@ -123,24 +57,31 @@ def _synth(args):
     )
 
     out = Path(args.out)
-    frames, truth = synthetic_stack(seed=args.seed)
-    # plus frames at several f-numbers and wavelengths (same default camera)
-    extra, t_extra = synthetic_lens_spectral_frames(
-        radiance_w_per_mm2_sr=truth["radiance_w_per_mm2_sr"], seed=args.seed + 1)
-    frames = frames + extra
-    write_stack(out / "stack", frames, {"truth": {**truth, **t_extra}})
-    imgs, t_il = synthetic_illumination(seed=args.seed)
-    write_illumination_set(out / "illumination", imgs, t_il)
-    limgs, t_la = synthetic_laser(seed=args.seed)
-    write_laser_set(out / "laser", limgs, t_la)
+    with TqdmProgress("calib synth-light") as prog:
+        report(prog, 0.0, "camera stack")
+        frames, truth = synthetic_stack(seed=args.seed)
+        # plus frames at several f-numbers and wavelengths (same default camera)
+        extra, t_extra = synthetic_lens_spectral_frames(
+            radiance_w_per_mm2_sr=truth["radiance_w_per_mm2_sr"], seed=args.seed + 1)
+        frames = frames + extra
+        write_stack(out / "stack", frames, {"truth": {**truth, **t_extra}})
+        report(prog, 0.5, "illumination images")
+        imgs, t_il = synthetic_illumination(seed=args.seed)
+        write_illumination_set(out / "illumination", imgs, t_il)
+        report(prog, 0.8, "laser spot images")
+        limgs, t_la = synthetic_laser(seed=args.seed)
+        write_laser_set(out / "laser", limgs, t_la)
+        report(prog, 1.0, "done")
     return {"stack": str(out / "stack"), "illumination": str(out / "illumination"),
             "laser": str(out / "laser"), "frames": len(frames), "illumination_images": len(imgs),
             "laser_images": len(limgs)}
 
 
 def _common(p):
-    p.add_argument("--scene", help="MRML scene to store the result in (created if missing)")
-    p.add_argument("--calibration", help="calibration JSON file to merge the result into")
+    p.add_argument("--scene", help="MRML scene to store the result in, created if missing "
+                   "(default: not stored)")
+    p.add_argument("--calibration", help="calibration JSON file to merge the result into "
+                   "(default: none)")
     add_json_flag(p)
 
 
@@ -149,8 +90,8 @@ def register(subparsers):
     p = calib.add_parser("radiometry", help="camera response (gain, dark current, bias, read "
                          "noise, linearity) from an image stack (EMVA 1288 style)")
     p.add_argument("stack", help="folder with stack.json and the frames")
-    p.add_argument("--bits", type=int, default=14, help="A/D bit depth")
-    p.add_argument("--out", help="folder for PNG plots")
+    p.add_argument("--bits", type=int, default=14, help="A/D bit depth (default %(default)s)")
+    p.add_argument("--out", help="folder for PNG plots (default: no plots)")
     p.add_argument("--curves", action="store_true", help="include the curves in the JSON")
     _common(p)
     p.set_defaults(func=_radiometry)
@@ -159,17 +100,19 @@ def register(subparsers):
     p.add_argument("folder", help="folder with illumination.json and the images")
     p.add_argument("--axisymmetric", action="store_true",
                    help="do not try the crescent (non-axisymmetric) term")
-    p.add_argument("--out", help="folder for the ratio-image PNG")
+    p.add_argument("--out", help="folder for the ratio-image PNG (default: no plot)")
     _common(p)
     p.set_defaults(func=_illumination)
     p = calib.add_parser("laser", help="laser beam line in laser-tool coordinates from spot images")
     p.add_argument("folder", help="folder with laser.json and the images")
-    p.add_argument("--holdout", type=int, default=4, help="images kept out of the fit for accuracy")
+    p.add_argument("--holdout", type=int, default=4,
+                   help="images kept out of the fit to measure accuracy (default %(default)s)")
     _common(p)
     p.set_defaults(func=_laser)
     p = calib.add_parser("synth-light", help="synthetic stack, illumination and laser data sets "
                          "with known truth")
-    p.add_argument("--out", required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True,
+                   help="folder for the three sets: stack/, illumination/, laser/")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_synth)

@@ -3,21 +3,19 @@ cameras, track poses, record and replay tracked frames."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 from fluoapp.cli import add_json_flag
-from fluoguide.errors import FluoDeviceError, FluoInputError
+from fluoapp.commands import module_logic
+from fluoguide.errors import FluoInputError
 
 
 def _seconds(value):
     """``--seconds``: finite, positive and at most a day (inf and NaN never end or never start)."""
-    import math
+    from FluoNavLib.devices.tracker import check_seconds
 
-    if not math.isfinite(value) or value <= 0 or value > 86400:
-        raise FluoInputError("must be a number of seconds in (0, 86400]", field="--seconds",
-                             value=value)
-    return value
+    return check_seconds(value)
+
 
 def _devices(args):
     from FluoNavLib.devices.usb import discover
@@ -26,64 +24,22 @@ def _devices(args):
 
 
 def _track(args):
-    from FluoNavLib.devices.ndi_client import NDIClient
-    from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
-
     _seconds(args.seconds)
     if args.igtl:
-        return _track_igtl(args)
-    sim = None
-    if args.sim:
-        sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(),
-                           seed=args.seed)
-        port = sim.start()
+        source, address, options = "igtl", args.igtl, {"rate_hz": args.rate}
+    elif args.sim:
+        source, address = "ndi-sim", None
+        options = {"inject_faults": args.inject_faults, "seed": args.seed}
     elif args.serial:
-        port = args.serial
+        source, address, options = "ndi", args.serial, {"tools": args.tools}
     else:
         raise FluoInputError("choose --sim or --serial PORT", field="source")
+    logic = module_logic("FluoNav")
+    logic.connectTracker(source, address, **options)
     try:
-        try:
-            client = NDIClient(port).open()
-        except Exception as exc:
-            raise FluoInputError(f"cannot open serial port ({exc})", field="--serial",
-                                 value=port) from None
-        with client:
-            client.initialize([b"FluoGuide sim tool " * 4] * (2 if args.sim else args.tools))
-            client.start()
-            t0 = time.monotonic()
-            stats = client.track(args.seconds)
-            elapsed = time.monotonic() - t0
-            client.stop()
+        return logic.trackFor(args.seconds)
     finally:
-        if sim is not None:
-            sim.stop()
-    if stats.frames == 0:
-        # a tracker that answered nothing usable is a failed run, not an empty success
-        raise FluoDeviceError(
-            f"tracker on {port} delivered no frames in {elapsed:.1f} s (CRC errors "
-            f"{stats.crc_errors}, time-outs {stats.timeouts}, malformed {stats.malformed}, "
-            f"device errors {stats.device_errors})")
-    return {"frames": stats.frames, "rate_hz": stats.frames / elapsed, "seconds": elapsed,
-            "missing": stats.missing, "tool_missing": stats.tool_missing,
-            "out_of_volume": stats.out_of_volume, "crc_errors": stats.crc_errors,
-            "timeouts": stats.timeouts, "malformed": stats.malformed,
-            "device_errors": stats.device_errors, "recovered": stats.recovered,
-            "lost_unreported": stats.lost_unreported(), "segments": stats.segments,
-            "simulator": sim.counters if sim is not None else None}
-
-
-def _track_igtl(args):
-    from fluoguide import mrml_io
-
-    from FluoNavLib.devices.igtl_client import IGTLReceiver
-
-    host, _, port = args.igtl.rpartition(":")
-    if not host or not port.isdigit():
-        raise FluoInputError("expected HOST:PORT", field="--igtl", value=args.igtl)
-    with IGTLReceiver(mrml_io.new_scene(), host, int(port), nominal_rate_hz=args.rate) as rx:
-        out = rx.receive(args.seconds)
-    out["seconds"] = args.seconds
-    return out
+        logic.disconnect()
 
 
 def _frame_source(args):
@@ -138,18 +94,17 @@ def _record(args):
 
 
 def _replay(args):
-    from FluoNavLib.devices.recorder import replay, to_scene
+    from fluoguide import mrml_io
 
-    n = valid = 0
-    t0 = time.monotonic()
-    for _, info, poses in replay(args.folder, "max" if args.max_speed else "recorded"):
-        n += 1
-        valid += bool(info["pose_valid"])
-    out = {"frames": n, "frames_with_pose": valid, "seconds": time.monotonic() - t0}
+    logic = module_logic("FluoNav")
+    logic.connectTracker("replay", args.folder, speed="max" if args.max_speed else "recorded")
+    try:
+        out = logic.trackFor(None, applyPoses=False)
+    finally:
+        logic.disconnect()
     if args.scene:
-        from fluoguide import mrml_io
-
-        out["scene"] = str(mrml_io.save_scene(to_scene(args.folder), args.scene))
+        logic.importRecording(args.folder)
+        out["scene"] = str(mrml_io.save_scene(logic.scene, args.scene))
     return out
 
 
@@ -160,35 +115,52 @@ def register(subparsers):
     p = subparsers.add_parser("track", help="track tool poses from an NDI tracker or the simulator")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--sim", action="store_true", help="protocol-faithful simulator on a pty")
-    src.add_argument("--serial", metavar="PORT", help="serial port of a real NDI tracker")
-    src.add_argument("--igtl", metavar="HOST:PORT", help="OpenIGTLink server (e.g. PLUS)")
+    src.add_argument("--serial", metavar="PORT", help="serial port of a real NDI tracker "
+                     "(default: none; one of --sim, --serial, --igtl is needed)")
+    src.add_argument("--igtl", metavar="HOST:PORT", help="OpenIGTLink server, e.g. PLUS "
+                     "(default: none)")
     p.add_argument("--rate", type=float, default=None,
-                   help="--igtl: nominal message rate [Hz] for loss counting by timestamps")
-    p.add_argument("--seconds", type=float, default=5.0)
+                   help="--igtl: nominal message rate [Hz], to count losses by timestamps when "
+                   "messages carry no sequence numbers (default: not counted that way)")
+    p.add_argument("--seconds", type=float, default=5.0,
+                   help="how long to track [s] (default %(default)s)")
     p.add_argument("--inject-faults", action="store_true",
                    help="simulator: CRC errors, slow replies, dropouts and a disconnect")
-    p.add_argument("--tools", type=int, default=1, help="passive tools to request (--serial)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tools", type=int, default=1,
+                   help="passive tools to request (--serial; default %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the simulator's faults (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_track)
     p = subparsers.add_parser("record", help="record tracked camera frames (simulated tracker; "
                               "synthetic, image-folder or camera frames) incrementally to a folder")
     p.add_argument("--out", required=True, help="new or empty folder")
     cam = p.add_mutually_exclusive_group()
-    cam.add_argument("--frames", metavar="FOLDER", help="images played as a camera at --fps")
-    cam.add_argument("--camera", type=int, metavar="INDEX", help="OpenCV/UVC camera index")
-    p.add_argument("--seconds", type=float, default=5.0)
-    p.add_argument("--fps", type=float, default=20.0)
-    p.add_argument("--width", type=int, default=348)
-    p.add_argument("--height", type=int, default=260)
-    p.add_argument("--inject-faults", action="store_true")
-    p.add_argument("--seed", type=int, default=0)
+    cam.add_argument("--frames", metavar="FOLDER", help="images played as a camera at --fps "
+                     "(default: synthetic frames)")
+    cam.add_argument("--camera", type=int, metavar="INDEX", help="OpenCV/UVC camera index "
+                     "(default: synthetic frames)")
+    p.add_argument("--seconds", type=float, default=5.0,
+                   help="how long to record [s] (default %(default)s)")
+    p.add_argument("--fps", type=float, default=20.0,
+                   help="camera frame rate [frames/s] (default %(default)s)")
+    p.add_argument("--width", type=int, default=348,
+                   help="synthetic frames: width [px] (default %(default)s)")
+    p.add_argument("--height", type=int, default=260,
+                   help="synthetic frames: height [px] (default %(default)s)")
+    p.add_argument("--inject-faults", action="store_true",
+                   help="simulated tracker: CRC errors, slow replies, dropouts and a disconnect")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the synthetic frames and the tracker's faults (default "
+                   "%(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_record)
     p = subparsers.add_parser("replay", help="replay a recording (poses bit-exact), optionally as "
                               "an MRML scene")
-    p.add_argument("folder")
-    p.add_argument("--max-speed", action="store_true", help="as fast as possible")
-    p.add_argument("--scene", help="also write the recording as an MRML scene (.mrml)")
+    p.add_argument("folder", help="recording folder (from fluo record)")
+    p.add_argument("--max-speed", action="store_true",
+                   help="as fast as possible (default: at the recorded pace)")
+    p.add_argument("--scene", help="also write the recording as an MRML scene (.mrml; default: "
+                   "no scene)")
     add_json_flag(p)
     p.set_defaults(func=_replay)

@@ -9,60 +9,51 @@ from pathlib import Path
 import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
-from fluoguide.errors import FluoInputError
+from fluoapp.commands import module_logic
+from fluoguide.progress import TqdmProgress, report
 
 
 def _synth(args):
-    """Oral-cavity scene: TissueSurface, calibrations, tracked frames."""
+    """Oral-cavity scene: TissueSurface, calibrations, tracked frames.  The frames
+    are rendered on the phantom's analytic surface from the true poses; the scene
+    holds the CBCT-derived surface, tracked poses and a hand-eye with errors."""
     from fluoguide import mrml_io
-    from FluoCalibLib.radiometry import scene as light_scene
-    from FluoCalibLib.geometry.scene import store_intrinsics
-    from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
 
-    from FluoNavLib.devices import frame_store
-    from FluoNavLib.mapping.synthetic import (
-        coupled_light,
-        open_field_camera,
-        oral_cavity_surface,
-        render_view,
-        view_poses,
-    )
-
-    caster, poly = oral_cavity_surface(args.triangles)
-    cam = open_field_camera(args.binning)
-    cone = coupled_light()
-    rc = RadiometricCamera(gain_adu_per_e=1.0)
-    scene = mrml_io.new_scene()
-    mrml_io.add_model(scene, "TissueSurface", poly)
-    store_intrinsics(scene, cam, {"rms_px": 0.0})
-    light_scene.store_calibration(scene, light_scene.ILLUMINATION_KEY, {"cone": cone.to_dict()})
-    light_scene.store_calibration(scene, light_scene.RADIOMETRY_KEY, {"camera": rc.to_dict()})
-    mrml_io.set_transform(scene, "TrackerToReference", np.eye(4))
-    mrml_io.set_transform(scene, "CameraToTracker", np.eye(4))   # hand-eye: camera = tool frame
-    frame_store.new_recording(scene)
-    for k, pose in enumerate(view_poses(args.views)):
-        counts, _, _ = render_view(caster, cam, pose, cone, args.transport, rc, seed=k)
-        frame_store.append_tracked_frame(scene, counts.astype(np.uint16), 1.0 + k / 10,
-                                         {"CameraToolToTracker": pose}, exposure_s=rc.exposure_s)
-    path = mrml_io.save_scene(scene, Path(args.out) / "scene.mrml")
-    return {"scene": str(path), "frames": args.views, "transport_truth": args.transport,
-            "triangles": caster.n_faces, "image": [cam.width, cam.height]}
+    logic = module_logic("FluoNav")
+    with TqdmProgress("nav synth") as prog:
+        info = logic.makeSyntheticAcquisition(views=args.views, binning=args.binning,
+                                              triangles=args.triangles, transport=args.transport,
+                                              trackingMm=args.tracking_mm,
+                                              trackingDeg=args.tracking_deg,
+                                              handEyeMm=args.hand_eye_mm,
+                                              handEyeDeg=args.hand_eye_deg, progress=prog)
+    path = mrml_io.save_scene(logic.scene, Path(args.out) / "scene.mrml")
+    return {"scene": str(path), "frames": info["frames"], "transport_truth": args.transport,
+            "triangles": info["triangles"], "image": info["image"],
+            "rendered_on": info["rendered_on"], "scene_holds": info["scene_holds"],
+            "tracking_sd": [args.tracking_mm, args.tracking_deg],
+            "hand_eye_error": [args.hand_eye_mm, args.hand_eye_deg]}
 
 
-def _factor_png(path, vm):
+def _factor_png(path, vm, frame, distance_mm):
+    """The three factors of the illumination model in this frame's pixels, with the
+    camera-to-surface distances [mm] of the lit pixels."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     for ax, (name, a) in zip(axes, (("angular (cos theta)^alpha", vm.angular),
                                      ("foreshortening cos(beta)", vm.foreshortening),
                                      ("distance 1/(1+gamma d)^2", vm.distance))):
         im = ax.imshow(np.where(vm.lit, a, np.nan), cmap="viridis")
         ax.set_title(name, fontsize=9)
         ax.axis("off")
-        fig.colorbar(im, ax=ax, shrink=0.7)
+        fig.colorbar(im, ax=ax, shrink=0.7, label="factor (dimensionless)")
+    d = distance_mm[vm.lit] if vm.lit.any() else np.array([np.nan])
+    fig.suptitle(f"frame {frame}: camera to surface {np.min(d):.0f}-{np.max(d):.0f} mm "
+                 f"(median {np.median(d):.0f} mm) over the lit pixels", fontsize=10)
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return str(path)
@@ -71,89 +62,102 @@ def _factor_png(path, vm):
 def _correct(args):
     from fluoguide import mrml_io
 
-    from FluoNavLib.devices import frame_store
-    from FluoNavLib.mapping.contours import miss_rate, overlay_png
-    from FluoNavLib.mapping.scene import write_frame_images, write_surface_flux
-    from FluoNavLib.mapping.correct import correct_frame, load_context, map_frames_to_surface
+    from FluoNavLib.mapping.contours import overlay_png
 
     t0 = time.perf_counter()
-    scene = mrml_io.load_scene(args.scene)
-    ctx = load_context(scene)
+    prog = TqdmProgress("nav correct")      # closed before the return (an error ends the run)
+    report(prog, 0.0, "loading the scene and its surface")
+    logic = module_logic("FluoNav", mrml_io.load_scene(args.scene))
+    logic.correctionContext()
     t1 = time.perf_counter()
-    r = correct_frame(scene, ctx, args.frame)
+    report(prog, 0.3, f"correcting frame {args.frame}")
+    r = logic.correctFrame(args.frame)
     t_frame = time.perf_counter() - t1
-    results = [r]
-    skipped = []
-    if args.all_frames:
-        for n in range(frame_store.number_of_frames(scene)):
-            if n == args.frame:
-                continue
-            try:
-                results.append(correct_frame(scene, ctx, n))
-            except FluoInputError as exc:          # no valid pose: not mapped, say so
-                skipped.append({"frame": n, "reason": exc.problem})
-    T_face, J_face, w_face, views = map_frames_to_surface(ctx, results)
-    write_surface_flux(scene, ctx.polydata, T_face, J_face, w_face, views)
-    S = r.counts - ctx.radiometric.offset_adu
+    report(prog, 0.4, "mapping the frames onto the surface")
+    mapped = logic.mapFrames(frames=None if args.all_frames else [args.frame], precomputed=[r],
+                             progress=lambda f, m="": report(prog, 0.4 + 0.4 * f, m))
+    report(prog, 0.8, "writing images and the scene")
     numbers = dict(r.numbers)
-    write_frame_images(scene, r.transport, r.mapped, S, numbers)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     files = []
     if r.mapped.any():
-        _, raw_contour, _ = miss_rate(S, r.hits.visible & r.flux_valid)
-        _, cor_contour, _ = miss_rate(r.transport, r.mapped)
-        files += [overlay_png(out / "raw.png", S, raw_contour,
+        classes = logic.classifyContours(r)
+        S = r.counts - r.offset_adu
+        files += [overlay_png(out / "raw.png", S, classes["raw_contour"],
                               f"raw counts above offset, 40 % contour (miss "
                               f"{numbers['miss_rate_raw_pct']:.1f} %)", r.hits.visible),
-                  overlay_png(out / "transport.png", r.transport, cor_contour,
+                  overlay_png(out / "transport.png", r.transport, classes["corrected_contour"],
                               f"optical transport T, 40 % contour (miss "
-                              f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped)]
-    files.append(_factor_png(out / "factors.png", r.vm))
+                              f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped,
+                              colorbar_label="optical transport T (dimensionless)")]
+    files.append(_factor_png(out / "factors.png", r.vm, args.frame, r.hits.distance_mm))
     np.save(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
     np.save(out / "surface_flux_w_per_mm2.npy", np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
-    scene_path = mrml_io.save_scene(scene, out / "scene.mrml")
-    seen = w_face > 0
+    scene_path = mrml_io.save_scene(logic.scene, out / "scene.mrml")
     numbers.update({
-        "frames_on_surface": [x.frame for x in results], "frames_skipped": skipped,
-        "faces_seen": int(seen.sum()), "faces": int(len(w_face)),
-        "surface_transport_median": float(np.median(T_face[seen])) if seen.any() else None,
+        "frames_on_surface": mapped["frames_on_surface"], "frames_skipped": mapped["frames_skipped"],
+        "faces_seen": mapped["faces_seen"], "faces": mapped["faces"],
+        "surface_transport_median": mapped["surface_transport_median"],
         "frame_seconds": t_frame, "seconds": time.perf_counter() - t0,
         "scene": str(scene_path), "files": files + [str(out / "transport.npy"),
                                                     str(out / "surface_flux_w_per_mm2.npy")]})
+    prog.close()
     return numbers
 
 
 def _bench(args):
     from FluoNavLib.mapping.benchmark import run_mapping_benchmark
 
-    return run_mapping_benchmark(args.repeats, args.binning)
+    with TqdmProgress("bench mapping") as prog:
+        return run_mapping_benchmark(args.repeats, args.binning, progress=prog)
 
 
 def register(subparsers):
     nav = cli_group(subparsers, "nav", "navigated fluorescence: surface-flux mapping of tracked frames")
     p = nav.add_parser("synth", help="synthetic oral-cavity scene with tracked frames of "
                        "homogeneous fluorescence")
-    p.add_argument("--out", required=True)
-    p.add_argument("--views", type=int, default=4)
-    p.add_argument("--binning", type=int, default=4)
-    p.add_argument("--triangles", type=int, default=62000)
-    p.add_argument("--transport", type=float, default=0.3)
+    p.add_argument("--out", required=True, help="folder for scene.mrml and its data")
+    p.add_argument("--views", type=int, default=4,
+                   help="tracked camera views (frames) to render (default %(default)s)")
+    p.add_argument("--binning", type=int, default=4,
+                   help="camera pixel binning of the 1392 x 1040 sensor (default %(default)s: "
+                   "348 x 260 px)")
+    p.add_argument("--triangles", type=int, default=62000,
+                   help="triangles of the tissue surface extracted from the CBCT "
+                   "(default %(default)s)")
+    p.add_argument("--transport", type=float, default=0.3,
+                   help="optical transport T of the homogeneous tissue, dimensionless "
+                   "(default %(default)s)")
+    p.add_argument("--tracking-mm", type=float, default=0.25,
+                   help="tracking error of the camera tool, SD per axis in mm (default %(default)s)")
+    p.add_argument("--tracking-deg", type=float, default=0.1,
+                   help="tracking error of the camera tool, SD per axis in degrees "
+                   "(default %(default)s)")
+    p.add_argument("--hand-eye-mm", type=float, default=0.3,
+                   help="error of the stored hand-eye calibration, mm (default %(default)s)")
+    p.add_argument("--hand-eye-deg", type=float, default=0.15,
+                   help="error of the stored hand-eye calibration, degrees (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_synth)
     p = nav.add_parser("correct", help="optical transport, surface flux and classification of one "
                        "tracked frame")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--frame", type=int, default=0)
+    p.add_argument("--scene", required=True,
+                   help="MRML scene with TissueSurface, calibrations and tracked frames "
+                   "(e.g. from nav synth)")
+    p.add_argument("--frame", type=int, default=0,
+                   help="index of the frame to correct, 0-based (default %(default)s)")
     p.add_argument("--out", required=True, help="folder for the PNGs, arrays and the updated scene")
     p.add_argument("--all-frames", action="store_true",
                    help="map every frame with a valid pose onto the surface (view-weighted)")
     add_json_flag(p)
     p.set_defaults(func=_correct)
-    bench = cli_group(subparsers, "bench", "benchmarks printed as JSON")
+    bench = cli_group(subparsers, "bench", "benchmarks: speed and accuracy together")
     p = bench.add_parser("mapping", help="per-pixel mapping speed and accuracy (full res, binned, "
                          "decimated)")
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--binning", type=int, default=10)
+    p.add_argument("--repeats", type=int, default=5,
+                   help="timed repeats; medians are printed (default %(default)s)")
+    p.add_argument("--binning", type=int, default=10,
+                   help="pixel binning of the binned runs (default %(default)s)")
     add_json_flag(p)
     p.set_defaults(func=_bench)

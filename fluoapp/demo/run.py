@@ -15,7 +15,43 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fluoguide.errors import FluoError, FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
+
+
+# The stages in the order they run: name, title, and the stages whose results
+# (``ctx.state``) it needs; ``--only`` runs those first.  Functions: stages.py.
+STAGE_TABLE = [
+    ("phantoms", "digital phantoms", ()),
+    ("camera_calibration", "camera and hand-eye calibration", ("phantoms",)),
+    ("light_calibration", "radiometric, illumination and laser calibration", ("phantoms",)),
+    ("surface_mapping", "tracked views and surface-flux mapping", ()),
+    ("tomography", "tracked acquisition and reconstruction", ("phantoms",)),
+    ("oral_tomography", "oral-cavity acquisition and reconstruction", ("phantoms",)),
+]
+STAGE_NAMES = [name for name, _, _ in STAGE_TABLE]
+
+
+def stages_to_run(only):
+    """Names of the stages ``only`` asks for plus those they need, in run order
+    (every stage for None); FluoInputError naming an unknown stage."""
+    if only is None:
+        return list(STAGE_NAMES)
+    asked = [s.strip() for s in only if s.strip()]
+    if not asked:
+        raise FluoInputError(f"name at least one stage ({', '.join(STAGE_NAMES)})",
+                             field="--only", value=",".join(only))
+    needs = {name: deps for name, _, deps in STAGE_TABLE}
+    for s in asked:
+        if s not in needs:
+            raise FluoInputError(f"unknown stage (stages: {', '.join(STAGE_NAMES)})",
+                                 field="--only", value=s)
+    wanted, todo = set(), list(asked)
+    while todo:
+        s = todo.pop()
+        if s not in wanted:
+            wanted.add(s)
+            todo += needs[s]
+    return [s for s in STAGE_NAMES if s in wanted]
 
 
 @dataclass
@@ -27,6 +63,7 @@ class DemoContext:
     figures: list = field(default_factory=list)   # (stage, file name, caption)
     notes: list = field(default_factory=list)     # (stage, text)
     state: dict = field(default_factory=dict)     # objects handed between stages
+    progress: object = None                       # progress(fraction, message) of the running stage
 
     def figure(self, stage, name, caption):
         self.figures.append((stage, name, caption))
@@ -52,9 +89,12 @@ def _stages():
 def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None):
     """Run the demo stages into ``out_dir``; returns the metrics dict.
 
-    Raises FluoError (after writing metrics.json and report.html) when a stage
-    fails; the message names the stage.
+    ``only``: stage names (:data:`STAGE_NAMES`) to run, with the stages they need.
+    Raises FluoInputError for an unknown stage name (before anything is
+    written) and FluoError (after writing metrics.json and report.html) when a
+    stage fails; the message names the stage.
     """
+    names = stages_to_run(only)
     out = Path(out_dir).resolve()
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -64,7 +104,7 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     except OSError as exc:
         raise FluoInputError(f"output folder is not writable ({exc.strerror})", file=out) from None
     ctx = DemoContext(out=out, quick=quick, seed=seed)
-    stages = [s for s in _stages() if only is None or s[0] in only]
+    stages = [s for s in _stages() if s[0] in names]
     ctx.metrics = {"quick": quick, "seed": seed, "stage_seconds": {}, "stages_completed": [],
                    "stages_failed": {}}
     t_all = time.perf_counter()
@@ -72,6 +112,7 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     for i, (name, title, fn) in enumerate(stages):
         check_cancel(cancel)
         report(progress, i / len(stages), title)
+        ctx.progress = scaled(progress, i / len(stages), (i + 1) / len(stages), title)
         t0 = time.perf_counter()
         (out / f"{name}.error.txt").unlink(missing_ok=True)  # from an earlier run
         try:

@@ -107,57 +107,33 @@ class CalibPanel:
         self.app.start_job("synthetic light data", work, on_done=done)
 
     def light_run(self):
-        """Radiometry, illumination or laser calibration of the folder (background job)."""
+        """Radiometry, illumination or laser calibration of the folder (background job
+        over the logic's ``prepare...`` call; stored by its ``store...`` call)."""
         import numpy as np
-
-        from FluoCalibLib.radiometry import scene as light_scene
 
         s = self.app.state
         kind = str(s.calib_light_kind)
         folder = Path(str(s.calib_light_folder or ""))
         if not folder.is_dir():
             raise FluoInputError("folder not found", field="folder", value=str(folder))
-
-        def work(progress, cancel):
-            from fluoapp.commands.calib_light import _doc, _images
-
-            progress(0.1, f"{kind} calibration")
-            if kind == "radiometry":
-                from FluoCalibLib.radiometry.camera_response import characterize, load_stack
-
-                res = characterize(load_stack(folder)[0])
-                return res, None
-            if kind == "illumination":
-                from FluoCalibLib.geometry.camera_model import CameraModel
-                from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
-
-                doc = _doc(folder, "illumination.json")
-                res = calibrate_illumination(_images(folder, doc, "illumination.json"),
-                                             CameraModel.from_dict(doc["camera"]),
-                                             [np.asarray(T) for T in doc["phantom_to_camera"]],
-                                             float(doc["rd"]), float(doc.get("offset_adu", 0.0)))
-                return res, doc.get("truth")
-            if kind == "laser":
-                from FluoCalibLib.geometry.camera_model import CameraModel
-                from FluoCalibLib.radiometry.laser_line import calibrate_laser
-
-                doc = _doc(folder, "laser.json")
-                res = calibrate_laser(_images(folder, doc, "laser.json"), CameraModel.from_dict(doc["camera"]),
-                                      doc["camera_to_tracker"], doc["laser_to_tracker"],
-                                      doc["phantom_to_tracker"], doc.get("pointer_origin_tool_mm"))
-                return res, doc.get("truth")
+        calls = {"radiometry": (self.logic.prepareCameraCharacterization,
+                                self.logic.storeCameraCharacterization),
+                 "illumination": (self.logic.prepareIlluminationCalibration,
+                                  self.logic.storeIlluminationCalibration),
+                 "laser": (self.logic.prepareLaserCalibration, self.logic.storeLaserCalibration)}
+        if kind not in calls:
             raise FluoInputError("unknown calibration", field="kind", value=kind)
+        prepare, store = calls[kind]
+        job = prepare(folder)
 
-        def done(out):
+        def done(res):
             from fluoapp.webapp.plots import png_data_url
 
-            res, truth = out
+            store(res)
             plot = ""
             if kind == "radiometry":
                 keys = ("gain_adu_per_e", "dark_current_e_per_s", "bias_e", "read_noise_e",
                         "linearity_r2", "nonlinearity_pct", "dynamic_range")
-                light_scene.store_calibration(self.app.scene, light_scene.RADIOMETRY_KEY,
-                                              {k: v for k, v in res.items() if k not in ("ptc", "linearity", "dark")})
                 import matplotlib
 
                 matplotlib.use("Agg")
@@ -174,9 +150,6 @@ class CalibPanel:
             elif kind == "illumination":
                 keys = ("half_angle_deg", "alpha", "gamma_per_mm", "system_gain_adu", "ratio_mean",
                         "ratio_sd", "model")
-                light_scene.store_calibration(self.app.scene, light_scene.ILLUMINATION_KEY,
-                                              {**{k: v for k, v in res.items() if k not in ("cone", "ratio_images")},
-                                               "cone": res["cone"].to_dict()})
                 import matplotlib
 
                 matplotlib.use("Agg")
@@ -186,18 +159,16 @@ class CalibPanel:
                 im = ax.imshow(res["ratio_images"][0], vmin=0.8, vmax=1.2, cmap="coolwarm")
                 ax.set_title("measured / model (nearest view)", fontsize=9)
                 ax.axis("off")
-                fig.colorbar(im, ax=ax, shrink=0.8)
+                fig.colorbar(im, ax=ax, shrink=0.8, label="measured / model (dimensionless)")
                 plot = png_data_url(fig)
             else:
                 keys = ("error_3d_mm", "error_2d_px", "line_fit_rms_mm")
-                light_scene.store_calibration(self.app.scene, light_scene.LASER_KEY,
-                                              {k: v for k, v in res.items() if k != "spots_px"})
             s.calib_light_result = {k: (round(float(res[k]), 4) if isinstance(res[k], (int, float))
                                         else str(res[k])) for k in keys if k in res}
             s.calib_light_plot = plot
             self.app.notify(f"{kind} calibration stored on FluoCalibration", "success")
 
-        self.app.start_job(f"{kind} calibration", work, on_done=done)
+        self.app.start_job(f"{kind} calibration", job, on_done=done)
 
     def save(self):
         from fluoguide import mrml_io

@@ -17,6 +17,7 @@ import traceback
 
 from fluoguide.errors import FluoCancelled, FluoError
 from fluoguide.progress import CancelToken
+from fluoguide.threads import apply_in_this_thread
 
 __all__ = ["JobRunner", "JobState"]
 
@@ -80,6 +81,7 @@ class JobRunner:
 
         def target():
             try:
+                apply_in_this_thread()      # numba's thread count is per thread
                 result = work(progress, cancel)
                 failure = None
             except FluoCancelled as exc:

@@ -61,79 +61,86 @@ class NavPanel:
         self.app.notify(s.nav_surface_info, "success")
 
     def stream(self):
-        """Track with the simulated NDI tracker and render/correct frames of the
-        oral-cavity phantom at the tracked pose (background job)."""
+        """Track with the simulated NDI tracker (``FluoNavLogic.connectTracker``) and
+        correct frames of the oral-cavity phantom rendered at the tracked pose
+        (``prepareFrameCorrection``, ``classifyContours``), as a background job.
+
+        The simulated operating room (surface, calibrations) lives in a scene of
+        its own, so the app's scene keeps the user's data; the app's scene gets
+        the tracked camera (``CameraToolToTracker``, ``FluoNavCamera``)."""
+        from fluoguide.slicer_compat import import_module_file
+
         from FluoCalibLib.geometry import transforms as tf
-        from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
-        from FluoNavLib.mapping.contours import miss_rate
-        from FluoNavLib.mapping.flux_map import transport_image
-        from FluoNavLib.mapping.synthetic import (
-            coupled_light,
-            open_field_camera,
-            oral_cavity_surface,
-            render_view,
-        )
-        from FluoNavLib.devices.ndi_client import NDIClient
-        from FluoNavLib.devices.ndi_simulator import NDISimulator, SimTool
+        from FluoNavLib.devices.ndi_simulator import SimTool
+        from FluoNavLib.mapping.synthetic import render_view
 
         seconds = float(self.app.state.nav_seconds)
         frames = self._frames
+        FluoNavLogic = import_module_file("FluoNav").FluoNavLogic
+        # the simulated camera tool circles 120 mm above the cavity
+        tool = SimTool("CameraTool", centre_mm=(0.0, 0.0, 100.0), amplitude_mm=(25.0, 25.0, 5.0),
+                       period_s=(6.0, 6.0, 9.0), noise_mm=0.05)
+        session = self.logic.connectTracker("ndi-sim", sim_tools=[tool],
+                                            roms=[b"camera tool" * 4])
+        classify = self.logic.classifyContours
 
         def work(progress, cancel):
-            caster, poly = oral_cavity_surface(20000)
-            cam = open_field_camera(binning=8)
-            cone = coupled_light()
-            rc = RadiometricCamera(gain_adu_per_e=1.0)
-            # the simulated camera tool circles 120 mm above the cavity
-            tool = SimTool("CameraTool", centre_mm=(0.0, 0.0, 100.0), amplitude_mm=(25.0, 25.0, 5.0),
-                           period_s=(6.0, 6.0, 9.0), noise_mm=0.05)
-            sim = NDISimulator(tools=[tool])
-            port = sim.start()
+            import time
+
             shown = 0
             try:
-                with NDIClient(port) as client:
-                    client.initialize([b"camera tool" * 4])
-                    client.start()
-                    import time
-
-                    t_end = time.monotonic() + seconds
-                    while time.monotonic() < t_end:
-                        if cancel is not None:
-                            cancel.check()
-                        reply = None
-                        while reply is None:
-                            reply = client.poll()
-                        p = reply.tools.get(1)
-                        if p is None or p.state != "OK":
-                            continue
-                        eye = p.translation_mm
-                        pose = tf.look_at(eye, [0.0, 0.0, -20.0], up=(0.0, 1.0, 0.0))
-                        counts, hits, vm = render_view(caster, cam, pose, cone, 0.3, rc, seed=shown)
-                        S = counts - rc.offset_adu
-                        T, ok = transport_image(S, vm, cone)
-                        raw, rc_in, _ = miss_rate(S, hits.visible)
-                        cor, ct_in, _ = miss_rate(T, ok)
-                        item = {"raw": _image_url(S, hits.visible, rc_in, f"raw (miss {raw:.1f} %)"),
-                                "corrected": _image_url(T, ok, ct_in, f"corrected T (miss {cor:.1f} %)"),
-                                "frame": int(p.frame), "pose": pose.tolist(),
-                                "miss_raw": round(raw, 1), "miss_corrected": round(cor, 1)}
-                        try:
-                            frames.put_nowait(item)
-                        except queue.Full:
-                            pass          # the UI is behind: drop, counted below
-                        shown += 1
-                        progress(min(1.0, 1 - (t_end - time.monotonic()) / seconds), f"frame {p.frame}")
-                    client.stop()
-                    stats = client.stats
+                progress(0.0, "building the simulated operating room")
+                # a scene of its own, touched by this thread only
+                room = FluoNavLogic(mrml_io.new_scene())
+                room.makeSyntheticAcquisition(views=0, binning=8, triangles=20000)
+                correct = room.prepareFrameCorrection()
+                ctx = correct.context
+                # the stream runs ``seconds`` from its first frame (the first one also
+                # compiles the ray caster and starts the plotting: slow on a busy machine)
+                t_end = time.monotonic() + seconds + 120.0
+                while time.monotonic() < t_end:
+                    if cancel is not None:
+                        cancel.check()
+                    poses = session.poll()
+                    pose_tool = None if poses is None else poses.get("CameraToolToTracker")
+                    if pose_tool is None:
+                        continue
+                    # the camera looks at the cavity from the tracked position
+                    pose = tf.look_at(pose_tool[:3, 3], [0.0, 0.0, -20.0], up=(0.0, 1.0, 0.0))
+                    counts, _, _ = render_view(ctx.caster, ctx.camera, pose, ctx.cone, 0.3,
+                                               ctx.radiometric, seed=shown)
+                    r = correct(counts, pose, index=shown)
+                    if not r.mapped.any():
+                        continue
+                    c = classify(r)
+                    raw, cor = c["miss_rate_raw_pct"], c["miss_rate_corrected_pct"]
+                    item = {"raw": _image_url(r.counts - r.offset_adu, r.hits.visible,
+                                              c["raw_contour"], f"raw (miss {raw:.1f} %)"),
+                            "corrected": _image_url(r.transport, r.mapped, c["corrected_contour"],
+                                                    f"corrected T (miss {cor:.1f} %)"),
+                            "frame": session.last_frame, "pose": pose.tolist(),
+                            "miss_raw": round(raw, 1), "miss_corrected": round(cor, 1)}
+                    try:
+                        frames.put_nowait(item)
+                    except queue.Full:
+                        pass          # the UI is behind: drop
+                    if not shown:
+                        t_end = time.monotonic() + seconds
+                    shown += 1
+                    progress(min(1.0, 1 - (t_end - time.monotonic()) / seconds), f"frame {shown}")
+                stats = session.client.stats
             finally:
-                sim.stop()
-            return {"frames": shown, "tracker_frames": stats.frames, "lost_unreported": stats.lost_unreported()}
+                session.close()
+            return {"frames": shown, "tracker_frames": stats.frames,
+                    "lost_unreported": stats.lost_unreported()}
 
         def done(result):
+            self.logic.disconnect()
             self.app.notify(f"Streamed {result['frames']} corrected frames from "
                             f"{result['tracker_frames']} tracker frames (unreported losses: "
                             f"{result['lost_unreported']})", "success")
 
+        # on an error or cancel the job's own ``finally`` closed the session
         self.app.start_job("tracked stream", work, on_done=done)
 
     def on_poll(self):
@@ -149,21 +156,9 @@ class NavPanel:
         s = self.app.state
         s.nav_frame = {k: v for k, v in item.items() if k != "pose"}
         s.nav_frames_shown = int(s.nav_frames_shown or 0) + 1
-        m = np.asarray(item["pose"])
-        mrml_io.set_transform(self.app.scene, "CameraToolToTracker", m)
-        cam = mrml_io.get_node(self.app.scene, "FluoNavCamera", required=False)
-        if cam is None:
-            import vtk
-
-            cone = vtk.vtkConeSource()
-            cone.SetHeight(20.0)
-            cone.SetRadius(8.0)
-            cone.SetDirection(0, 0, -1)
-            cone.SetCenter(0, 0, 10.0)
-            cone.Update()
-            cam = mrml_io.add_model(self.app.scene, "FluoNavCamera", cone.GetOutput(), color=(0.2, 0.8, 1.0))
-            cam.SetAndObserveTransformNodeID(mrml_io.get_node(self.app.scene, "CameraToolToTracker").GetID())
-            self.app.show_in_3d(cam)
+        self.logic.applyPoses({"CameraToolToTracker": np.asarray(item["pose"])})
+        if mrml_io.get_node(self.app.scene, "FluoNavCamera", required=False) is None:
+            self.app.show_in_3d(self.logic.showTrackedCamera())
         self.app.render_all()
 
     def build_ui(self):

@@ -284,8 +284,10 @@ class TomoPanel:
 
             self.logic.storeReconstruction(run, job.grid)
             res = run["results"][method]
+            warnings = list(res.get("warnings") or [])
             self._yield_node_name = f"FluoTomoYield{method}"
             s.tomo_result = {
+                "warnings": warnings,
                 "method": method, "peak": f"{res['peak']:.4g}", "true_peak": f"{res['true_peak']:.4g}",
                 "peak_error_pct": round(res["peak_error_pct"], 1),
                 "centroid_mm": round(res["centroid_mm"], 2),
@@ -297,10 +299,11 @@ class TomoPanel:
             glyph_points_model(self.app.scene, "FluoTomoDetectors", run["detectors_mm"],
                                radius_mm=0.35, color=(0.2, 0.9, 0.3))
             self._show_yield()
-            self.app.notify(f"{method}: peak yield error {res['peak_error_pct']:+.1f} %, "
-                            f"centroid {res['centroid_mm']:.2f} mm (true "
-                            f"{res['true_centroid_mm']:.2f}) in {run['timings']['total']:.1f} s",
-                            "success")
+            text = (f"{method}: peak yield error {res['peak_error_pct']:+.1f} %, "
+                    f"centroid {res['centroid_mm']:.2f} mm (true "
+                    f"{res['true_centroid_mm']:.2f}) in {run['timings']['total']:.1f} s")
+            self.app.notify(text + "".join(f"; warning: {w}" for w in warnings),
+                            "warning" if warnings else "success")
 
         self.app.start_job(f"reconstruction {method}", job, on_done=done)
 
@@ -477,6 +480,8 @@ class TomoPanel:
                      "{{ tomo_result.true_peak }}), error {{ tomo_result.peak_error_pct }} %")
             html.Div("centroid depth {{ tomo_result.centroid_mm }} mm (true "
                      "{{ tomo_result.true_centroid_mm }}), {{ tomo_result.seconds }} s")
+            html.Div("warning: {{ w }}", v_for="w in tomo_result.warnings",
+                     classes="text-warning")
         with html.Div(v_if="tomo_own_result", classes="text-caption mt-1", id="tomo-own-result"):
             html.Div("{{ tomo_own_result.method }} ({{ tomo_own_result.node }}): label "
                      "{{ tomo_own_result.target }} yield {{ tomo_own_result.yield }} /mm "

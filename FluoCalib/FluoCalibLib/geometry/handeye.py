@@ -7,7 +7,7 @@ Frames (SlicerIGT ``AToB`` = maps coordinates in A into B):
 - ``BoardToTracker``: board (grid) registered to the tracker, e.g. by touching
   4 grid corners with a tracked pointer (:func:`board_to_tracker_from_pointer`).
 - Unknown: ``CameraToTool`` (the thesis' X^-1; stored in the scene as
-  ``CameraToTracker`` under the tool's ``CameraToolToTracker``).
+  ``CameraToCameraTool`` under the tool's ``CameraToolToTracker``).
 
 Loop: ``ToolToTracker_i @ CameraToTool = BoardToTracker @ inv(BoardToCamera_i)``.
 
@@ -15,14 +15,14 @@ Methods compared on the same data:
 
 - ``TSAI``, ``PARK``, ``HORAUD``, ``ANDREFF``, ``DANIILIDIS``: OpenCV's AX = XB
   solvers (``cv2.calibrateHandEye``); they use only relative motions.
-- ``PAIRED_POINT``: the reference's method (physics.md section 4, Horn 1988).
+- ``PAIRED_POINT``: the reference's method (docs/physics.md section 4.2, Horn 1988).
   Each view gives the camera pose in grid coordinates (PnP) and the tool pose
   in grid coordinates (tracking + grid registration); a set of points fixed in
   the camera frame is mapped into the tool frame by every view, and one Horn
   registration of camera-frame points to tool-frame points over all views
   gives CameraToTool.
 
-Metrics (physics.md section 4), with the camera pose predicted from tracking
+Metrics (docs/physics.md section 4.3), with the camera pose predicted from tracking
 and calibration, ``BoardToCamera_pred = inv(ToolToTracker_i @ CameraToTool) @ BoardToTracker``:
 
 - 3D error [mm]: detected corners back-projected (ray through the undistorted

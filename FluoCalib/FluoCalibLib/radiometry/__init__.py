@@ -4,9 +4,10 @@ illumination cone and its fit, the laser beam line, synthetic light data and plo
 Modules
 -------
 - ``camera_response``: Camera response characterisation from image stacks, reported as EMVA 1288 does.
-- ``illumination_fit``: Calibration of a broad-beam light (cone model of ``illumination_model``) from images of a flat phantom of known reflectance, as in ``physics.md`` section 6.
-- ``illumination_model``: Broad-beam illumination model: a right circular cone with angular, obliquity and distance roll-off (``physics.md`` section 6)::
-- ``laser_line``: Laser beam-line calibration (``physics.md`` section 7).
+- ``datasets``: Reading the illumination and laser calibration folders, checked.
+- ``illumination_fit``: Calibration of a broad-beam light (cone model of ``illumination_model``) from images of a flat phantom of known reflectance, as in docs/physics.md section 6.2.
+- ``illumination_model``: Broad-beam illumination model: a right circular cone with angular, obliquity and distance roll-off (docs/physics.md section 6.1)::
+- ``laser_line``: Laser beam-line calibration (docs/physics.md section 7).
 - ``plots``: PNG plots of the radiometric calibrations (photon transfer, linearity, dark signal, ratio images) that a person can read.
 - ``radiometric_model``: Radiometric camera model: counts [ADU] <-> radiance [W/mm^2/sr], and noise.
 - ``scene``: Radiometric, illumination and laser calibrations in the MRML scene and in a JSON calibration file (docs/scene.md): attributes ``FluoCalib.Radiometry``, ``FluoCalib.Illumination`` and ``FluoCalib.Laser`` of the ``FluoCalibration`` node (plain JSON: numbers, lists, the cone as ``IlluminationCone.to_dict``).
@@ -17,6 +18,7 @@ from fluoguide.lazy import attach
 
 __getattr__, __dir__, __all__ = attach(__name__, {
     "camera_response": ["Frame", "load_stack", "write_stack", "characterize"],
+    "datasets": ["ILLUMINATION_KEYS", "LASER_KEYS", "read_dataset"],
     "illumination_fit": ["segment_active", "calibrate_illumination"],
     "illumination_model": ["IlluminationCone", "IlluminationFactors"],
     "laser_line": ["spot_centroid", "fit_line", "calibrate_laser"],

@@ -4,7 +4,7 @@ Input: frames with exposure times, dark (shutter closed / cap on) or light
 (uniform illumination), at least two frames per exposure so temporal noise
 comes from frame differences (fixed-pattern noise cancels).
 
-Outputs (``physics.md`` section 5):
+Outputs (docs/physics.md section 5.2):
 
 - dark signal vs exposure: slope = dark current, intercept = bias (in ADU,
   converted to e- with the gain);

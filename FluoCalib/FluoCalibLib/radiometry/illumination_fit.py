@@ -1,5 +1,5 @@
 """Calibration of a broad-beam light (cone model of ``illumination_model``) from
-images of a flat phantom of known reflectance, as in ``physics.md`` section 6.
+images of a flat phantom of known reflectance, as in docs/physics.md section 6.2.
 
 Per image: 4x4 median filter, active pixels S > S_min + tau (S_max - S_min),
 boundary = active minus its erosion (pixels on the image border are not the
@@ -25,6 +25,7 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from fluoguide.errors import FluoInputError
+from fluoguide.progress import check_cancel, report
 
 from FluoCalibLib.radiometry.illumination_model import IlluminationCone
 from FluoCalibLib.radiometry.synthetic import ray_plane_points
@@ -115,7 +116,8 @@ def _model_counts(cone, pts, normals, rd):
 
 def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0, tau=0.05,
                            light_from_camera=None, try_asymmetric=True, max_pixels=60000,
-                           frame="Camera", saturation_adu=16383.0, edge_margin_deg=1.0):
+                           frame="Camera", saturation_adu=16383.0, edge_margin_deg=1.0,
+                           progress=None, cancel=None):
     """Fit the cone model to images of a flat phantom (reflectance ``rd``).
 
     Parameters
@@ -131,6 +133,8 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         region but are left out of optimisation 2 and the ratio statistics
     edge_margin_deg : optimisation 2 uses pixels at least this far inside the
         cone edge of optimisation 1
+    progress, cancel : ``progress(fraction, message)`` and a CancelToken
+        (``fluoguide.progress``), checked between the steps
 
     Returns
     -------
@@ -151,6 +155,8 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
     per_image = []
     n_saturated = 0
     for k, (img, T) in enumerate(zip(images, phantom_to_camera)):
+        check_cancel(cancel)
+        report(progress, 0.3 * k / len(images), f"image {k + 1} of {len(images)}: active region")
         raw = np.asarray(img, float)
         if raw.shape != (camera.height, camera.width):
             raise FluoInputError("image size differs from the camera's", field=f"images[{k}]",
@@ -177,6 +183,7 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         act.append((img[a], pts_l[a], np.broadcast_to(nrm_l, (int(a.sum()), 3))))
         per_image.append((img, pts_l, nrm_l, active & valid & unsat))
     P = np.concatenate(bnd_pts)
+    report(progress, 0.3, "optimisation 1: cone geometry from the boundary")
     c, n, half, sol1 = _fit_geometry(P)
     # identical-looking views let the apex run off to a near-cylinder; the
     # Jacobian is then singular (measured cond ~1e9 vs 5e2-5e3 for usable sets)
@@ -226,6 +233,8 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
                    th0, ph0])
     lo = [0, 0, 0, th0 - 0.1, ph0 - np.pi]
     hi = [50, 5, np.inf, th0 + 0.1, ph0 + np.pi]
+    check_cancel(cancel)
+    report(progress, 0.4, "optimisation 2: alpha, gamma, system gain")
     sol2 = optimize.least_squares(resid2, x0, x_scale="jac", bounds=(lo, hi))
     xbest, asym_best = sol2.x, False
     rss = float(np.sum(sol2.fun ** 2))
@@ -255,7 +264,9 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         # local minimum the crescent fit can stay in), while the boundary axis
         # of optimisation 1 is not biased by the intensity; keep the better.
         sol3 = None
-        for x in (sol2.x, np.r_[sol2.x[:3], th0, ph0]):
+        for i, x in enumerate((sol2.x, np.r_[sol2.x[:3], th0, ph0])):
+            check_cancel(cancel)
+            report(progress, 0.6 + 0.15 * i, f"crescent model, start {i + 1} of 2")
             s3 = optimize.least_squares(lambda x: resid2(x, True), crescent_start(x),
                                         x_scale="jac", bounds=(lo + [0, -2 * np.pi],
                                                                hi + [0.95, 2 * np.pi]))
@@ -266,6 +277,7 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         if bic_asym < bic_sym - 10.0:
             chosen = "crescent"
             xbest, asym_best = sol3.x, True
+    report(progress, 0.95, "ratio images")
     cone = cone_of(xbest, asym_best)
     n = cone.unit_axis
     best = {"alpha": cone.alpha, "gamma_per_mm": cone.gamma_per_mm,

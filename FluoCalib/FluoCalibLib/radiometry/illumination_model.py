@@ -1,5 +1,5 @@
 """Broad-beam illumination model: a right circular cone with angular, obliquity
-and distance roll-off (``physics.md`` section 6)::
+and distance roll-off (docs/physics.md section 6.1)::
 
     I(theta, beta, d) = A(theta, phi) * cos(beta) / (1 + gamma d)^2
     A(theta, phi)     = cos(theta)^alpha * (1 + a * (theta / Phi_L)^2 * cos(phi - phi0))
@@ -18,7 +18,7 @@ Origin and axis are in the frame named by ``frame`` (``Camera`` for a light
 coupled to the camera, or a tracked light tool's frame); callers transform the
 surface points and normals into that frame first.
 
-This module only evaluates the model; fitting is in ``illumination.py``.
+This module only evaluates the model; fitting is in ``illumination_fit.py``.
 """
 
 from __future__ import annotations

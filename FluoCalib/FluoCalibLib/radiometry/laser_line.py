@@ -1,4 +1,4 @@
-"""Laser beam-line calibration (``physics.md`` section 7).
+"""Laser beam-line calibration (docs/physics.md section 7).
 
 Per image: spot centroid (intensity-weighted centroid of the pixels above 90 %
 of the maximum after a 4x4 median), the pixel ray meets the tracked phantom

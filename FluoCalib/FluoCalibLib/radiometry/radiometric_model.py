@@ -1,6 +1,6 @@
 """Radiometric camera model: counts [ADU] <-> radiance [W/mm^2/sr], and noise.
 
-Reference: ``physics.md`` section 5::
+Reference: docs/physics.md section 5.1::
 
     G = (pi/4) f#^-alpha_lens * T_filter * dt * A_pix * b^2 * (lambda/(h c)) * QE * g_adc
     S = G L + offset,   offset = g_adc (bias_e + I_dark dt)

@@ -21,13 +21,15 @@ ILLUMINATION_KEY = "FluoCalib.Illumination"
 LASER_KEY = "FluoCalib.Laser"
 
 
-def store_calibration(scene, key, doc):
-    """Put a JSON document on the ``FluoCalibration`` node under ``key``."""
-    mrml_io.set_json_attribute(calibration_node(scene), key, doc)
+def store_calibration(scene, key, doc, node=None):
+    """Put a JSON document under ``key`` on ``node`` (default: ``FluoCalibration``)."""
+    mrml_io.set_json_attribute(calibration_node(scene, node), key, doc)
 
 
-def load_calibration(scene, key):
-    node = mrml_io.get_node(scene, "FluoCalibration", required=False)
+def load_calibration(scene, key, node=None):
+    """The document under ``key`` of ``node`` (default: ``FluoCalibration``), or None."""
+    if node is None:
+        node = mrml_io.get_node(scene, "FluoCalibration", required=False)
     return None if node is None else mrml_io.get_json_attribute(node, key)
 
 

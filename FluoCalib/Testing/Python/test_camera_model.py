@@ -7,7 +7,7 @@ import pytest
 from fluoguide.errors import FluoInputError
 from FluoCalibLib.geometry.camera_model import CameraModel
 
-# the thesis' 10 mm endoscope (physics.md section 4), with some tangential terms added
+# the thesis' 10 mm endoscope (docs/physics.md section 4.3), with some tangential terms added
 ENDO = CameraModel(949.1, 951.0, 780.4, 465.9, (-0.4709, 0.3153, 1e-3, -5e-4, -0.134), 1392, 1040)
 FISH = CameraModel(420.0, 421.0, 640.5, 480.2, (0.05, -0.02, 0.004, -0.001), 1280, 960, "fisheye")
 

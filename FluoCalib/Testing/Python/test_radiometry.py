@@ -19,7 +19,7 @@ from FluoCalibLib.radiometry.camera_response import (
 from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
 from FluoCalibLib.radiometry.synthetic import synthetic_lens_spectral_frames, synthetic_stack
 
-# the thesis lens's best-fit exponent (nominal 2), physics.md section 5
+# the thesis lens's best-fit exponent (nominal 2), docs/physics.md section 5.2
 CAMERA = RadiometricCamera(lens_exponent=1.88)
 
 

@@ -5,12 +5,13 @@ Modules
 -------
 - ``frame_sources``: Camera frame sources: a UVC camera or video file (OpenCV ``VideoCapture``), a folder of images, a FluoGuide recording, or synthetic frames.
 - ``frame_store``: Tracked camera frames in the MRML scene: the one format that recording, replay, the live loop and ``fluo nav correct`` share (see docs/scene.md).
-- ``igtl_client``: OpenIGTLink input (from PLUS or any server) into the MRML scene, as SlicerOpenIGTLink maps it: a TRANSFORM message named ``CameraToTracker`` updates (or creates) the linear transform node of that name, an IMAGE message updates the scalar volume node of its device name, and each node carries the message time in the attribute ``FluoNav.IGTLTimestamp``.
+- ``igtl_client``: OpenIGTLink input (from PLUS or any server) into the MRML scene, as SlicerOpenIGTLink maps it: a TRANSFORM message named ``CameraToolToTracker`` updates (or creates) the linear transform node of that name, an IMAGE message updates the scalar volume node of its device name, and each node carries the message time in the attribute ``FluoNav.IGTLTimestamp``.
 - ``live_loop``: The live loop: tracker poses + camera frames -> one callback per frame.
 - ``ndi_client``: NDI tracker client over pyserial: set-up, tracking loop, fault recovery and an exact account of every frame.
 - ``ndi_protocol``: NDI Combined API (Polaris/Aurora) serial protocol: commands, replies, CRC.
 - ``ndi_simulator``: A protocol-faithful simulated NDI tracker on a pseudo-terminal.
 - ``recorder``: Recording tracked frames to disk incrementally, and replaying them.
+- ``tracker``: One interface over the pose sources: an NDI tracker on a serial port (or the simulator on a pseudo-terminal), an OpenIGTLink server, a recording.
 - ``timesync``: Time synchronisation of tracker poses to camera frames.
 - ``usb``: Find attached NDI trackers and cameras: serial ports (pyserial's ``list_ports``) and USB devices (pyusb), by vendor/product id and USB class.
 """
@@ -27,5 +28,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "ndi_simulator": ["Faults", "SimTool", "NDISimulator"],
     "recorder": ["Recorder", "read_recording", "replay", "to_scene"],
     "timesync": ["PoseBuffer", "estimate_latency"],
+    "tracker": ["SOURCES", "TrackerSession", "NDITracker", "IGTLTracker", "ReplayTracker", "open_tracker", "check_seconds", "parse_host_port", "finite_pose"],
     "usb": ["NDI_USB_IDS", "CAMERA_VENDORS", "UVC_CLASS", "discover", "classify_usb"],
 })

@@ -1,5 +1,5 @@
 """OpenIGTLink input (from PLUS or any server) into the MRML scene, as
-SlicerOpenIGTLink maps it: a TRANSFORM message named ``CameraToTracker``
+SlicerOpenIGTLink maps it: a TRANSFORM message named ``CameraToolToTracker``
 updates (or creates) the linear transform node of that name, an IMAGE message
 updates the scalar volume node of its device name, and each node carries the
 message time in the attribute ``FluoNav.IGTLTimestamp``.

@@ -1,4 +1,4 @@
-"""Contour-based tissue classification and its miss rate (``physics.md`` section 6).
+"""Contour-based tissue classification and its miss rate (docs/physics.md section 6.3).
 
 Fluorescence pixels are those above ``fluo_fraction`` (5 %) of the image's
 peak; the classification contour is drawn at ``contour_fraction`` (40 %) of
@@ -32,8 +32,10 @@ def miss_rate(image, mask=None, contour_fraction=0.4, fluo_fraction=0.05, peak_p
     return rate, inside, fluo
 
 
-def overlay_png(path, image, contour_mask, title, mask=None):
-    """The image with its classification contour outlined, as a PNG."""
+def overlay_png(path, image, contour_mask, title, mask=None,
+                colorbar_label="counts above offset [ADU]"):
+    """The image with its classification contour outlined, as a PNG; the colour bar
+    says what the image holds and its unit (``colorbar_label``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -47,7 +49,7 @@ def overlay_png(path, image, contour_mask, title, mask=None):
     ax.contour(contour_mask.astype(float), levels=[0.5], colors="cyan", linewidths=1.0)
     ax.set_title(title, fontsize=9)
     ax.axis("off")
-    fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.colorbar(im, ax=ax, shrink=0.8, label=colorbar_label)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return str(path)

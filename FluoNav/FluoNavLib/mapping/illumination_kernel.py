@@ -1,6 +1,6 @@
 """The illumination cone evaluated per pixel in one compiled pass (video rate).
 
-Same formulas as ``IlluminationCone.factors`` (physics.md section 5), read
+Same formulas as ``IlluminationCone.factors`` (docs/physics.md section 6.1), read
 straight from the ray cast (pixel ray, distance, face) instead of from
 (H, W, 3) point and normal arrays, so a full frame costs one pass over the
 pixels.  The tests check it against ``IlluminationCone.factors`` to 1e-12, so

@@ -8,11 +8,11 @@ Lambertian radiance of the boundary exitance at the hit point,
     Phi (P1 on the surface facet) -> J = Phi / (2A) -> L = J / pi,
 
 scaled by the laser power and the camera's radiometric gain G [ADU per
-W/mm^2/sr] (physics.md sections 5 and 8), with shot noise (gain 1 e-/ADU),
+W/mm^2/sr] (docs/physics.md sections 5.1 and 8.2), with shot noise (gain 1 e-/ADU),
 read noise and the 14-bit range; saturated pixels are flagged.  The
 software side then maps pixels to the surface with the *reported* camera pose
 and averages the pixels of a ~1 mm^2 ROI around each virtual detector
-(noncontact.roi_mean_counts).
+(``noncontact_optodes.roi_mean_counts``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Non-contact sources and detectors from a tracked laser and a tracked camera.
 
-Reference: physics.md section 8 ("Sources", "Detectors", "Data").
+Reference: docs/physics.md section 8.2.
 
 - A virtual source is where the calibrated, tracked laser beam enters the
   tissue surface (ray-surface intersection).

@@ -25,6 +25,7 @@ from FluoTomoLib.fem.operators import (
     detector_operator,
     geometry,
     point_source_rhs,
+    snap_to_surface,
     source_positions,
     weighted_mass,
 )
@@ -74,7 +75,8 @@ class FluorescenceModel:
     mesh : Mesh
     props_x, props_m : dicts with ``mua_per_mm``, ``musp_per_mm`` (scalar or
         nodal) and ``n``, at excitation (mua_x includes the fluorophore) and
-        emission
+        emission; optionally ``boundary`` (the boundary constant's method,
+        ``optics.robin_A``; default ``optics.DEFAULT_BOUNDARY``)
     sources_mm, detectors_mm : (S, d), (D, d) surface points; sources are
         buried one MFP' below the nearest surface point
     solver : see DiffusionOperator
@@ -87,8 +89,11 @@ class FluorescenceModel:
         t0 = time.perf_counter()
         mua_x, musp_x, n_x = _props(mesh, props_x, "props_x")
         mua_m, musp_m, n_m = _props(mesh, props_m, "props_m")
+        # the boundary constant's method (optics.robin_A), "boundary" in either dict
+        self.boundary = props_x.get("boundary", props_m.get("boundary"))
         self.mesh = mesh
-        self.op_x = DiffusionOperator(mesh, mua_x, musp_x, n_x, solver, name="excitation")
+        self.op_x = DiffusionOperator(mesh, mua_x, musp_x, n_x, solver, name="excitation",
+                                      boundary=self.boundary)
         # The emission operator is assembled on first use: excitation-only work
         # (mua Jacobians, reflectance) never pays for it.
         check_properties(_nodal(mesh, mua_m, "emission.mua_per_mm"),
@@ -97,8 +102,12 @@ class FluorescenceModel:
         self._op_m = None
         self.sources_surface_mm = np.atleast_2d(np.asarray(sources_mm, float))
         self.detectors_mm = np.atleast_2d(np.asarray(detectors_mm, float))
+        # what the model cannot do well here, in words (accuracy() adds more)
+        self.notes = []
         self.sources_mm = source_positions(mesh, self.sources_surface_mm, self.op_x.musp,
-                                           self.op_x.mua, max_snap_mm, source_normals)
+                                           self.op_x.mua, max_snap_mm, notes=self.notes,
+                                           normals=source_normals)
+        self.max_snap_mm = max_snap_mm
         self.q = point_source_rhs(mesh, self.sources_mm)
         self.P = detector_operator(mesh, self.detectors_mm, max_snap_mm)
         self.setup_seconds = time.perf_counter() - t0
@@ -112,7 +121,8 @@ class FluorescenceModel:
         """Emission-wavelength operator (assembled on first use)."""
         if self._op_m is None:
             mesh, mua_m, musp_m, n_m, solver = self._op_m_args
-            self._op_m = DiffusionOperator(mesh, mua_m, musp_m, n_m, solver, name="emission")
+            self._op_m = DiffusionOperator(mesh, mua_m, musp_m, n_m, solver, name="emission",
+                                           boundary=self.boundary)
             self.timings["assembly"] += self._op_m.assembly_seconds
         return self._op_m
 
@@ -133,7 +143,7 @@ class FluorescenceModel:
         """(N, S) excitation fluence for unit-power sources [1/mm^2 in 3D, 1/mm in 2D]."""
         if self._phi_x is None:
             t0 = time.perf_counter()
-            self._phi_x = self.op_x.solve(self.q)
+            self._phi_x = self.op_x.solve(self.q, readout=self.P)
             self.timings["forward_x"] = time.perf_counter() - t0
             self.timings["factor"] = self.op_x.factor_seconds
         return self._phi_x
@@ -143,7 +153,7 @@ class FluorescenceModel:
         """(N, D) emission-wavelength adjoint fields (Green's function of each detector)."""
         if self._adj_m is None:
             t0 = time.perf_counter()
-            self._adj_m = self.op_m.solve(self.P.T.tocsc())
+            self._adj_m = self.op_m.solve(self.P.T.tocsc(), readout=self.q.T)
             self.timings["adjoint_m"] = time.perf_counter() - t0
             self.timings["factor"] = self.timings.get("factor", 0) + self.op_m.factor_seconds
         return self._adj_m
@@ -152,7 +162,7 @@ class FluorescenceModel:
     def adjoint_x(self):
         """(N, D) excitation-wavelength adjoint fields."""
         if self._adj_x is None:
-            self._adj_x = self.op_x.solve(self.P.T.tocsc())
+            self._adj_x = self.op_x.solve(self.P.T.tocsc(), readout=self.q.T)
         return self._adj_x
 
     def excitation_data(self):
@@ -180,6 +190,144 @@ class FluorescenceModel:
         self.timings["jacobian"] = time.perf_counter() - t0
         return J
 
+    def accuracy(self, target=0.05, wavelengths=("excitation",)):
+        """How far this model's data can be from the exact solution of its
+        equations, and whether they can be used at all.
+
+        Estimates the discretisation error of every source-detector pair from
+        the measured tables of :mod:`fem.resolution` (worst case over where
+        the optodes sit in their elements, and the median), checks the solved
+        fields for negative values (solving them if needed: the excitation
+        fields, and the emission adjoints when "emission" is asked for), and
+        collects what else limits the model (diffusion validity, sources near
+        edges or in thin tissue, iterative solves that did not converge).
+
+        Parameters
+        ----------
+        target : relative error [-] above which a pair is reported (0.05: 5 %)
+        wavelengths : "excitation" and/or "emission"
+
+        Returns
+        -------
+        dict with ``warnings`` (list of str), ``refuse`` (list of str: reasons
+        the data must not be used unless the caller insists; negative or
+        zero detector values, oscillating fields, elements beyond the
+        measured range), ``estimated_rel_err`` per wavelength, ``negative_nodes``
+        and ``element_size_needed_mm`` (the largest size that keeps every pair
+        within ``target``, NaN if none does; None if every pair already is).
+        """
+        from FluoTomoLib.fem.resolution import (
+            element_sizes,
+            log_error_estimate,
+            pair_sizes,
+            required_size,
+        )
+        from FluoTomoLib.optics import NEAR_SOURCE_MFP, diffusion_validity, mueff
+
+        warnings_, refuse = list(self.notes), []
+        report = {"target_rel_err": float(target), "estimated_rel_err": {},
+                  "negative_nodes": {}, "element_size_needed_mm": None}
+        q_src = snap_to_surface(self.mesh, self.sources_surface_mm, self.max_snap_mm)[0]
+        q_det = snap_to_surface(self.mesh, self.detectors_mm, self.max_snap_mm, "detector")[0]
+        needed = []
+        for w in wavelengths:
+            if w not in ("excitation", "emission"):
+                raise FluoInputError("use excitation and/or emission", field="wavelengths",
+                                     value=w)
+            op = self.op_x if w == "excitation" else self.op_m
+            me = float(np.max(mueff(op.mua, op.musp)))
+            mt = float(np.max(op.mua + op.musp))
+            warnings_ += [f"{w}: {m}" for m in diffusion_validity(op.mua, op.musp)]
+            h, rho = pair_sizes(self.mesh, self.sources_mm, q_src, q_det, mueff(op.mua, op.musp))
+            worst = np.expm1(log_error_estimate(me * h, mt * h, rho / h, op.n))
+            median = np.expm1(log_error_estimate(me * h, mt * h, rho / h, op.n, worst=False))
+            over = worst > target
+            near = rho < NEAR_SOURCE_MFP / mt
+            report["estimated_rel_err"][w] = {
+                "worst_case": _finite_or_none(worst), "median_case": _finite_or_none(median),
+                "worst_case_max": _finite_or_none(np.max(worst)),
+                "median_case_max": _finite_or_none(np.max(median)),
+                "pairs": int(worst.size), "pairs_over_target": int(over.sum()),
+                "element_size_mm": h.tolist(), "mueff_h_max": float(me * h.max())}
+            if np.any(near):
+                warnings_.append(f"{w}: {int(near.sum())} pair(s) are within {NEAR_SOURCE_MFP:g} "
+                                 f"transport mean free paths ({NEAR_SOURCE_MFP / mt:.3g} mm): "
+                                 "diffusion theory itself over-predicts there")
+            if np.any(over):
+                need = required_size(me, mt, rho[over], h[over], op.n, target)
+                needed.append(float(np.min(need)) if np.all(np.isfinite(need)) else np.nan)
+                s, d = np.unravel_index(np.argmax(np.where(over, worst, -1)), worst.shape)
+                worst_txt = ("beyond the measured range" if not np.isfinite(worst[s, d])
+                             else f"up to {100 * worst[s, d]:.3g} %")
+                warnings_.append(
+                    f"{w}: {int(over.sum())} of {over.size} source-detector pairs may be off by "
+                    f"more than {100 * target:g} % ({worst_txt} for source {s} -> detector {d}, "
+                    f"rho {rho[s, d]:.3g} mm, elements ~{h[s, d]:.3g} mm there, mueff "
+                    f"{me:.3g} /mm; median case {100 * np.max(median[over]):.3g} %)")
+            if np.any(~np.isfinite(worst)):
+                refuse.append(f"{w}: elements of ~{float(np.max(h)):.3g} mm are too coarse for "
+                              f"mueff {me:.3g} /mm (mueff h = {me * float(np.max(h)):.3g}; "
+                              "measured on Kuhn cubes, the fluence goes negative from mueff h "
+                              "1.0-1.4 on, docs/fem.md)")
+        if needed:
+            size = float(np.nanmin(needed)) if np.any(np.isfinite(needed)) else np.nan
+            report["element_size_needed_mm"] = size
+            h_el = element_sizes(self.mesh)
+            region = self._optode_region_elements()
+            if np.isfinite(size):
+                big = region & (h_el > size)
+                warnings_.append(f"elements of at most {size:.3g} mm around the optodes and along "
+                                 f"the paths between them would keep every pair within "
+                                 f"{100 * target:g} %; {int(big.sum())} of the {int(region.sum())} "
+                                 "elements there are larger")
+            else:
+                warnings_.append("some detectors are so close to their source that no element "
+                                 "size keeps them within the target: read them with care")
+        # the solved fields themselves: negative values show oscillation
+        fields = [("excitation", lambda: self.phi_x)]
+        if "emission" in wavelengths:
+            fields.append(("emission", lambda: self.adjoint_m))
+        # A dip matters when it reaches the weakest datum: refuse where a negative value
+        # is more than 1e-3 of the weakest detector's reading (both relative to the
+        # field's peak), and never below 1e-10 of the peak (rounding).
+        y_all = self.excitation_data()
+        weakest = float(np.min(y_all) / max(float(np.max(y_all)), 1e-300)) if y_all.size else 1.0
+        floor = -max(1e-10, 1e-3 * max(weakest, 0.0))
+        for w, get in fields:
+            phi = get()
+            neg = int(np.sum(phi < 0))
+            ratio = float(np.min(phi.min(axis=0) / np.maximum(phi.max(axis=0), 1e-300)))
+            report["negative_nodes"][w] = {"count": neg, "nodes": int(phi.size),
+                                           "min_over_max": ratio,
+                                           "refuse_below": floor}
+            if ratio < floor:
+                refuse.append(f"{w}: {neg} of {phi.size} nodal values are negative (down to "
+                              f"{ratio:.2g} of the peak): the mesh is too coarse for these "
+                              "properties and the data are not usable")
+            elif neg:
+                warnings_.append(f"{w}: {neg} nodal values are negative (at most {-ratio:.2g} of "
+                                 "the peak): the far field there is below what this mesh resolves")
+        y = self.excitation_data()
+        if np.any(y <= 0):
+            refuse.append(f"excitation: {int(np.sum(y <= 0))} detector value(s) are zero or "
+                          "negative")
+        for op in (self.op_x, self._op_m):
+            if op is not None and getattr(op, "unconverged", None):
+                warnings_.append(f"{op.name}: {op.unconverged}")
+        report["warnings"] = warnings_
+        report["refuse"] = refuse
+        return report
+
+    def _optode_region_elements(self):
+        """Elements within the box around the optodes, 3 decay lengths deep."""
+        from FluoTomoLib.optics import mueff
+
+        pts = np.concatenate([self.sources_surface_mm, self.detectors_mm])
+        me = float(np.max(mueff(self.op_x.mua, self.op_x.musp)))
+        pad = min(3.0 / max(me, 1e-12), float(np.max(np.ptp(self.mesh.nodes_mm, axis=0))))
+        c = self.mesh.nodes_mm[self.mesh.elements].mean(axis=1)
+        return np.all((c >= pts.min(axis=0) - pad) & (c <= pts.max(axis=0) + pad), axis=1)
+
     def jacobian_mua_x(self):
         """(S*D, N): d(excitation data)/d(nodal mua_x), row s*D + d.
 
@@ -187,6 +335,14 @@ class FluorescenceModel:
         through D = 1/(3 (mua + musp)), the diffusion coefficient.
         """
         return mua_jacobian(self.mesh, self.adjoint_x, self.phi_x, self.op_x.D)
+
+
+def _finite_or_none(a):
+    """JSON-ready: floats, with None where the estimate is beyond the table."""
+    a = np.asarray(a, float)
+    if a.ndim == 0:
+        return float(a) if np.isfinite(a) else None
+    return [_finite_or_none(v) for v in a]
 
 
 def safe_log(data, floor=1e-300):

@@ -1,7 +1,7 @@
 """Finite-element CW diffusion on linear triangles (2D) and tetrahedra (3D).
 
 Weak form of -div(D grad Phi) + mua Phi = q with the Robin boundary
-Phi + 2 A D dPhi/dn = 0 (physics.md sections 1-2):
+Phi + 2 A D dPhi/dn = 0 (docs/physics.md sections 1-2):
 
     (K + M_mua + B / (2A)) Phi = b
 
@@ -71,7 +71,7 @@ class _Geometry:
     def pardiso_pattern(self):
         """The PARDISO analysis of this mesh's pattern, shared by its operators.
 
-        Meshes on a grid (structured_mesh, voxel_mesh: meta "method" =
+        Meshes on a grid (meshing.structured, meshing.voxel: meta "method" =
         "structured") are ordered by geometric nested dissection (0.05 s, fill
         within 2 % of METIS or below it, 0.13-0.22 s less analysis on 60-86k
         nodes);
@@ -167,16 +167,31 @@ class MeshResolutionWarning(UserWarning):
     """Elements are large compared with the light's decay length 1/mueff."""
 
 
+# mueff h from which the discrete solution goes negative: measured on Kuhn
+# cubes (benchmarks/bench_fem_accuracy.py), a few far-field nodes at 1.0 and
+# tens of thousands of nodes, down to -1 % of the peak, at 1.4 (docs/fem.md)
+NEGATIVE_FROM_MUEFF_H = 1.0
+
+
 def _check_resolution(mesh, mua, musp, name):
+    """Warn when the elements are so coarse that the fluence oscillates.
+
+    The operator knows no optodes; FluorescenceModel.accuracy() estimates
+    the error of each source-detector pair (fem/resolution.py)."""
     import warnings
 
+    from FluoTomoLib.fem.resolution import element_sizes
     from FluoTomoLib.optics import mueff
 
-    h = float(np.median(mesh.measures)) ** (1.0 / mesh.dim) * (2.0 if mesh.dim == 3 else 1.5)
+    # the median of at most ~20k elements: this runs on every operator
+    h = float(np.median(element_sizes(mesh, np.arange(0, mesh.n_elements,
+                                                      max(1, mesh.n_elements // 20000)))))
     me = float(np.max(mueff(mua, musp)))
-    if h * me > 2.0:
+    if h * me >= NEGATIVE_FROM_MUEFF_H:
         warnings.warn(f"{name}: elements (~{h:.2g} mm) are coarse for a decay length 1/mueff = "
-                      f"{1 / me:.2g} mm; far-field values will be inaccurate and may underflow",
+                      f"{1 / me:.2g} mm (mueff h = {h * me:.2g} >= {NEGATIVE_FROM_MUEFF_H:g}): "
+                      "the fluence goes negative and far-field values are wrong; elements of "
+                      f"{0.3 / me:.2g} mm or less are needed for a few percent (docs/fem.md)",
                       MeshResolutionWarning, stacklevel=3)
 
 
@@ -194,10 +209,13 @@ class DiffusionOperator:
         Default: every boundary facet.
     solver : "auto" (PARDISO if MKL loads, else SuperLU), "pardiso", "splu" or "amg"
         (smoothed-aggregation AMG preconditioned CG, for meshes too big to factorise)
+    boundary : the boundary constant A's method for ``optics.robin_A`` ("empirical" or
+        "fresnel"; None: ``optics.DEFAULT_BOUNDARY``), e.g. "empirical" to reproduce
+        work made with NIRFAST's constant (the thesis studies)
     """
 
     def __init__(self, mesh, mua_per_mm, musp_per_mm, n, solver="auto", name="operator",
-                 robin_facets=None):
+                 robin_facets=None, boundary=None):
         mua = _nodal(mesh, mua_per_mm, f"{name}.mua_per_mm")
         musp = _nodal(mesh, musp_per_mm, f"{name}.musp_per_mm")
         check_properties(mua, musp, n, where=name)
@@ -207,7 +225,8 @@ class DiffusionOperator:
         self.mua = mua
         self.musp = musp
         self.n = float(n)
-        self.A = float(robin_A(self.n))
+        self.boundary = boundary
+        self.A = float(robin_A(self.n, boundary))
         self.D = diffusion_coefficient(mua, musp)
         t0 = time.perf_counter()
         g = geometry(mesh)
@@ -222,6 +241,7 @@ class DiffusionOperator:
         self._solve = None
         self.solver_name = None
         self.n_solves = 0
+        self.unconverged = None
 
     @property
     def K(self):
@@ -248,14 +268,8 @@ class DiffusionOperator:
         elif req == "amg":
             import pyamg
 
-            ml = pyamg.smoothed_aggregation_solver(self.K.tocsr(), symmetry="symmetric")
-
-            def solve(B):
-                B2 = B.reshape(len(B), -1)
-                X = np.column_stack([ml.solve(B2[:, j], tol=1e-10, accel="cg", maxiter=500)
-                                     for j in range(B2.shape[1])])
-                return X.reshape(B.shape)
-            self._solve = solve
+            self._amg = pyamg.smoothed_aggregation_solver(self.K.tocsr(), symmetry="symmetric")
+            self._solve = self._amg_solve
             self.solver_name = "amg-cg"
         else:
             lu = spla.splu(self.K, permc_spec="MMD_AT_PLUS_A")
@@ -264,13 +278,57 @@ class DiffusionOperator:
         self.factor_seconds = time.perf_counter() - t0
         return self
 
-    def solve(self, B):
-        """Solve K X = B for a vector (N,) or a block (N, k); dense result."""
+    # AMG-CG: the relative residual of each step, and the change of the read-out
+    # values below which a solve counts as converged.  A residual of 1e-10
+    # (the old fixed tolerance) left detectors at 1e-13 of the peak +125 % off
+    # and ones 60 mm away x8e4 (issue 18); the tolerance now follows them.
+    AMG_TOLERANCES = (1e-8, 1e-10, 1e-12, 1e-14)
+    AMG_READOUT_RTOL = 1e-4
+
+    def _amg_solve(self, B, readout=None):
+        """AMG-CG, tightening the tolerance until the values ``readout @ x``
+        (detectors, sources) change by less than AMG_READOUT_RTOL; without a
+        read-out, until the whole solution does (relative to its peak)."""
+        B2 = B.reshape(len(B), -1)
+        X = np.empty_like(B2)
+        bad = []
+        for j in range(B2.shape[1]):
+            x, prev = None, None
+            for tol in self.AMG_TOLERANCES:
+                x = self._amg.solve(B2[:, j], x0=x, tol=tol, accel="cg", maxiter=1000)
+                y = readout @ x if readout is not None else x
+                if prev is not None:
+                    scale = np.abs(y) if readout is not None else np.max(np.abs(y))
+                    change = np.abs(y - prev) / np.maximum(scale, 1e-300)
+                    if np.all(change < self.AMG_READOUT_RTOL):
+                        break
+                prev = y
+            else:
+                bad.append((j, int(np.sum(change >= self.AMG_READOUT_RTOL))))
+            X[:, j] = x
+        if bad:
+            n = sum(k for _, k in bad)
+            self.unconverged = (f"AMG-CG did not converge for {n} read-out value(s) of "
+                                f"{len(bad)} right-hand side(s) at a relative residual of "
+                                f"{self.AMG_TOLERANCES[-1]:g} (values too small against the "
+                                "peak for an iterative solver): use solver='pardiso'")
+        return X.reshape(B.shape)
+
+    def solve(self, B, readout=None):
+        """Solve K X = B for a vector (N,) or a block (N, k); dense result.
+
+        ``readout`` (sparse (k, N), optional): the values the caller will read
+        from X (detectors); an iterative solver (AMG) converges until they
+        stop changing.  Direct solvers ignore it.
+        """
         self.factorize()
         if sp.issparse(B):
             B = B.toarray()
         B = np.asarray(B, dtype=float)
-        X = self._solve(B)
+        if self.solver_name == "amg-cg":
+            X = self._amg_solve(B, readout)
+        else:
+            X = self._solve(B)
         self.n_solves += 1 if B.ndim == 1 else B.shape[1]
         return np.asarray(X)
 
@@ -294,19 +352,86 @@ def snap_to_surface(mesh, points_mm, max_snap_mm=5.0, what="source"):
     return q, facet, bary
 
 
+def _inward_directions(mesh, q, facet, bary, tol=1e-9):
+    """Unit inward directions at boundary points: the facet's normal inside a
+    facet, the angle-weighted mean of the normals of the facets around an
+    edge or a vertex (a side facet's normal alone would bury a source at an
+    edge sideways, along the top surface)."""
+    bf = mesh.boundary_facets
+    nrm = mesh.boundary_normals
+    p = mesh.nodes_mm
+    out = nrm[facet].copy()
+    for i in np.flatnonzero(np.any(bary <= tol, axis=1)):
+        on = bf[facet[i]][bary[i] > tol]          # the nodes spanning q's edge or vertex
+        around = np.flatnonzero(np.isin(bf, on).sum(axis=1) == len(on))
+        if len(on) == 1 and mesh.dim == 3:
+            # vertex: each facet weighted by its angle there
+            w = np.empty(len(around))
+            for k, f in enumerate(around):
+                a = p[bf[f][bf[f] != on[0]]] - p[on[0]]
+                c = np.dot(a[0], a[1]) / max(np.linalg.norm(a[0]) * np.linalg.norm(a[1]), 1e-300)
+                w[k] = np.arccos(np.clip(c, -1.0, 1.0))
+        else:
+            w = np.ones(len(around))               # an edge (or a 2D vertex): two facets
+        v = (w[:, None] * nrm[around]).sum(axis=0)
+        if np.linalg.norm(v) > 1e-12:
+            out[i] = v / np.linalg.norm(v)
+    return -out
+
+
 def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_mm=5.0,
-                     normals=None):
-    """Buried isotropic sources: one transport MFP below the nearest surface point,
-    along the inward normal (physics.md section 2).  ``normals``: (S, d) outward
-    unit normals of the true surface to bury along instead of the facet's (a
-    voxel mesh's facet normals are axis directions on a curved surface)."""
+                     notes=None, normals=None):
+    """Buried isotropic sources: one transport MFP (1/mut') inside the tissue
+    below the nearest surface point (docs/physics.md section 2.2).
+
+    Inside a facet the source moves along its inward normal.  At an edge or
+    a corner it moves along the mean inward normal of the facets there, as
+    far as it takes to be 1/mut' from every surface (1/mut' * sqrt(2) along
+    the bisector of a right-angled edge).  A source that cannot be buried
+    that deep (the tissue is thinner than 1/mut' there) is refused; one
+    that ends closer than 1/mut' to another surface (thin tissue, near an
+    edge) is kept and, when ``notes`` is a list, described there.
+
+    ``normals``: (S, d) outward unit normals of the true surface to bury
+    along instead of the facets' (a voxel mesh's facet normals are axis
+    directions on a curved surface, and its edges are staircase steps, not
+    corners of the tissue: no bisector search there).
+    """
     q, facet, bary = snap_to_surface(mesh, surface_points_mm, max_snap_mm, "source")
     mua = _nodal(mesh, mua_per_mm, "mua_per_mm")
     musp = _nodal(mesh, musp_per_mm, "musp_per_mm")
     fnodes = mesh.boundary_facets[facet]
-    mut = np.einsum("ij,ij->i", bary, (mua + musp)[fnodes])
-    normal = mesh.boundary_normals[facet] if normals is None else np.asarray(normals, float)
-    return q - normal / mut[:, None]
+    depth = 1.0 / np.einsum("ij,ij->i", bary, (mua + musp)[fnodes])
+    if normals is None:
+        inward = _inward_directions(mesh, q, facet, bary)
+        wedge = np.any(bary <= 1e-9, axis=1)      # on an edge or a vertex
+    else:
+        inward = -np.atleast_2d(np.asarray(normals, float))
+        wedge = np.zeros(len(q), bool)
+    bl = boundary_locator(mesh)
+    t = depth.copy()
+    pos = q + inward * t[:, None]
+    for _ in range(4 if np.any(wedge) else 0):
+        d = bl.closest(pos)[3]
+        short = wedge & (d < depth * (1 - 1e-6))
+        if not np.any(short):
+            break
+        # in a wedge of planar faces the distance grows linearly along the
+        # bisector: one step lands on it; never more than 3 depths along
+        t = np.where(short, np.minimum(t * depth / np.maximum(d, 1e-12 * depth), 3 * depth), t)
+        pos = q + inward * t[:, None]
+    elem, _ = locator(mesh).locate(pos)
+    for i in np.flatnonzero(elem < 0):
+        raise FluoInputError(f"cannot be buried 1/mut' = {depth[i]:.3g} mm deep: the tissue under "
+                             "it is thinner than that", field=f"source[{i}]",
+                             value=np.round(q[i], 4).tolist())
+    d = bl.closest(pos)[3]
+    for i in np.flatnonzero(d < 0.7 * depth):
+        if notes is not None:
+            notes.append(f"source[{i}] is {d[i]:.3g} mm from the nearest surface, less than its "
+                         f"burial depth 1/mut' = {depth[i]:.3g} mm (thin tissue or an edge "
+                         "nearby): the diffusion model is less accurate there")
+    return pos
 
 
 def point_source_rhs(mesh, positions_mm):

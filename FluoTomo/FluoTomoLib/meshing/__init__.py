@@ -18,7 +18,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "mesh": ["Mesh"],
     "nirfast_io": ["write_nirfast", "read_nirfast", "write_optodes", "read_optodes"],
     "report": ["dihedral_angles_deg", "aspect_ratio", "quality_report"],
-    "structured": ["graded_axis", "rectangle_mesh", "kuhn_paths", "box_mesh", "slab_mesh"],
+    "structured": ["graded_axis", "optode_axis", "rectangle_mesh", "kuhn_paths", "box_mesh", "slab_mesh"],
     "tetwild": ["labelmap_volumes", "labelmap_surface", "decimate_surface", "mesh_labelmap_quality"],
     "voxel": ["mesh_labelmap_structured", "labelmap_region_volumes", "node_labels_from_labelmap", "nodal_volumes", "node_regions_volume_preserving", "region_centroid_mm", "target_refinement"],
     "vtu_io": ["to_vtk", "from_vtk", "write_vtu", "read_vtu", "read_mesh", "boundary_polydata"],

@@ -42,6 +42,38 @@ def graded_axis(lo, hi, fine_mm, coarse_mm, fine_until, grow=1.15):
     return np.array(sorted(z))
 
 
+def optode_axis(lo, hi, optodes_mm, fine_mm, coarse_mm, fine_half_mm=None, grow=1.2):
+    """Coordinates on [lo, hi] that are ``fine_mm`` apart within ``fine_half_mm``
+    (default 2 fine steps) of any of the ``optodes_mm`` coordinates and grow by
+    ``grow`` per step away from them, up to ``coarse_mm``: optode-aware
+    grading (fine where light enters and leaves, coarse where it only
+    diffuses).  The last step is stretched or merged so the axis ends at hi.
+    """
+    c = np.unique(np.asarray(optodes_mm, float).ravel())
+    if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+        raise FluoInputError("needs lo < hi", field="axis", value=(lo, hi))
+    if not (0 < fine_mm <= coarse_mm) or not np.all(np.isfinite(c)) or not grow > 1:
+        raise FluoInputError("needs 0 < fine <= coarse, grow > 1 and finite optode coordinates",
+                             field="fine_mm", value=(fine_mm, coarse_mm, grow))
+    half = 2.0 * fine_mm if fine_half_mm is None else float(fine_half_mm)
+
+    def size(x):
+        d = np.min(np.abs(c - x)) if len(c) else np.inf
+        # a step of size s at distance d grows the next one by (grow - 1) s:
+        # linear growth of the size with distance is geometric per step
+        return float(np.clip(fine_mm + (grow - 1.0) * (d - half), fine_mm, coarse_mm))
+
+    x = [float(lo)]
+    while x[-1] < hi:
+        s = size(x[-1])
+        s = min(s, size(x[-1] + s))                 # do not step over a fine zone
+        x.append(x[-1] + s)
+    if x[-1] - hi > 0.5 * (x[-1] - x[-2]) and len(x) > 2:
+        x.pop()                                     # merge a sliver last step
+    x[-1] = float(hi)
+    return np.array(x)
+
+
 def rectangle_mesh(x, y, name="rectangle"):
     """Triangles on the grid x (nx+1,) by y (ny+1,), alternating diagonals."""
     x, y = np.asarray(x, float), np.asarray(y, float)

@@ -148,15 +148,21 @@ def region_cell_volumes(labels_kji, spacing, origin, edges, labels=None):
     return list(labels), out
 
 
-def grid_edges(roi, size_mm, anchor_mm=None, refine=None):
+def grid_edges(roi, size_mm, anchor_mm=None, refine=None, edges_mm=None):
     """Cell edges per axis of the structured grid over ``roi`` (x0, x1, y0, y1,
     z0, z1): about ``size_mm`` wide, through ``anchor_mm``, refined per axis
-    (see _axis_edges)."""
+    (see _axis_edges); ``edges_mm``: per axis None or the grid lines
+    themselves (clipped to the roi)."""
     lo = np.array(roi[0::2], float)
     hi = np.array(roi[1::2], float)
     refine = refine or (None, None, None)
-    return [_axis_edges(lo[a], hi[a], size_mm, None if anchor_mm is None else anchor_mm[a],
-                        refine[a]) for a in range(3)]
+    edges = [_axis_edges(lo[a], hi[a], size_mm, None if anchor_mm is None else anchor_mm[a],
+                         refine[a]) for a in range(3)]
+    for a, given in enumerate(edges_mm or (None, None, None)):
+        if given is not None:
+            g = np.asarray(given, float)
+            edges[a] = np.unique(np.concatenate([[lo[a]], g[(g > lo[a]) & (g < hi[a])], [hi[a]]]))
+    return edges
 
 
 def _cell_labels(labels_kji, spacing, origin, roi, edges):
@@ -333,7 +339,7 @@ def axis_aligned_labelmap(labels_kji, spacing_mm, origin_mm, direction):
 
 def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=None,
                              direction=None, anchor_mm=None, refine=None, progress=None,
-                             cancel=None, name="voxel-mesh"):
+                             cancel=None, name="voxel-mesh", edges_mm=None):
     """Tetrahedral mesh of the non-zero labels of a label map.
 
     Parameters
@@ -357,6 +363,9 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
         with smaller cells (the grid stays rectilinear, so the band runs
         through the whole roi along the other axes; refine only the axes a
         target is thin in), or a list of such bands (nested: the finest wins)
+    edges_mm : per axis (x, y, z) None or increasing grid-line coordinates
+        [mm] (e.g. ``structured.optode_axis``: fine at the optodes, coarse
+        away from them); they replace that axis's lines (RAS, like ``roi``)
 
     Returns
     -------
@@ -386,7 +395,8 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
         if signed_permutation(d):
             labels, spacing, origin = axis_aligned_labelmap(labels, spacing, origin, d)
         else:
-            if roi is not None or anchor_mm is not None or refine is not None:
+            if (roi is not None or anchor_mm is not None or refine is not None
+                    or edges_mm is not None):
                 raise FluoInputError("roi, anchor and refinement are RAS boxes: they need a "
                                      "label map whose axes run along RAS (this one is oblique)",
                                      field="direction", value=np.round(d, 6).tolist())
@@ -433,7 +443,14 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
             raise FluoInputError("refine must be three entries of None, (a_mm, b_mm, size_mm) "
                                  "or a list of them, with a < b, size > 0", field="refine",
                                  value=refine)
-    edges = grid_edges(roi, size_mm, anchor_mm, refine)
+    if edges_mm is not None:
+        if len(edges_mm) != 3 or any(e is not None and (np.ndim(e) != 1 or len(e) < 2
+                                                        or not np.all(np.isfinite(e))
+                                                        or np.any(np.diff(e) <= 0))
+                                     for e in edges_mm):
+            raise FluoInputError("edges must be three entries of None or increasing finite "
+                                 "coordinates", field="edges_mm")
+    edges = grid_edges(roi, size_mm, anchor_mm, refine, edges_mm)
     n_cells = int(np.prod([len(e) - 1 for e in edges]))
     if n_cells > MAX_CELLS:
         raise FluoInputError(f"{n_cells:.3g} cells: choose a larger element size, a smaller roi "
@@ -460,7 +477,7 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     mesh.meta["size_mm"] = float(size_mm)
     if rotate is None:
         mesh.meta["roi"] = roi.tolist()
-        if anchor_mm is not None or refine is not None:
+        if anchor_mm is not None or refine is not None or edges_mm is not None:
             mesh.meta["edges_mm"] = [e.tolist() for e in edges]   # the grid lines (non-uniform)
     _record_fidelity(mesh, volumes)
     report(progress, 1.0, "mesh done")

@@ -4,7 +4,7 @@
 Modules
 -------
 - ``oral``: Image-guided fluorescence tomography of the oral-cavity phantom.
-- ``steps``: The steps every image-guided tomography case shares, whatever the phantom: the tracked camera's acquisition of a laser scan (rendered frames -> ROI counts -> normalised boundary fluence), the reconstruction model and prior from the CBCT labels, and NP / SP / HP with the optional self-absorption feedback.  igft.py (cylinder-tube) and igft_oral.py (oral cavity) put them together.
+- ``steps``: The steps every image-guided tomography case shares, whatever the phantom: the tracked camera's acquisition of a laser scan (rendered frames -> ROI counts -> normalised boundary fluence), the reconstruction model and prior from the CBCT labels, and NP / SP / HP with the optional self-absorption feedback.  ``tube`` (cylinder-tube) and ``oral`` (oral cavity) put them together.
 - ``tube``: Image-guided fluorescence tomography of the cylinder-tube phantom, end to end.
 """
 

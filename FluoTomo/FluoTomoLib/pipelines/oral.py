@@ -72,7 +72,7 @@ def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=1.5, n_sources
     """One tracked laser line across the tongue, rendered camera frames,
     NP / SP / HP with the CBCT labels (agar, tongue) as the prior.
 
-    ``camera`` takes the camera options of igft_steps.acquire
+    ``camera`` takes the camera options of ``steps.acquire``
     (``camera_gain``, ``camera_offset_adu``, ``camera_read_noise_adu``,
     ``camera_binning``, ``camera_distance_mm``).  Returns a dict of numbers,
     the meshes and fields for figures and the scene.

@@ -2,7 +2,7 @@
 the tracked camera's acquisition of a laser scan (rendered frames -> ROI
 counts -> normalised boundary fluence), the reconstruction model and prior
 from the CBCT labels, and NP / SP / HP with the optional self-absorption
-feedback.  igft.py (cylinder-tube) and igft_oral.py (oral cavity) put them
+feedback.  ``pipelines.tube`` (cylinder-tube) and ``pipelines.oral`` (oral cavity) put them
 together."""
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     reconstruction near the optodes.  ``roi_half_mm`` = (x, y) half sizes of a
     region of interest to force (the full liquid depth); by default it is
     chosen from the decay length and its truncation error is reported.
-    ``camera_gain`` is G of physics.md section 5 in ADU per (W/mm^2/sr); by
+    ``camera_gain`` is G of docs/physics.md section 5.1 in ADU per (W/mm^2/sr); by
     default it is chosen so the brightest pixel farther than ``exclude_mm``
     from the active source sits at ~60 % of a 14-bit range (what a user does
     with the exposure time).  ``recon_labels = (labels_kji, spacing_mm,

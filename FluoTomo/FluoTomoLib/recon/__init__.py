@@ -4,7 +4,7 @@ membership, self-absorption and the metrics of a result.
 Modules
 -------
 - ``grids``: Fine (forward) and coarse (reconstruction) meshes and the operators between them.
-- ``metrics``: Peak yield and centroid from a 1D depth profile (physics.md section 8).
+- ``metrics``: Peak yield and centroid from a 1D depth profile (docs/physics.md section 8.5).
 - ``partial_volume``: Partial-volume region membership of mesh nodes, for hard priors.
 - ``self_absorption``: Fluorophore self-absorption in yield reconstruction.
 - ``solver``: Reconstruction of fluorescence yield: no priors, soft priors, hard priors.
@@ -17,5 +17,5 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "metrics": ["depth_profile", "peak_and_centroid"],
     "partial_volume": ["dual_cells", "node_region_fractions", "PartialVolumePrior"],
     "self_absorption": ["absorbing_mua", "reconstruct_self_absorbing"],
-    "solver": ["ReconResult", "RegionPrior", "region_jacobian", "reconstruct"],
+    "solver": ["ReconResult", "RegionPrior", "diagnose", "region_jacobian", "reconstruct"],
 })

@@ -1,4 +1,4 @@
-"""Peak yield and centroid from a 1D depth profile (physics.md section 8).
+"""Peak yield and centroid from a 1D depth profile (docs/physics.md section 8.5).
 
 The reference reads both from a line profile through the target: the peak is
 the profile's maximum, the centroid the centre of the region within 50 % of

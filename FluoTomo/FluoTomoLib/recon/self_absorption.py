@@ -143,6 +143,9 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
             values = values[:1]
             stop = (f"self-absorption feedback diverged after {k + 1} passes: "
                     "blind model kept")
+            res.warnings = res.warnings + [
+                f"{stop}: the yield ignores the dye's own absorption and is low for an "
+                "absorbing target (docs/tomography.md)"]
             break
         v_a = _aitken(*triple)
         values.append(v_a)

@@ -1,6 +1,6 @@
 """Reconstruction of fluorescence yield: no priors, soft priors, hard priors.
 
-physics.md section 8.  The update of the reference,
+docs/physics.md section 8.3.  The update of the reference,
 
     d_mu = (J^T J + R)^-1 J^T (y - F(mu)),
 
@@ -60,17 +60,22 @@ class ReconResult:
     region_confidence: dict = field(default_factory=dict)
     clipped_fraction: float = 0.0
     stop_reason: str = ""
+    diagnostics: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
 
     @property
     def residual(self):
         return self.residual_history[-1]
 
     def summary(self):
+        """Plain dict of the result for JSON (without the nodal yield): the
+        diagnostics (:func:`diagnose`) and the ``warnings`` a caller must show."""
         return {"method": self.method, "lambda": self.lam, "iterations": self.iterations,
                 "residual_ss": self.residual, "initial_residual_ss": self.residual_history[0],
                 "stop_reason": self.stop_reason, "seconds": self.seconds,
                 "clipped_fraction": self.clipped_fraction,
-                "region_confidence": self.region_confidence}
+                "region_confidence": self.region_confidence,
+                "diagnostics": dict(self.diagnostics), "warnings": list(self.warnings)}
 
 
 class RegionPrior:
@@ -240,7 +245,7 @@ def _inverse_regulariser(method, prior, Jm, lam_k):
 
 def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
                 nonneg=True, lambda_decay=None, log_data=False, normalise=False,
-                region_jacobian=None, progress=None, cancel=None):
+                region_jacobian=None, progress=None, cancel=None, noise_sd=None, noise_rel=None):
     """Reconstruct nodal yield from data ``y`` with sensitivity ``J``.
 
     Parameters
@@ -267,30 +272,56 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     region_jacobian : (M, n_regions) HP only: the data's sensitivity to each
         region's yield (columns in ``prior.labels`` order), e.g. built on the
         forward mesh with :func:`region_jacobian`; default J @ prior.K()
+    noise_sd, noise_rel : the measurement noise model, used to grade the fit
+        (not to weight it): standard deviation sqrt(noise_sd^2 + (noise_rel y)^2)
+        per measurement, ``noise_sd`` in the data's units (scalar or (M,)),
+        ``noise_rel`` a fraction (0.01 = 1 %).  Without them the goodness of fit
+        is judged from the residual alone (:func:`diagnose`).
 
     Returns
     -------
-    ReconResult with the nodal yield [1/mm] on the reconstruction mesh.
+    ReconResult with the nodal yield [1/mm] on the reconstruction mesh, its
+    ``diagnostics`` and ``warnings`` (:func:`diagnose`): a result whose
+    ``warnings`` is not empty may be far from the truth, for the reasons given.
     """
     t0 = time.perf_counter()
     J = np.asarray(J, float)
     y = np.asarray(y, float).ravel()
     method = str(method).upper()
     _check_inputs(J, y, method, lam, prior, log_data)
+    sigma = _noise_model(y, noise_sd, noise_rel)
 
     K = prior.K() if method == "HP" else None
     A = J if K is None else _region_matrix(J, K, region_jacobian, prior)
+    if not np.any(A):
+        raise FluoInputError("the Jacobian is zero: no detector is sensitive to any node "
+                             "(detectors away from the tissue, or sources outside it)",
+                             field="J")
+    # Work with A / 2^a and y / 2^b (x scaled by 2^(a-b)): exact in floating
+    # point, so results are bit for bit those of the unscaled problem, but a
+    # Jacobian in units that make J^T J underflow (1e-160) or overflow still
+    # works; log data are fitted as they are (a scale is a shift of ln y).
+    a_exp = int(np.frexp(np.max(np.abs(A)))[1])
+    b_exp = 0 if log_data else int(np.frexp(np.max(np.abs(y)))[1])
+    A_s = np.ldexp(A, -a_exp)
+    y_s = np.ldexp(y, -b_exp)
+    x_exp = a_exp - b_exp                 # x_scaled = x * 2^x_exp
+    if x0 is not None and np.ndim(x0) == 0:
+        x0 = float(x0)
+    if x0 is not None:
+        x0 = np.ldexp(np.asarray(x0, float), x_exp)
     nonlinear = bool(log_data or normalise)
     counts = prior.counts if K is not None else None
-    x = _initial_guess(A, y, x0, K, counts, log_data, nonlinear)
+    x = _initial_guess(A_s, y_s, x0, K, counts, log_data, nonlinear)
     if nonlinear and not np.any(x > 0):
         raise FluoInputError("the starting yield must be positive for log data or a "
                              "normalised Jacobian", field="x0")
-    resid, Jm = _linearise(A, y, x, log_data)
+    x_start = x.copy()
+    resid, Jm = _linearise(A_s, y_s, x, log_data)
     history = [float(resid @ resid)]
     # data fitted to rounding: the residual only jitters from here on (relative
     # changes of any size), so stop instead of running to max_iter
-    fitted = np.log(np.maximum(y, np.finfo(float).tiny)) if log_data else y
+    fitted = np.log(np.maximum(y_s, np.finfo(float).tiny)) if log_data else y_s
     floor = (64 * np.finfo(float).eps) ** 2 * float(np.dot(fitted, fitted))
     stop = "max_iter"
     clipped = 0.0
@@ -299,28 +330,48 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         lambda_decay = 10 ** 0.25 if method == "HP" else 1.0
     cached_lam = None
     col = None
+    ds = None
+    best = (history[0], 0, x, resid, Jm)     # (rss, iteration, x, residual, Jacobian)
     for it in range(1, max_iter + 1):
         check_cancel(cancel)
         # J is fixed for linear data and no normalisation: refactor only when
         # lambda changes; otherwise the linearisation moves every iteration
         if nonlinear or lam_k != cached_lam:
-            col = x.copy() if normalise else None
-            Jc = Jm * col if normalise else Jm
-            Rinv = _inverse_regulariser(method, prior, Jc, lam_k)
-            RJt = Rinv(Jc.T)
-            S = Jc @ RJt
-            S[np.diag_indices_from(S)] += 1.0
-            S_factor = np.linalg.cholesky(S)
+            col, Jc, Rinv, RJt, ds = _step_system(method, prior, Jm, x, normalise, lam_k)
             cached_lam = lam_k
-        step = RJt @ _chol_solve(S_factor, resid)
+        step = RJt @ ds.solve(resid)
+        x_prev, resid_prev, Jm_prev = x, resid, Jm
         x = x + (step * col if normalise else step)
         if nonneg:
             neg = x < 0
             clipped = float(np.mean(neg))
             x[neg] = 0.0
-        resid, Jm = _linearise(A, y, x, log_data)
+        if normalise and not np.any(x > 0):
+            # a normalised Jacobian cannot move a zero yield: the run ends here
+            ratio = _data_to_model(A_s, y_s, x_start, log_data)
+            if not (1e-3 <= ratio <= 1e3):
+                raise FluoInputError(
+                    f"iteration {it} drove every unknown to zero: the data are {ratio:.3g} "
+                    "times what the model predicts at the starting yield; are the data in "
+                    "the Jacobian's units (boundary fluence per W of source, 1/mm^2)?",
+                    field="y")
+            x, resid, Jm = x_prev, resid_prev, Jm_prev
+            history.append(history[-1])
+            stop = "diverged (every unknown clipped to zero)"
+            break
+        resid, Jm = _linearise(A_s, y_s, x, log_data)
         history.append(float(resid @ resid))
         report(progress, it / max_iter, f"{method} iteration {it}: residual {history[-1]:.3g}")
+        if not (np.isfinite(history[-1]) and np.all(np.isfinite(x))):
+            x, resid, Jm = x_prev, resid_prev, Jm_prev
+            history[-1] = history[-2]
+            stop = "diverged (not finite)"
+            break
+        if history[-1] < best[0]:
+            best = (history[-1], it, x, resid, Jm)
+        elif history[-1] > RUNAWAY * best[0]:
+            stop = "diverged"
+            break
         if history[-1] <= floor:
             stop = "residual at rounding level"
             break
@@ -328,10 +379,341 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
             stop = "residual change < {:.0%}".format(rel_tol)
             break
         lam_k /= lambda_decay
+    rose = history[-1] / best[0] if best[0] > 0 else 1.0
+    if rose > RUNAWAY or (nonlinear and rose > 1 + rel_tol) or stop.startswith("diverged"):
+        # an under-damped log / normalised model overshoots (lambda 1e-10 ran
+        # NP to a yield of 1e64): return the iterate with the lowest residual
+        # (a step may overshoot and the next recover: only the end is judged).
+        # With linear data the residual can rise only by the non-negativity
+        # clip; that is left as it is (and warned about below)
+        _, it_best, x, resid, Jm = best
+        stop = f"{stop}; residual rose: iteration {it_best} (lowest residual) kept"
+        history.append(best[0])
+        nonlinear = True            # relinearise the diagnostics at the kept iterate
+    elif rose > 1 + rel_tol:
+        stop = f"{stop}; residual rose {rose:.3g}x above its lowest (non-negativity clip)"
+    if nonlinear and (not normalise or np.any(x > 0)):
+        # diagnostics and confidence at the final linearisation
+        col, Jc, Rinv, RJt, ds = _step_system(method, prior, Jm, x, normalise, cached_lam)
+    diag, warn = diagnose(method, A_s, y_s, x, resid, ds, log_data, sigma if sigma is None
+                          else np.ldexp(sigma, -b_exp), history, stop, it, max_iter, rel_tol,
+                          x0_given=x0 is not None, x_start=x_start, x_exp=x_exp,
+                          region_labels=prior.labels if K is not None else None,
+                          lam_final=cached_lam)
+    if diag["over_regularised"]:
+        stop = f"{stop} (stalled by the damping)"
+    x = np.ldexp(x, -x_exp)
     x_nodes = K @ x if K is not None else x
-    conf = _region_confidence(Jc, Rinv, S, resid, prior, x_nodes, method, col)
+    conf = _region_confidence(Jc, Rinv, ds, resid, prior, x_nodes, method, col,
+                              diag["residual_dof"], diag.get("noise_variance_fit"),
+                              undetermined=diag["underdetermined"],
+                              x_scale=2.0 ** (-x_exp))
+    diag.pop("noise_variance_fit", None)
+    history = [float(np.ldexp(h, 2 * b_exp)) for h in history]    # in the data's units
     return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
-                       conf, clipped, stop)
+                       conf, clipped, stop, diag, warn)
+
+
+def _step_system(method, prior, Jm, x, normalise, lam):
+    """What one step needs at the linearisation ``Jm``: the column scaling (the
+    current yield, normalised Jacobian only), the scaled Jacobian Jc, R^-1,
+    R^-1 Jc^T and the data-space system S = Jc R^-1 Jc^T + I."""
+    col = x.copy() if normalise else None
+    Jc = Jm * col if normalise else Jm
+    Rinv = _inverse_regulariser(method, prior, Jc, lam)
+    RJt = Rinv(Jc.T)
+    S = Jc @ RJt
+    S[np.diag_indices_from(S)] += 1.0
+    return col, Jc, Rinv, RJt, _DataSpace(S)
+
+
+class _DataSpace:
+    """Solves with the data-space matrix S = G + I, G = J R^-1 J^T symmetric
+    positive semi-definite.  Cholesky while it succeeds; where rounding has
+    made G indefinite (a lambda so small that G dwarfs the identity: SP with
+    log data at lambda 1e-10 raised numpy's LinAlgError), the eigen-
+    decomposition of G with its negative rounding eigenvalues set to zero.
+    ``effective_parameters()`` and ``predicted_rss()`` serve the diagnostics."""
+
+    def __init__(self, S):
+        self.S = S
+        self._eig = None
+        try:
+            self.L = np.linalg.cholesky(S)
+        except np.linalg.LinAlgError:
+            self.L = None
+            self.spectrum()
+
+    def spectrum(self):
+        if self._eig is None:
+            G = self.S - np.eye(len(self.S))
+            g, V = np.linalg.eigh(0.5 * (G + G.T))
+            self._eig = (np.maximum(g, 0.0), V)
+        return self._eig
+
+    def solve(self, b):
+        if self.L is not None:
+            return _chol_solve(self.L, b)
+        g, V = self._eig
+        c = V.T @ b
+        return V @ ((c.T / (1.0 + g)).T)
+
+    def effective_parameters(self):
+        """p = trace(I - S^-1) = M - ||L^-1||_F^2 (one triangular inverse, about
+        a Cholesky's cost; an eigen-decomposition costs ~10 of them)."""
+        M = len(self.S)
+        if self.L is None:
+            g, _ = self._eig
+            return float(np.sum(g / (1.0 + g)))
+        from scipy.linalg import solve_triangular
+
+        Linv = solve_triangular(self.L, np.eye(M), lower=True)
+        return float(M - np.einsum("ij,ij->", Linv, Linv))
+
+    def predicted_rss(self, r, t=1.0):
+        """||S_t^-1 r||^2 with S_t = I + t G: the residual sum of squares one
+        linearised step would leave with the damping divided by t."""
+        if t == 1.0 and self.L is not None:
+            z = _chol_solve(self.L, r)
+            return float(z @ z)
+        if self.L is not None:
+            St = t * self.S
+            St[np.diag_indices_from(St)] += 1.0 - t        # I + t (S - I)
+            try:
+                z = _chol_solve(np.linalg.cholesky(St), r)
+                return float(z @ z)
+            except np.linalg.LinAlgError:
+                self.spectrum()
+        g, V = self._eig
+        c = V.T @ r
+        out = max(float(r @ r) - float(c @ c), 0.0)     # r outside G's range
+        return out + float(np.sum((c / (1.0 + t * g)) ** 2))
+
+
+def _noise_model(y, noise_sd, noise_rel):
+    """Per-measurement noise standard deviation in the data's units, or None."""
+    if noise_sd is None and noise_rel is None:
+        return None
+    var = np.zeros_like(y)
+    for name, v, scale in (("noise_sd", noise_sd, 1.0), ("noise_rel", noise_rel, y)):
+        if v is None:
+            continue
+        v = np.asarray(v, float)
+        if v.ndim > 1 or (v.ndim == 1 and len(v) != len(y)) or not np.all(np.isfinite(v)) \
+                or np.any(v < 0):
+            raise FluoInputError("noise must be finite, >= 0, a scalar or one value per "
+                                 "measurement", field=name, value=np.shape(v) if v.ndim else
+                                 float(v))
+        var = var + (v * scale) ** 2
+    if not np.all(var > 0):
+        raise FluoInputError("the noise model gives some measurement zero noise (a "
+                             "relative noise of a zero measurement): add an absolute noise_sd",
+                             field="noise_sd", value=int(np.sum(var <= 0)))
+    return np.sqrt(var)
+
+
+def _data_to_model(A, y, x, log_data):
+    """Typical ratio of the data to the model's prediction A x (geometric mean for
+    log data, least squares otherwise); 0 where the model predicts nothing."""
+    F = A @ x
+    if log_data:
+        ok = F > 0
+        return float(np.exp(np.mean(np.log(y[ok]) - np.log(F[ok])))) if np.any(ok) else 0.0
+    FF = float(F @ F)
+    return float(F @ y) / FF if FF > 0 else 0.0
+
+
+# Diagnostic thresholds, each measured (docs/reconstruction.md, "Diagnostics"):
+PLAUSIBLE_YIELD_PER_MM = (1e-9, 1.0)   # ~1 pM ICG (eta 4 %) up to mua_f 1/mm at quantum yield 1
+MISFIT_WARN = 0.10        # rms relative residual without a noise model
+CHI2_WARN = 4.0           # residual rms > 2 x the stated noise
+STALL_FRACTION = 0.1      # a damped step doing < 10 % of what a 1e4x weaker one would
+WEAK_DAMPING = 1e4
+P_EFF_WARN = 0.1          # effective parameters > 10 % of the measurements
+RUNAWAY = 1e4             # residual this many times its lowest: diverged, stop
+
+
+def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterations,
+             max_iter, rel_tol, x0_given=False, x_start=None, x_exp=0, region_labels=None,
+             lam_final=1.0):
+    """Diagnostics of a reconstruction and the warnings they imply.
+
+    All from the final linearisation's data-space matrix S = G + I
+    (G = J R^-1 J^T) and its Cholesky factor (two more factorisations' cost):
+
+    - ``effective_parameters`` p = trace(I - S^-1) = sum g/(1+g) over G's
+      eigenvalues g (the trace of the hat matrix): how many combinations of the unknowns the data determine at
+      this damping; ``residual_dof`` = M - p.  ``underdetermined``: fewer
+      than one residual degree of freedom (the data are fitted exactly, so
+      the residual says nothing about the noise and no standard deviation
+      can be given), or more region unknowns than measurements (HP).
+    - ``relative_misfit``: rms of ln y - ln F (log data) or ||y - F|| / ||y||;
+      with a noise model ``chi2_per_dof`` = sum((y - F)/sigma)^2 / (M - p).
+    - ``over_regularised``: the run stopped (small residual change or
+      max_iter) while a step damped 1e4 times less would remove most of a
+      residual larger than the noise: the damping stalled it.
+    - ``signal_to_noise`` (absolute noise given): sqrt(sum (y/sigma)^2 / M);
+      ``structure_F``: F statistic of the fit against the best homogeneous
+      yield (1 = the extra structure explains no more than noise would).
+    - ``homogeneous_yield_per_mm``: the single yield that fits the data best,
+      the units check (outside 1e-9 .. 1 /mm no fluorophore explains them);
+      ``data_to_start_ratio``: data / model at a given start ``x0``.
+    - ``effective_measurements``: linear data, (sum y^2)^2 / sum y^4, how many
+      measurements carry a least-squares fit (a 1e-200 dynamic range: ~1).
+    - ``damped_step_fraction``: the share of the weakly damped step's residual
+      reduction that the damped step achieves (the stall test).
+
+    Thresholds: the module constants PLAUSIBLE_YIELD_PER_MM, MISFIT_WARN,
+    CHI2_WARN, STALL_FRACTION, WEAK_DAMPING, P_EFF_WARN (docs/reconstruction.md,
+    "Diagnostics").  ``A``, ``y``, ``x``, ``resid`` and ``sigma`` are in the
+    solver's rescaled units (``x_exp``: x_scaled = x 2^x_exp).
+
+    Returns (diagnostics dict, list of warning strings).
+    """
+    M = len(y)
+    diag = {"measurements": M, "unknowns": int(A.shape[1])}
+    warn = []
+    p = ds.effective_parameters() if ds is not None else 0.0
+    nu = M - p
+    rss = float(resid @ resid)
+    diag["effective_parameters"] = p
+    diag["residual_dof"] = nu
+    if log_data:
+        misfit = float(np.sqrt(rss / M))
+    else:
+        misfit = float(np.sqrt(rss / float(y @ y)))
+    diag["relative_misfit"] = misfit
+    # linear data weigh each measurement by its size: with a large dynamic
+    # range a few carry the fit (participation ratio of y^2); log data weigh
+    # all alike
+    m_eff = float(M) if log_data else float((y @ y) ** 2 / np.sum(y ** 4))
+    diag["effective_measurements"] = m_eff
+    # HP: a region clipped to zero still counts as an unknown (it is frozen at
+    # zero by the normalised Jacobian, not determined by the data)
+    under = nu < 1.0 or (method == "HP" and M - A.shape[1] < 1) or m_eff - p < 1.0
+    if method == "HP" and region_labels is not None:
+        norms = np.linalg.norm(A, axis=0)
+        blind = [int(region_labels[r]) for r in np.flatnonzero(norms <= 1e-6 * norms.max())]
+        if blind:
+            under = True
+            warn.append(f"no measurement is sensitive to region(s) {blind}: their yield is "
+                        "not determined by the data")
+    diag["underdetermined"] = bool(under)
+    if method == "HP" and M - A.shape[1] < 1:
+        warn.append(f"under-determined: {M} measurement(s) for {A.shape[1]} region unknowns; "
+                    "the result is one of many that fit equally well (or fits exactly), and "
+                    "no standard deviation can be given")
+    elif nu >= 1.0 and m_eff - p < 1.0:
+        warn.append(f"under-determined: the data span {np.ptp(np.log10(np.abs(y[y != 0]))):.0f} "
+                    f"decades, so with linear residuals ~{m_eff:.1f} of the {M} measurements "
+                    f"carry the fit of {p:.1f} effective parameters; fit log data (log_data) "
+                    "or leave out the far detectors")
+    elif nu < 1.0:
+        warn.append(f"under-determined: {M} measurement(s) fitted exactly by {p:.1f} "
+                    "effective parameters, so the residual cannot measure the noise and no "
+                    "standard deviation can be given; add measurements or raise lambda")
+
+    if method != "HP" and p > P_EFF_WARN * M and M - p >= 1.0:
+        # the nodal field is then shaped by the noise and the model error, not by
+        # the damping: study B at lambda 1e-2 / 1e-3 has SP peaks +26 / +42 %
+        # with chi^2 ~ 1 and region means that still agree
+        warn.append(f"weakly regularised: {p:.0f} effective parameters from {M} "
+                    "measurements, so nodal values (peaks, profiles) follow noise and model "
+                    "error; read region means with their SD, or raise lambda")
+    if method == "HP" and region_labels is not None:
+        frozen = [int(region_labels[r]) for r in np.flatnonzero(x <= 0)]
+        if frozen:
+            warn.append(f"region(s) {frozen} reconstructed at zero yield (clipped at the "
+                        "non-negativity bound): their data are not fitted")
+
+    # goodness of fit
+    noise_var_fit = None
+    if sigma is not None:
+        s_fit = sigma / np.abs(y) if log_data else sigma
+        chi2 = float(np.sum((resid / s_fit) ** 2))
+        diag["chi2_per_dof"] = chi2 / max(nu, 1.0)
+        noise_var_fit = float(np.mean(s_fit ** 2))
+        diag["noise_variance_fit"] = noise_var_fit
+        if diag["chi2_per_dof"] > CHI2_WARN:
+            warn.append(f"poor fit: the residual is {np.sqrt(diag['chi2_per_dof']):.3g} times "
+                        "the stated noise; the model (mesh, optical properties, geometry, "
+                        "units) does not explain these data")
+    elif misfit > MISFIT_WARN:
+        warn.append(f"poor fit: the model leaves {100 * misfit:.3g} % rms of the data "
+                    "unexplained; the result does not describe these data (wrong geometry, "
+                    "optical properties or units, or mostly noise)")
+
+    # does the result stand out from what noise alone would give?
+    one = A.sum(axis=1)
+    if log_data:
+        c = float(np.exp(np.mean(np.log(y) - np.log(one)))) if np.all(one > 0) else 0.0
+        r0 = np.log(y) - np.log(c * one) if c > 0 else None
+    else:
+        c = float(one @ y / (one @ one))
+        r0 = y - c * one
+    diag["homogeneous_yield_per_mm"] = float(np.ldexp(c, -x_exp))
+    if r0 is not None and p > 1.0 + 1e-6 and nu >= 1.0:
+        rss0 = float(r0 @ r0)
+        Fstat = ((rss0 - rss) / (p - 1.0)) / (rss / nu) if rss > 0 else float("inf")
+        diag["structure_F"] = float(Fstat)
+        if rss > 0 and Fstat < 2.0 and rss0 > 0:
+            warn.append(f"the data support no structure beyond a homogeneous yield (F = "
+                        f"{Fstat:.2g}: the fitted contrast explains no more than noise would); "
+                        "region and target values are noise")
+    if sigma is not None:
+        snr = float(np.sqrt(np.mean((y / sigma) ** 2)))
+        diag["signal_to_noise"] = snr
+        if snr < 3.0:
+            warn.append(f"the data are at the noise level (rms signal / noise {snr:.2g}): "
+                        "nothing can be reconstructed from them")
+
+    # units
+    lo, hi = PLAUSIBLE_YIELD_PER_MM
+    c_phys = diag["homogeneous_yield_per_mm"]
+    if not (lo <= c_phys <= hi):
+        warn.append(f"implausible scale: the data imply a homogeneous yield of {c_phys:.3g} "
+                    f"/mm (a fluorophore gives {lo:g} .. {hi:g}); are the data and the Jacobian "
+                    "in the same units (boundary fluence per W of source, 1/mm^2)?")
+    if x0_given and x_start is not None:
+        ratio = _data_to_model(A, y, x_start, log_data)
+        diag["data_to_start_ratio"] = ratio
+        if not (1e-3 <= ratio <= 1e3):
+            warn.append(f"the data are {ratio:.3g} times what the model predicts at the "
+                        "starting yield: check their units or the starting yield")
+
+    # convergence and the damping
+    stalled = False
+    if ds is not None and rss > 0:
+        # the weak reference: 1e4 x less damping, and at most lambda 1e-4
+        damped = ds.predicted_rss(resid)
+        weak = ds.predicted_rss(resid, WEAK_DAMPING * max(1.0, lam_final))
+        possible = rss - weak
+        floor = noise_var_fit * M if noise_var_fit is not None else 0.0
+        diag["damped_step_fraction"] = float((rss - damped) / possible) if possible > 0 else 1.0
+        stalled = (stop != "residual at rounding level"
+                   and "diverged" not in stop and "residual rose" not in stop
+                   and possible > 0.5 * rss
+                   and diag["damped_step_fraction"] < STALL_FRACTION
+                   and rss > max(floor * CHI2_WARN, 0.0)
+                   and (sigma is not None or misfit > 0.01))
+    diag["over_regularised"] = bool(stalled)
+    if stalled:
+        warn.append(f"over-regularised: stopped ({stop}) after {iterations} iteration(s) "
+                    "because the damping keeps every step small, not because the fit "
+                    f"converged: a 1e4 times weaker damping would remove "
+                    f"{100 * (1 - weak / rss):.0f} % of the residual; lower lambda")
+    elif stop == "max_iter":
+        last = abs(history[-2] - history[-1]) / history[-2] if history[-2] > 0 else 0.0
+        warn.append(f"not converged: {max_iter} iterations, the residual still changed by "
+                    f"{100 * last:.2g} % in the last one")
+    if "residual rose" in stop and "clip" in stop:
+        warn.append(f"the residual ended above its lowest value ({stop}): the non-negativity "
+                    "clip fights the steps at this damping; raise lambda")
+    elif "diverged" in stop or "residual rose" in stop:
+        warn.append(f"diverging ({stop}): the log / normalised model's linearisation fails "
+                    "at this damping, or rounding dominates the step; the iterate with the "
+                    "lowest residual is returned; raise lambda")
+    return diag, warn
 
 
 def _check_inputs(J, y, method, lam, prior, log_data):
@@ -371,32 +753,43 @@ def _region_matrix(J, K, region_jacobian, prior):
     return A
 
 
-def _region_confidence(A, Rinv, S, resid, prior, x_nodes, method, col=None):
+def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof=None,
+                       noise_var=None, undetermined=False, x_scale=1.0):
     """Per-region mean yield and its standard deviation from the regularised
-    Hessian H = J^T J + R:  var(w^T x) = sigma^2 w^T H^-1 w, sigma^2 = residual
-    variance, w = region-averaging weights.  Cheap: Woodbury in data space,
-    w^T H^-1 w = w^T R^-1 w - (J R^-1 w)^T S^-1 (J R^-1 w).  ``col``: the
-    column scaling of a normalised Jacobian (the unknowns are x / col, so the
-    weights become w * col)."""
+    Hessian H = J^T J + R:  var(w^T x) = sigma^2 w^T H^-1 w, w = region-averaging
+    weights, sigma^2 the residual variance rss / (M - p) with p the effective
+    number of parameters (and at least the stated noise's variance).  Cheap:
+    Woodbury in data space, w^T H^-1 w = w^T R^-1 w - (J R^-1 w)^T S^-1 (J R^-1 w).
+    ``col``: the column scaling of a normalised Jacobian (the unknowns are
+    x / col, so the weights become w * col).  ``undetermined``: no standard
+    deviation can be given (inf, null in JSON).  ``x_scale``: the matrices
+    were built for the unknowns x / x_scale (reconstruct's exact rescaling)."""
     if prior is None:
         return {}
-    m = len(resid)
-    sigma2 = float(resid @ resid) / max(m - 1, 1)
+    rss = float(resid @ resid)
+    if dof is None:
+        dof = max(len(resid) - 1, 1)
+    sigma2 = rss / dof if dof >= 1.0 else float("inf")
+    if noise_var is not None:
+        sigma2 = max(sigma2, noise_var) if np.isfinite(sigma2) else noise_var
     out = {}
     means = prior.region_mean(x_nodes)
     for r, lab in enumerate(prior.labels):
-        if method == "HP":
-            w = np.zeros(A.shape[1])
-            w[r] = 1.0
-        else:
-            w = (prior.index == r).astype(float) / prior.counts[r]
-        if col is not None:
-            w = w * col
-        Rinv_w = Rinv(w)
-        JRw = A @ Rinv_w
-        var = float(w @ Rinv_w - JRw @ np.linalg.solve(S, JRw)) * sigma2
-        sd = float(np.sqrt(max(var, 0.0)))
         mean = float(means[r])
+        if undetermined or not np.isfinite(sigma2):
+            sd = float("inf")
+        else:
+            if method == "HP":
+                w = np.zeros(A.shape[1])
+                w[r] = 1.0
+            else:
+                w = (prior.index == r).astype(float) / prior.counts[r]
+            if col is not None:
+                w = w * col
+            Rinv_w = Rinv(w)
+            JRw = A @ Rinv_w
+            var = float(w @ Rinv_w - JRw @ ds.solve(JRw)) * sigma2
+            sd = float(np.sqrt(max(var, 0.0))) * x_scale
         out[int(lab)] = {"mean_yield_per_mm": mean, "sd_yield_per_mm": sd,
                          "relative_sd": sd / mean if mean > 0 else float("inf")}
     return out

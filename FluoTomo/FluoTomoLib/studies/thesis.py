@@ -1,4 +1,4 @@
-"""The thesis's 2D simulation studies A, B and C (physics.md section 8).
+"""The thesis's 2D simulation studies A, B and C (docs/physics.md section 8.5).
 
 50 x 30 mm tissue (top edge y = 0, depth downwards), forward mesh 0.5 mm,
 reconstruction mesh 1.0 mm (structured triangles: 6,161 / 12,000 and
@@ -19,7 +19,7 @@ node regions.
 Reconstruction scheme (``scheme``): "nirfast" (default) is what the thesis ran,
 NIRFAST's fluorescence reconstruction: log-amplitude data, the Jacobian
 normalised by the current yield, fixed lambda for NP and SP, started from the
-known background yield.  "reference" is the literal update of physics.md
+known background yield.  "reference" is the literal update of docs/physics.md section 8.3
 (linear data, zero start), kept for comparison.  HP's region basis
 (``hp_basis``) is built on the forward mesh by default, where the data live
 (NIRFAST's reconstruct_fl_region also works on the forward mesh).
@@ -27,6 +27,7 @@ known background yield.  "reference" is the literal update of physics.md
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
@@ -43,32 +44,56 @@ from FluoTomoLib.meshing.structured import box_mesh, rectangle_mesh
 WIDTH_MM, DEPTH_MM = 50.0, 30.0
 MUA, MUSP, N = 0.032, 1.0, 1.33
 YIELD_BG, YIELD_TARGET = 0.04 * 0.003, 0.04 * 0.03
+# NIRFAST's boundary constant (the empirical Reff(n) polynomial): the studies reproduce
+# the thesis's NIRFAST runs.  The rest of the project defaults to the Fresnel constant
+# that Monte Carlo supports (docs/validation.md); at n 1.33 the two are 2.79 and 2.52.
+BOUNDARY = "empirical"
 
 
 SLAB_Y_MM, SLAB_DEPTH_MM = 30.0, 20.0   # 3D: 50 x 30 x 20 mm slab
+N_SOURCES, SOURCE_PITCH_MM = 16, 2.5    # 240 measurements: every source to the 15 others
+
+
+def full_depth_mm(dim):
+    """Depth of the whole domain: 30 mm (2D section), 20 mm (3D slab)."""
+    return DEPTH_MM if dim == 2 else SLAB_DEPTH_MM
+
+
+def default_sizes_mm(dim):
+    """(forward, reconstruction) element sizes: 0.5 / 1.0 mm in 2D, 1.0 / 1.5 mm in 3D."""
+    return (0.5, 1.0) if dim == 2 else (1.0, 1.5)
+
+
+def _axis(lo, hi, h):
+    return np.linspace(lo, hi, int(round((hi - lo) / h)) + 1)
+
+
+@functools.lru_cache(maxsize=16)
+def domain_mesh(dim, size_mm, depth_mm=None, name="mesh"):
+    """Structured mesh of the study domain (or of its top ``depth_mm``: a region of
+    interest cut below the target). Cached: tasks on one worker share it."""
+    if dim not in (2, 3):
+        raise FluoInputError("dimension must be 2 or 3", field="dim", value=dim)
+    depth = full_depth_mm(dim) if depth_mm is None else float(depth_mm)
+    h = float(size_mm)
+    if dim == 2:
+        m = rectangle_mesh(_axis(-WIDTH_MM / 2, WIDTH_MM / 2, h), _axis(-depth, 0.0, h), name=name)
+    else:
+        m = box_mesh(_axis(-WIDTH_MM / 2, WIDTH_MM / 2, h), _axis(-SLAB_Y_MM / 2, SLAB_Y_MM / 2, h),
+                     _axis(-depth, 0.0, h), name=name)
+    m.meta["size_mm"] = h
+    m.meta["depth_mm"] = depth
+    return m
 
 
 def study_meshes(fine_mm=None, coarse_mm=None, dim=2):
     """Forward and reconstruction meshes: 2D 50 x 30 mm at 0.5 / 1.0 mm; 3D slab
     50 x 30 x 20 mm at 1.0 / 1.5 mm (33k / 10k nodes)."""
-    def axis(lo, hi, h):
-        return np.linspace(lo, hi, int(round((hi - lo) / h)) + 1)
-
-    def mesh(h, name):
-        if dim == 2:
-            m = rectangle_mesh(axis(-WIDTH_MM / 2, WIDTH_MM / 2, h), axis(-DEPTH_MM, 0.0, h),
-                               name=name)
-        else:
-            m = box_mesh(axis(-WIDTH_MM / 2, WIDTH_MM / 2, h),
-                         axis(-SLAB_Y_MM / 2, SLAB_Y_MM / 2, h), axis(-SLAB_DEPTH_MM, 0.0, h),
-                         name=name)
-        m.meta["size_mm"] = h
-        return m
     if dim not in (2, 3):
         raise FluoInputError("dimension must be 2 or 3", field="dim", value=dim)
-    fine_mm = fine_mm or (0.5 if dim == 2 else 1.0)
-    coarse_mm = coarse_mm or (1.0 if dim == 2 else 1.5)
-    return mesh(fine_mm, "forward"), mesh(coarse_mm, "reconstruction")
+    f, c = default_sizes_mm(dim)
+    return (domain_mesh(dim, float(fine_mm or f), name="forward"),
+            domain_mesh(dim, float(coarse_mm or c), name="reconstruction"))
 
 
 def disc(diameter_mm, top_depth_mm, inner_diameter_mm=0.0):
@@ -119,26 +144,6 @@ SCHEMES = {
 }
 HP_BASES = ("forward", "reconstruction")
 
-_CACHE = {}
-
-
-def _forward_setup(fine, coarse):
-    """Sources, detectors, Jacobian on the forward mesh, mapping to the coarse one
-    (the same for every case of a study: computed once)."""
-    key = (id(fine), id(coarse))
-    if key not in _CACHE:
-        xs = (np.arange(16) - 7.5) * 2.5
-        src = np.stack([xs] + [np.zeros(16)] * (fine.dim - 1), axis=1)
-        p = {"mua_per_mm": MUA, "musp_per_mm": MUSP, "n": N}
-        fm = FluorescenceModel(fine, p, p, src, src)
-        mask = ~np.eye(16, dtype=bool)
-        J_f = fm.jacobian_yield()[mask.ravel()]
-        P = locator(coarse).interpolation_matrix(fine.nodes_mm, what="forward node")
-        _CACHE.clear()
-        _CACHE[key] = (fm, mask, J_f, np.asarray((P.T @ J_f.T).T))
-    return _CACHE[key]
-
-
 def _recon_options(scheme, hp_basis):
     """reconstruct() keyword arguments for a scheme name (both names validated)."""
     if scheme not in SCHEMES:
@@ -152,55 +157,142 @@ def _recon_options(scheme, hp_basis):
     return opts
 
 
+# --- shared inputs: computed once per distinct model, whatever number of tasks use them
+
+def optodes_mm(dim):
+    """The 16 source (= detector) positions across the top surface, 2.5 mm apart."""
+    xs = (np.arange(N_SOURCES) - 0.5 * (N_SOURCES - 1)) * SOURCE_PITCH_MM
+    return np.stack([xs] + [np.zeros(N_SOURCES)] * (dim - 1), axis=1)
+
+
+def forward_jacobian(dim, size_mm, depth_mm):
+    """The 240 x N Jacobian d(emission data)/d(nodal yield) on the forward mesh of
+    the domain cut at ``depth_mm`` (the full depth: no cut).
+
+    Returns a dict of plain arrays (a Dask worker sends it to the tasks that
+    share it): ``J`` (240, N), ``nodes``, ``elements`` (counts), ``seconds``.
+    """
+    t0 = time.perf_counter()
+    mesh = domain_mesh(dim, size_mm, depth_mm)
+    src = optodes_mm(dim)
+    p = {"mua_per_mm": MUA, "musp_per_mm": MUSP, "n": N, "boundary": BOUNDARY}
+    fm = FluorescenceModel(mesh, p, p, src, src)
+    mask = ~np.eye(N_SOURCES, dtype=bool)
+    J = np.ascontiguousarray(fm.jacobian_yield()[mask.ravel()])
+    return {"J": J, "nodes": mesh.n_nodes, "elements": mesh.n_elements,
+            "seconds": time.perf_counter() - t0}
+
+
+def mapped_jacobian(forward, dim, forward_mm, recon_mm, depth_mm):
+    """J_r = J_f P: the forward Jacobian mapped to the reconstruction mesh (the
+    thesis's scheme); P interpolates reconstruction nodes at the forward nodes."""
+    t0 = time.perf_counter()
+    fine = domain_mesh(dim, forward_mm, depth_mm)
+    coarse = domain_mesh(dim, recon_mm, depth_mm)
+    P = locator(coarse).interpolation_matrix(fine.nodes_mm, what="forward node")
+    J = np.ascontiguousarray((P.T @ forward["J"].T).T)
+    return {"J": J, "nodes": coarse.n_nodes, "elements": coarse.n_elements,
+            "seconds": forward["seconds"] + time.perf_counter() - t0}
+
+
+def reconstruction_task(params, data, forward, recon):
+    """One target, one method, one lambda: simulate the data, reconstruct, score.
+
+    ``params`` (study spec, :mod:`FluoTomoLib.studies.spec`): ``dim``,
+    ``diameter_mm``, ``top_depth_mm``, ``inner_diameter_mm``,
+    ``prior_diameter_mm``, ``method``, ``lambda``, ``noise_pct``, ``seed``,
+    ``forward_mm``, ``recon_mm``, ``data_mm``, ``roi_depth_mm``, ``scheme``,
+    ``hp_basis``. ``data``: the Jacobian of the mesh the measurements are
+    simulated on (full domain); ``forward``/``recon``: the reconstruction
+    model's forward and mapped Jacobians (on the region of interest).
+
+    The noise comes from ``seed`` alone, so every method of one target sees the
+    same measurements and a re-run (anywhere) gives the same numbers.
+    """
+    p = params
+    dim, roi = int(p["dim"]), float(p["roi_depth_mm"])
+    opts = _recon_options(p["scheme"], p["hp_basis"])
+    data_mesh = domain_mesh(dim, p["data_mm"], full_depth_mm(dim))
+    fine = domain_mesh(dim, p["forward_mm"], roi)
+    coarse = domain_mesh(dim, p["recon_mm"], roi)
+    inside, centre_depth = disc(p["diameter_mm"], p["top_depth_mm"], p["inner_diameter_mm"])
+    truth = np.where(inside(data_mesh.nodes_mm), YIELD_TARGET, YIELD_BG)
+    y_clean = data["J"] @ truth
+    rng = np.random.default_rng(int(p["seed"]))
+    y = y_clean * (1.0 + rng.normal(0.0, p["noise_pct"] / 300.0, y_clean.shape))
+    prior_shape, _ = disc(p["prior_diameter_mm"] or p["diameter_mm"], p["top_depth_mm"])
+    prior = RegionPrior(node_regions_from_shape(coarse, prior_shape))
+    J_hp = None
+    if p["method"] == "HP" and p["hp_basis"] == "forward":
+        J_hp = region_jacobian(forward["J"], node_regions_from_shape(fine, prior_shape),
+                               prior.labels)
+    # the noise model grades the fit (diagnostics), it does not weight it
+    res = reconstruct(recon["J"], y, p["method"], lam=p["lambda"], prior=prior,
+                      region_jacobian=J_hp,
+                      noise_rel=p["noise_pct"] / 300.0 if p["noise_pct"] > 0 else None, **opts)
+    line = 0.0 if dim == 2 else (0.0, 0.0)   # the depth profile through the target
+    z, prof = depth_profile(coarse, res.yield_per_mm, line, 0.0, -roi)
+    peak, centroid = peak_and_centroid(z, prof)
+    row = {
+        "true_peak": YIELD_TARGET, "peak": peak,
+        "peak_error_pct": 100 * (peak - YIELD_TARGET) / YIELD_TARGET,
+        "true_centroid_mm": centre_depth, "centroid_mm": centroid,
+        "centroid_error_pct": 100 * (centroid - centre_depth) / centre_depth,
+    }
+    # the solver's own summary (iterations, residuals, diagnostics), scalars only
+    for k, v in res.summary().items():
+        if k not in ("method", "lambda") and (v is None or isinstance(v, (int, float, str, bool,
+                                                                           np.generic))):
+            row.setdefault(k, v)
+    row["warnings"] = list(res.warnings)
+    row["diagnostics"] = res.diagnostics
+    row.update({"forward_nodes": fine.n_nodes, "recon_nodes": coarse.n_nodes,
+                "jacobian_seconds": recon["seconds"],
+                "arrays": {"yield_per_mm": res.yield_per_mm}})
+    return row
+
+
 def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diameter_mm=None,
              methods=("NP", "SP", "HP"), lambdas=None, seed=0, noise_pct=1.0, meshes=None,
              scheme="nirfast", hp_basis="forward", progress=None, cancel=None):
-    """One target through NP/SP/HP; returns (rows, figure data).
+    """One target through NP/SP/HP in this process; returns (rows, figure data).
 
     ``scheme``: "nirfast" or "reference" (module docstring); ``hp_basis``:
     "forward" (HP's region Jacobian J_f K_f from node regions of the forward
     mesh) or "reconstruction" (J_f P K from those of the reconstruction mesh).
+    ``meshes``: (forward, reconstruction) from :func:`study_meshes` (their sizes
+    are used). Many cases at once: :func:`run_study` or the run engine.
     """
-    opts = _recon_options(scheme, hp_basis)
+    from FluoTomoLib.studies.spec import StudySpec, study_tasks
+
     fine, coarse = meshes or study_meshes()
-    depth_max = (DEPTH_MM if fine.dim == 2 else SLAB_DEPTH_MM) - 2
-    if not (0 < diameter_mm < depth_max) or top_depth_mm < 0 or top_depth_mm + diameter_mm > depth_max:
-        raise FluoInputError("target must fit inside the 50 x 30 mm domain",
-                             field="target", value=(diameter_mm, top_depth_mm))
-    line = 0.0 if fine.dim == 2 else (0.0, 0.0)   # the depth profile through the target
-    bottom = -(DEPTH_MM if fine.dim == 2 else SLAB_DEPTH_MM)
-    fm, mask, J_f, J = _forward_setup(fine, coarse)
-    inside, centre_depth = disc(diameter_mm, top_depth_mm, inner_diameter_mm)
-    truth_f = np.where(inside(fine.nodes_mm), YIELD_TARGET, YIELD_BG)
-    y_clean = J_f @ truth_f
-    rng = np.random.default_rng(seed)
-    y = y_clean * (1.0 + rng.normal(0.0, noise_pct / 300.0, y_clean.shape))
-    prior_shape, _ = disc(prior_diameter_mm or diameter_mm, top_depth_mm)
-    prior = RegionPrior(node_regions_from_shape(coarse, prior_shape))
-    J_hp = (region_jacobian(J_f, node_regions_from_shape(fine, prior_shape), prior.labels)
-            if hp_basis == "forward" else None)
-    z_true, prof_true = depth_profile(fine, truth_f, line, 0.0, bottom)
-    rows, fields = [], {"truth": (fine, truth_f)}
-    for method in methods:
-        for lam in (lambdas or {}).get(method, [10.0]):
-            check_cancel(cancel)
-            report(progress, 0.5, f"{case}: {method} lambda {lam:g}")
-            t0 = time.perf_counter()
-            res = reconstruct(J, y, method, lam=lam, prior=prior,
-                              region_jacobian=J_hp if method == "HP" else None, **opts)
-            sec = time.perf_counter() - t0
-            z, prof = depth_profile(coarse, res.yield_per_mm, line, 0.0, bottom)
-            peak, centroid = peak_and_centroid(z, prof)
-            rows.append({
-                "case": case, "method": method, "lambda": lam, "true_peak": YIELD_TARGET,
-                "peak": peak, "peak_error_pct": 100 * (peak - YIELD_TARGET) / YIELD_TARGET,
-                "true_centroid_mm": centre_depth, "centroid_mm": centroid,
-                "centroid_error_pct": 100 * (centroid - centre_depth) / centre_depth,
-                "seconds": sec, "iterations": res.iterations,
-                "residual_ss": res.residual, "stop_reason": res.stop_reason,
-            })
-            fields[f"{method} (lambda {lam:g})"] = (coarse, res.yield_per_mm)
-    return rows, fields
+    spec = StudySpec(dim=fine.dim, forward_mm=[fine.meta["size_mm"]],
+                     recon_mm=[coarse.meta["size_mm"]], methods=list(methods),
+                     seeds=[seed], noise_pct=[noise_pct], scheme=[scheme], hp_basis=[hp_basis],
+                     targets=[dict(case=case, diameter_mm=diameter_mm, top_depth_mm=top_depth_mm,
+                                   inner_diameter_mm=inner_diameter_mm,
+                                   prior_diameter_mm=prior_diameter_mm, lambdas=lambdas)])
+    from fluoguide.runs.engine import run_tasks
+
+    out = run_tasks(study_tasks(spec), progress=progress, cancel=cancel, label=case)
+    return out["rows"], case_fields(out["records"])
+
+
+def case_fields(records, arrays=None):
+    """Figure data of one case's records: the truth on the data mesh, then each
+    method's reconstruction (``arrays(record)`` -> its saved arrays)."""
+    first = records[0]["params"]
+    dim = int(first["dim"])
+    data_mesh = domain_mesh(dim, first["data_mm"], full_depth_mm(dim))
+    inside, _ = disc(first["diameter_mm"], first["top_depth_mm"], first["inner_diameter_mm"])
+    fields = {"truth": (data_mesh, np.where(inside(data_mesh.nodes_mm), YIELD_TARGET, YIELD_BG))}
+    for rec in records:
+        a = arrays(rec) if arrays is not None else (rec.get("_arrays") or {})
+        if rec["status"] == "ok" and "yield_per_mm" in a:
+            p = rec["params"]
+            coarse = domain_mesh(dim, p["recon_mm"], p["roi_depth_mm"])
+            fields[f"{p['method']} (lambda {p['lambda']:g})"] = (coarse, a["yield_per_mm"])
+    return fields
 
 
 STUDIES = {
@@ -215,77 +307,95 @@ STUDIES = {
 
 
 def run_study(name, seed=0, target=None, out_dir=None, dim=2, scheme="nirfast",
-              hp_basis="forward", progress=None, cancel=None):
+              hp_basis="forward", progress=None, cancel=None, executor=None, resume=False,
+              threads=1):
     """Run study A, B or C (or one custom ``target`` = (diameter, top depth)), in 2D
     (discs in a 50 x 30 mm section) or 3D (spheres in a 50 x 30 x 20 mm slab),
-    with a reconstruction ``scheme`` and ``hp_basis`` as in :func:`run_case`."""
-    _recon_options(scheme, hp_basis)      # bad names fail before any mesh is built
-    if target is not None:
-        cases = [(f"custom: {target[0]:g} mm disc, top {target[1]:g} mm",
-                  dict(diameter_mm=target[0], top_depth_mm=target[1]))]
-    elif name in STUDIES:
-        cases = STUDIES[name]
-    else:
-        raise FluoInputError("study must be A, B or C", field="study", value=name)
-    if dim == 3:
-        cases = [(c.replace("disc", "sphere").replace("annulus", "spherical shell"), kw)
-                 for c, kw in cases]
-    meshes = study_meshes(dim=dim)
-    rows, figures = [], []
-    for i, (case, kw) in enumerate(cases):
-        report(progress, i / len(cases), case)
-        r, fields = run_case(case, seed=seed, meshes=meshes, scheme=scheme, hp_basis=hp_basis,
-                             cancel=cancel, **kw)
-        rows += r
-        if out_dir is not None:
-            from FluoTomoLib.studies.plots import plot_case
+    with a reconstruction ``scheme`` and ``hp_basis`` as in :func:`run_case`.
 
-            figures.append(plot_case(out_dir, i, case, fields))
-    report(progress, 1.0, "done")
-    return {"study": name if target is None else "custom", "dim": dim, "rows": rows,
-            "figures": figures,
-            "forward_mesh": [meshes[0].n_nodes, meshes[0].n_elements],
-            "reconstruction_mesh": [meshes[1].n_nodes, meshes[1].n_elements],
-            "measurements": 240, "noise": "Gaussian, sigma = 1/3 % relative (max ~1 %)",
-            "scheme": scheme, "hp_basis": hp_basis}
+    ``executor`` (``fluoguide.runs``): serial in this process by default, or a
+    Dask cluster; ``out_dir``: the run folder (table.csv, one record per task,
+    figures), resumable with ``resume``.
+    """
+    from FluoTomoLib.studies.spec import study_spec
+
+    spec = study_spec(name, target=target, dim=dim, seeds=[seed], scheme=[scheme],
+                      hp_basis=[hp_basis])
+    return run_spec(spec, out_dir=out_dir, progress=progress, cancel=cancel, executor=executor,
+                    resume=resume, threads=threads)
 
 
 SWEEPS = {
     "lambda": [1e-3, 1e-1, 1.0, 10.0, 1e2, 1e3],
     "noise": [0.0, 0.5, 1.0, 2.0, 5.0],
     "mesh": [0.75, 1.0, 1.5, 2.0],
+    "roi": [12.0, 15.0, 20.0, 25.0, 30.0],
 }
 
 
 def run_sweep(kind, target=(6.0, 3.5), dim=2, seed=0, scheme="nirfast", hp_basis="forward",
-              progress=None, cancel=None):
-    """Error against time for one target as lambda, noise [% max amplitude] or the
-    reconstruction mesh size [mm] varies: the speed/accuracy trade a user makes."""
-    if kind not in SWEEPS:
-        raise FluoInputError(f"sweep must be one of {', '.join(SWEEPS)}", field="--sweep",
-                             value=kind)
-    rows = []
-    base = study_meshes(dim=dim)
-    for i, value in enumerate(SWEEPS[kind]):
-        report(progress, i / len(SWEEPS[kind]), f"{kind} = {value:g}")
-        kw = dict(diameter_mm=target[0], top_depth_mm=target[1], seed=seed, scheme=scheme,
-                  hp_basis=hp_basis, cancel=cancel)
-        if kind == "lambda":
-            kw["lambdas"] = {m: [value] for m in ("NP", "SP", "HP")}
-            meshes = base
-        elif kind == "noise":
-            kw["noise_pct"] = value
-            meshes = base
-        else:
-            h = value if dim == 2 else 1.5 * value
-            meshes = study_meshes(coarse_mm=h, dim=dim)
-        t0 = time.perf_counter()
-        r, _ = run_case(f"{kind} = {value:g}", meshes=meshes, **kw)
-        elapsed = time.perf_counter() - t0
-        for row in r:
-            row["sweep"] = kind
-            row["value"] = value
-            row["case_seconds_including_jacobian"] = elapsed
-        rows += r
-    return {"sweep": kind, "dim": dim, "target": list(target), "rows": rows, "scheme": scheme,
-            "hp_basis": hp_basis}
+              progress=None, cancel=None, values=None, out_dir=None, executor=None, resume=False,
+              threads=1):
+    """Error against time for one target as lambda, noise [% max amplitude], the
+    mesh sizes [mm] or the region of interest's depth [mm] varies: the
+    speed/accuracy trade a user makes (:func:`FluoTomoLib.studies.spec.sweep_spec`)."""
+    from FluoTomoLib.studies.spec import sweep_spec
+
+    spec = sweep_spec(kind, target=target, dim=dim, values=values, seeds=[seed],
+                      scheme=[scheme], hp_basis=[hp_basis])
+    return run_spec(spec, out_dir=out_dir, progress=progress, cancel=cancel, executor=executor,
+                    resume=resume, threads=threads)
+
+
+def run_spec(spec, out_dir=None, progress=None, cancel=None, executor=None, resume=False,
+             threads=1):
+    """Run a study spec on the run engine; the study's result dict.
+
+    Returns ``rows`` (one per task, task order), ``failed``, the run's
+    counts and executor, mesh sizes, ``warnings``, and with ``out_dir`` the
+    figures: ``error_vs_time.png`` and, when only the target, method and
+    lambda vary (studies A, B, C, a custom target), one PNG per target
+    (truth | NP | SP | HP).
+    """
+    from fluoguide.runs.engine import run_tasks
+    from fluoguide.runs.store import RunStore
+    from FluoTomoLib.studies.spec import study_tasks
+
+    tasks = study_tasks(spec)
+    store = RunStore(out_dir, resume=resume) if out_dir is not None else None
+    out = run_tasks(tasks, store=store, executor=executor, threads=threads, progress=progress,
+                    cancel=cancel, label=spec.label)
+    records = out.pop("records")
+    first = tasks[0].params
+    fine = domain_mesh(spec.dim, first["forward_mm"], first["roi_depth_mm"])
+    coarse = domain_mesh(spec.dim, first["recon_mm"], first["roi_depth_mm"])
+    result = {"study": spec.label, "dim": spec.dim, **out,
+              "forward_mesh": [fine.n_nodes, fine.n_elements],
+              "reconstruction_mesh": [coarse.n_nodes, coarse.n_elements],
+              "measurements": N_SOURCES * (N_SOURCES - 1),
+              "noise": "Gaussian, sigma = noise_pct / 3 % relative (max ~noise_pct %)",
+              "scheme": spec.scheme[0] if len(spec.scheme) == 1 else spec.scheme,
+              "hp_basis": spec.hp_basis[0] if len(spec.hp_basis) == 1 else spec.hp_basis,
+              "figures": []}
+    if out["failures"]:
+        spec.warnings.append(f"{out['failures']} of {out['tasks']} tasks failed: their rows have "
+                             f"status 'failed' and the error")
+    result["warnings"] = list(spec.warnings)
+    if spec.sweep:
+        result["sweep"] = spec.sweep
+        result["target"] = [first["diameter_mm"], first["top_depth_mm"]]
+    if out_dir is not None:
+        from FluoTomoLib.studies.plots import plot_case, plot_error_vs_time
+
+        result["error_vs_time"] = plot_error_vs_time(out["rows"], out_dir, title=spec.label)
+        single = all(len({(r["params"][k]) for r in records}) == 1 for k in (
+            "forward_mm", "recon_mm", "data_mm", "roi_depth_mm", "noise_pct", "seed", "scheme",
+            "hp_basis"))
+        if single and not spec.sweep:
+            groups = {}
+            for rec in records:
+                groups.setdefault(rec["params"]["case"], []).append(rec)
+            for i, (case, recs) in enumerate(groups.items()):
+                result["figures"].append(plot_case(out_dir, i, case,
+                                                   case_fields(recs, store.arrays)))
+    return result

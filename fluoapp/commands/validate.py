@@ -1,0 +1,293 @@
+"""``fluo validate mc`` and ``fluo validate mc-fluorescence``: the diffusion model
+against Monte Carlo (MCX, written by others), docs/validation.md."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fluoapp.cli import add_json_flag, cli_group
+from fluoguide.errors import FluoInputError
+from fluoguide.progress import TqdmProgress
+
+QUICK = {"photons": 25_000, "runs": 4}
+FULL = {"photons": 250_000, "runs": 4}
+
+
+def _command_line():
+    return "fluo " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def _out_dir(path):
+    if path is None:
+        raise FluoInputError("needs an output folder", field="--out")
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise FluoInputError("exists and is not a folder", file=p, field="--out")
+    p.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def _positive(value, field, upper=None):
+    if value is None:
+        return None
+    if not np.isfinite(value) or value <= 0 or (upper is not None and value > upper):
+        raise FluoInputError(f"must be > 0{'' if upper is None else f' and <= {upper:g}'}",
+                             field=field, value=value)
+    return float(value)
+
+
+def _write_csv(path, rows, keys):
+    import csv
+
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(keys)
+        for r in rows:
+            w.writerow(["" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float)
+                                                      else r[k]) for k in keys])
+    tmp.replace(path)
+
+
+def _mc(args):
+    from FluoTomoLib.montecarlo import compare, reference
+    from FluoTomoLib.montecarlo.halfspace import HalfSpace, simulate_halfspace
+    from FluoTomoLib.montecarlo.plots import validation_figure
+
+    out = _out_dir(args.out)
+    t0 = time.perf_counter()
+    budget = dict(QUICK if args.quick else FULL)
+    if args.photons is not None:
+        budget["photons"] = args.photons
+    if args.runs is not None:
+        budget["runs"] = args.runs
+    if args.mc_in:
+        data = reference.read_set(args.mc_in)
+        if data["kind"] != "halfspace":
+            raise FluoInputError("is not a half-space set", file=args.mc_in, field="kind",
+                                 value=data["kind"])
+        for name, given, key in (("--n", args.n, "n_inside"), ("--mua", args.mua, "mua_per_mm"),
+                                 ("--musp", args.musp, "musp_per_mm"), ("--g", args.g, "g")):
+            if given is not None and not np.isclose(given, data["medium"][key]):
+                raise FluoInputError(f"differs from the set's medium ({data['medium'][key]:g})",
+                                     file=args.mc_in, field=name, value=given)
+        medium = reference.medium_of_set(data)
+        merged = reference.merged_of_set(data)
+        mc_source = str(args.mc_in)
+    else:
+        n = 1.37 if args.n is None else args.n
+        medium = HalfSpace(_positive(args.mua, "--mua", 10) or 0.01,
+                           _positive(args.musp, "--musp", 100) or 1.0,
+                           n, g=0.9 if args.g is None else args.g)
+        with TqdmProgress("Monte Carlo", force=not args.json) as bar:
+            from FluoTomoLib.montecarlo.engine import load_engine
+
+            eng = load_engine(args.engine)
+            merged = simulate_halfspace(medium, budget["photons"], runs=budget["runs"],
+                                        seed=args.seed, engine=eng, progress=bar)
+        mc_source = "this run"
+        reference.write_json_atomic(out / "mc_halfspace.json",
+                                    reference.halfspace_set(medium, merged, _command_line()))
+    ref = None
+    if args.reference:
+        ref = reference.read_independent_reflectance(args.reference)
+    elif (np.isclose(medium.n, 1.37) and np.isclose(medium.mua, 0.01)
+          and np.isclose(medium.musp, 1.0) and np.isclose(medium.g, 0.9)
+          and np.allclose(medium.size_mm, (160, 160, 80)) and medium.voxel_mm == 1.0):
+        ref = reference.read_independent_reflectance()
+    if ref is not None and not np.isclose(ref["n_inside"], medium.n):
+        raise FluoInputError("the reference run's n differs from the medium's", field="--reference",
+                             value=ref["n_inside"])
+    boundaries = ("empirical", "fresnel") if args.boundary == "both" else (args.boundary,)
+    with TqdmProgress("FEM", force=not args.json) as bar:
+        res = compare.validate_halfspace(medium, merged, boundaries=boundaries,
+                                         level=args.mesh_level, reference=ref, progress=bar)
+    text = f"mua {medium.mua:g}/mm, musp {medium.musp:g}/mm, g {medium.g:g}, n {medium.n:g}"
+    validation_figure(res, text, out / "validate_mc.png")
+    rkeys = list(res["rows"][0].keys())
+    _write_csv(out / "validate_mc_reflectance.csv", res["rows"], rkeys)
+    _write_csv(out / "validate_mc_fluence.csv", res["fluence_rows"],
+               list(res["fluence_rows"][0].keys()))
+    result = {
+        "medium": medium.metadata()["medium"], "volume_mm": list(medium.size_mm),
+        "voxel_mm": medium.voxel_mm, "mc_source": mc_source,
+        "photons": merged["photons"], "runs": merged["runs"], "seeds": merged["seeds"],
+        "device": merged["device"], "engine": merged["engine"],
+        "engine_version": merged["engine_version"], "mc_seconds": merged["seconds"],
+        "energy": merged["energy"], "A": res["A"], "boundary_default": res["boundary"],
+        "agree_within_pct": compare.AGREE_PCT, "agree_from_mm": res["agree_from_mm"],
+        "reference": res["reference"], "fem_nodes": res["fem_nodes"],
+        "fem_seconds": res["fem_seconds"], "rows": res["rows"],
+        "fluence_rows": res["fluence_rows"], "warnings": res["warnings"],
+        "figure": str(out / "validate_mc.png"),
+        "tables": [str(out / "validate_mc_reflectance.csv"), str(out / "validate_mc_fluence.csv")],
+    }
+    result["seconds"] = time.perf_counter() - t0
+    from fluoguide.jsonable import dumps
+
+    tmp = out / "validate_mc.json.tmp"
+    tmp.write_text(dumps(result))
+    tmp.replace(out / "validate_mc.json")
+    if not args.json:
+        _print_table(result)
+        return {"agree_from_mm": result["agree_from_mm"], "reference": result["reference"],
+                "energy_balance": result["energy"]["balance"], "photons": result["photons"],
+                "device": result["device"], "seconds": round(result["seconds"], 1),
+                "warnings": result["warnings"], "out": str(out)}
+    return result
+
+
+def _print_table(result):
+    b = result["boundary_default"]
+    print(f"{'rho':>5} {'MC R':>11} {'SE %':>6} {'FEM %':>7} " +
+          " ".join(f"{k[:9]:>9}" for k in result["A"]) + f" {'dipole %':>9} {'vs indep':>9}",
+          file=sys.stderr)
+    for r in result["rows"]:
+        alt = " ".join(f"{r[f'fem_{k}_vs_mc_pct']:+9.2f}" for k in result["A"])
+        ref = r.get("mc_vs_reference_pct")
+        print(f"{r['rho_mm']:5g} {r['mc']:11.4e} {r['mc_rel_se_pct']:6.2f} "
+              f"{r['fem_vs_mc_pct']:+7.2f} {alt} {r['dipole_vs_mc_pct']:+9.2f} "
+              f"{'' if ref is None else f'{ref:+9.2f}'}", file=sys.stderr)
+    print(f"(FEM % = FEM with A of '{b}' minus MC; columns per boundary constant A)",
+          file=sys.stderr)
+
+
+def _mc_fluorescence(args):
+    from FluoTomoLib.montecarlo import compare, reference
+    from FluoTomoLib.montecarlo.acquisition import simulate_acquisition
+    from FluoTomoLib.optics import robin_A
+
+    out = _out_dir(args.out)
+    t0 = time.perf_counter()
+    case = reference.fluorescence_case()
+    if args.mc_in:
+        data = reference.read_set(args.mc_in)
+        if data["kind"] != "fluorescence":
+            raise FluoInputError("is not a fluorescence set", file=args.mc_in, field="kind",
+                                 value=data["kind"])
+        mc = {k: np.asarray(data[k], float) for k in ("excitation", "excitation_se", "emission",
+                                                      "emission_se")}
+        meta = data
+        radius = data["detector_radius_mm"]
+    else:
+        keys = ("labels_kji", "ijk_to_ras", "optics_x", "optics_m", "sources_ras",
+                "detectors_ras", "yield_per_label")
+        photons = args.photons or (20_000 if args.quick else 100_000)
+        runs = args.runs or (2 if args.quick else 3)
+        radius = 2.0
+        with TqdmProgress("Monte Carlo", force=not args.json) as bar:
+            res = simulate_acquisition(*[case[k] for k in keys], photons=photons, seed=args.seed,
+                                       runs=runs, detector_radius_mm=radius, engine=args.engine,
+                                       progress=bar)
+        data = reference.fluorescence_set(case, res, _command_line())
+        reference.write_json_atomic(out / "mc_fluorescence.json", data)
+        mc = {k: np.asarray(res[k], float) for k in ("excitation", "excitation_se", "emission",
+                                                     "emission_se")}
+        meta = data
+    boundaries = ("empirical", "fresnel") if args.boundary == "both" else (args.boundary,)
+    n = float(case["optics_x"][1][2])
+    fem = {b: compare.fem_acquisition(case, A=robin_A(n, b), detector_radius_mm=radius)
+           for b in boundaries}
+    src = np.asarray(case["sources_ras"])
+    det = np.asarray(case["detectors_ras"])
+    rows = []
+    for s in range(len(src)):
+        for d in range(len(det)):
+            row = {"source": s, "detector": d,
+                   "distance_mm": float(np.linalg.norm(src[s] - det[d])),
+                   "mc_excitation": float(mc["excitation"][s, d]),
+                   "mc_excitation_se": float(mc["excitation_se"][s, d]),
+                   "mc_emission": float(mc["emission"][s, d]),
+                   "mc_emission_se": float(mc["emission_se"][s, d])}
+            for b, f in fem.items():
+                row[f"fem_{b}_excitation"] = float(f["excitation"][s, d])
+                row[f"fem_{b}_excitation_vs_mc_pct"] = compare._pct(f["excitation"][s, d],
+                                                                    mc["excitation"][s, d])
+                row[f"fem_{b}_emission"] = float(f["emission"][s, d])
+                row[f"fem_{b}_emission_vs_mc_pct"] = compare._pct(f["emission"][s, d],
+                                                                  mc["emission"][s, d])
+            rows.append(row)
+    _write_csv(out / "validate_mc_fluorescence.csv", rows, list(rows[0].keys()))
+    warnings = ["excitation pairs closer than 5 mm (a source's own position) are diffusion's "
+                "near-source regime: not a test of the model"]
+    return {"case": reference.fluorescence_case.__doc__.strip().split("\n\n")[1].replace("\n", " "),
+            "photons_per_run": meta["photons_per_run"], "runs": meta["runs"],
+            "device": meta["device"], "engine_version": meta["engine_version"],
+            "A": {b: f["A"] for b, f in fem.items()}, "rows": rows, "warnings": warnings,
+            "seconds": time.perf_counter() - t0}
+
+
+def register(sub):
+    grp = cli_group(sub, "validate", "the diffusion model against independent references "
+                    "(Monte Carlo)")
+    p = grp.add_parser(
+        "mc", help="FEM vs Monte Carlo (MCX) on a semi-infinite medium",
+        description="Pencil beam on a 160 x 160 x 80 mm box of tissue (1 mm voxels): spatially "
+        "resolved reflectance R(rho) and interior fluence by Monte Carlo (MCX-CL on the CPU, "
+        "MCX on a CUDA GPU), standard errors from independent runs, the energy balance; the "
+        "FEM (both boundary constants A), the dipole and the exact Robin half-space on the "
+        "same medium; the independent stored run where the medium matches it. Writes "
+        "mc_halfspace.json (the MC set), validate_mc_*.csv, validate_mc.png and "
+        "validate_mc.json to --out.")
+    p.add_argument("--quick", action="store_true",
+                   help=f"{QUICK['runs']} runs x {QUICK['photons']} photons (a few minutes on 2 "
+                   f"cores) instead of {FULL['runs']} x {FULL['photons']}")
+    p.add_argument("--n", type=float, default=None,
+                   help="refractive index of the tissue, outside air (default 1.37)")
+    p.add_argument("--n-index", dest="n", type=float, default=None,
+                   help="same as --n (default 1.37)")
+    p.add_argument("--mua", type=float, default=None, help="absorption [1/mm] (default 0.01)")
+    p.add_argument("--musp", type=float, default=None,
+                   help="reduced scattering [1/mm] (default 1.0)")
+    p.add_argument("--g", type=float, default=None,
+                   help="anisotropy of the phase function, mus = musp/(1-g) (default 0.9)")
+    p.add_argument("--photons", type=int, default=None,
+                   help="photons per run (default 250000; --quick 25000)")
+    p.add_argument("--runs", type=int, default=None,
+                   help="independent runs, each with its own seed (default 4)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the first run (default 1)")
+    p.add_argument("--engine", choices=["auto", "mcxcl", "mcx"], default="auto",
+                   help="auto (default): MCX on a CUDA GPU if one answers, else MCX-CL")
+    p.add_argument("--boundary", choices=["both", "empirical", "fresnel"], default="both",
+                   help="boundary constant(s) A for the FEM: empirical Reff polynomial, exact "
+                   "Fresnel integrals, or both (default)")
+    p.add_argument("--mesh-level", choices=["test", "coarse", "normal"], default="normal",
+                   help="FEM mesh of the quarter box (default normal: 0.25 mm at the beam, "
+                   "1 mm to 35 mm)")
+    p.add_argument("--mc-in", default=None,
+                   help="compare a stored MC set (JSON) instead of running Monte Carlo "
+                   "(default: run it)")
+    p.add_argument("--reference", default=None,
+                   help="independent R(rho) CSV to check the MC against (default: the stored "
+                   "independent run when the medium is its own)")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    add_json_flag(p)
+    p.set_defaults(func=_mc)
+
+    p = grp.add_parser(
+        "mc-fluorescence", help="FEM vs Monte Carlo on a buried fluorescent inclusion",
+        description="The stored fluorescence case (reference.fluorescence_case): three optodes "
+        "over a 4 mm sphere 7 mm deep; excitation by MC from each source, emission by "
+        "reciprocity (an MC run from each detector combined with the excitation fluence and "
+        "the yield); the FEM on the same label map with both boundary constants.")
+    p.add_argument("--quick", action="store_true",
+                   help="2 runs x 20000 photons per optode and wavelength (default 3 x 100000)")
+    p.add_argument("--photons", type=int, default=None,
+                   help="photons per run (default 100000; --quick 20000)")
+    p.add_argument("--runs", type=int, default=None, help="independent runs (default 3; --quick 2)")
+    p.add_argument("--seed", type=int, default=3001, help="seed of the first run (default 3001)")
+    p.add_argument("--engine", choices=["auto", "mcxcl", "mcx"], default="auto",
+                   help="auto (default): MCX on a CUDA GPU if one answers, else MCX-CL")
+    p.add_argument("--boundary", choices=["both", "empirical", "fresnel"], default="both",
+                   help="boundary constant(s) A for the FEM (default both)")
+    p.add_argument("--mc-in", default=None,
+                   help="compare a stored fluorescence set (JSON) instead of running Monte Carlo "
+                   "(default: run it)")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    add_json_flag(p)
+    p.set_defaults(func=_mc_fluorescence)

@@ -1,0 +1,283 @@
+"""What the three scripted modules share: the logic's parameter node, and the
+desktop widget built from a Qt Designer file.
+
+- :class:`FluoLogicMixin`: a logic class lists its parameters once
+  (``PARAMETERS = {name: default}``); ``getParameterNode()`` returns the
+  module's parameter node in the logic's *own* scene (Slicer's base class uses
+  the global ``slicer.mrmlScene``; ours hold their scene), with the defaults
+  filled in; ``parameter(name)`` reads one back typed.
+- :class:`FluoModuleWidget`: loads ``<Module>/Resources/UI/<Module>.ui`` with
+  ``slicer.util.loadUI``, binds the widgets named in ``BINDINGS`` to the
+  parameter node both ways (so the panel is saved with the scene and restored
+  with it), runs long work with a progress dialog whose Cancel button stops
+  it, and shows errors in a dialog (never swallowed, never a traceback for
+  bad input). A module widget adds its buttons in ``setupConnections``.
+
+Outside the Slicer application (``slicer_compat``) there is no Qt: ``setup``
+returns before touching a widget, and everything else here is plain Python.
+Testing/Python/test_slicer_ui.py checks each ``.ui`` against the names the
+module code uses.
+"""
+
+from __future__ import annotations
+
+import logging
+
+try:  # 3D Slicer
+    from slicer.ScriptedLoadableModule import ScriptedLoadableModuleWidget
+except ImportError:  # slicer-core or no Slicer at all
+    from fluoguide.slicer_compat import ScriptedLoadableModuleWidget
+
+from fluoguide import parameters
+
+__all__ = ["FluoLogicMixin", "FluoModuleWidget", "BINDING_KINDS"]
+
+log = logging.getLogger("fluoguide.slicer")
+
+#: kind -> (Qt signal the widget emits on a change, widget classes allowed for it)
+BINDING_KINDS = {
+    "node": ("currentNodeChanged(vtkMRMLNode*)", ("qMRMLNodeComboBox",)),
+    "text": ("textChanged(QString)", ("QLineEdit",)),
+    "path": ("currentPathChanged(QString)", ("ctkPathLineEdit",)),
+    "float": ("valueChanged(double)", ("QDoubleSpinBox", "ctkDoubleSpinBox", "ctkSliderWidget")),
+    "int": ("valueChanged(int)", ("QSpinBox",)),
+    "bool": ("toggled(bool)", ("QCheckBox",)),
+    "choice": ("currentIndexChanged(int)", ("QComboBox",)),
+}
+
+
+class FluoLogicMixin:
+    """Parameter node of a logic that holds its scene (``self.scene``)."""
+
+    #: {parameter name: default}; the default's type is the parameter's type
+    PARAMETERS = {}
+
+    def getParameterNode(self):
+        name = getattr(self, "moduleName", None) or self.__class__.__name__[: -len("Logic")]
+        return parameters.parameter_node(self.scene, name, self.PARAMETERS)
+
+    def setDefaultParameters(self, parameterNode):
+        parameters.set_defaults(parameterNode, self.PARAMETERS)
+
+    def parameter(self, name):
+        """Parameter ``name`` of this module's parameter node, typed as its default."""
+        return parameters.get(self.getParameterNode(), name, self.PARAMETERS[name])
+
+
+class FluoModuleWidget(ScriptedLoadableModuleWidget):
+    """Base class of the FluoGuide module widgets (see the module docstring).
+
+    Subclasses set ``BINDINGS`` (``(widget name, parameter or node reference
+    role, kind)``, kinds in :data:`BINDING_KINDS`), implement
+    ``createLogic(scene)`` and ``setupConnections()``, and may override
+    ``updateButtonStates()``.
+    """
+
+    BINDINGS = ()
+
+    def __init__(self, parent=None):
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        self.logic = None
+        self.ui = None
+        self._parameterNode = None
+        self._parameterObserver = None
+        self._sceneObservers = []
+        self._updatingGUI = False
+
+    # -- the pieces a module supplies ------------------------------------------------
+    def createLogic(self, scene):
+        raise NotImplementedError
+
+    def setupConnections(self):
+        """Connect the module's buttons (``self.ui.xxxButton.connect("clicked(bool)", ...)``)."""
+
+    def updateButtonStates(self):
+        """Enable or disable buttons from the parameter node (called after every change)."""
+
+    # -- set-up ------------------------------------------------------------------------
+    def setup(self):
+        ScriptedLoadableModuleWidget.setup(self)
+        if self.layout is None:  # headless (slicer_compat): no Qt to lay out
+            return
+        import qt
+        import slicer
+
+        from fluoguide.slicer_deps import ensure_dependencies
+
+        if not ensure_dependencies(ask=True):
+            note = qt.QLabel("FluoGuide's Python packages are not installed: reopen the module "
+                             "to install them (see docs/slicer.md).")
+            note.wordWrap = True
+            self.layout.addWidget(note)
+            return
+        self.logic = self.createLogic(slicer.mrmlScene)
+        uiWidget = slicer.util.loadUI(self.resourcePath(f"UI/{self.moduleName}.ui"))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        # the .ui connects the top widget's mrmlSceneChanged to every MRML widget
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+        for name, _role, kind in self.BINDINGS:
+            getattr(self.ui, name).connect(BINDING_KINDS[kind][0], self.updateParameterNodeFromGUI)
+        self.setupConnections()
+        scene = slicer.mrmlScene
+        self._sceneObservers = [
+            scene.AddObserver(scene.StartCloseEvent, lambda caller, event: self.setParameterNode(None)),
+            scene.AddObserver(scene.EndCloseEvent, self._onSceneEndClose),
+        ]
+        self.initializeParameterNode()
+        self.layout.addStretch(1)
+
+    def cleanup(self):
+        import slicer
+
+        self.setParameterNode(None)
+        for tag in self._sceneObservers:
+            slicer.mrmlScene.RemoveObserver(tag)
+        self._sceneObservers = []
+
+    def enter(self):
+        if self.logic is not None:
+            self.initializeParameterNode()
+
+    def exit(self):
+        self.setParameterNode(None)
+
+    def _onSceneEndClose(self, caller, event):
+        if self.parent.isEntered:
+            self.initializeParameterNode()
+
+    # -- parameter node <-> widgets ----------------------------------------------------
+    def initializeParameterNode(self):
+        self.setParameterNode(self.logic.getParameterNode())
+
+    def setParameterNode(self, node):
+        import vtk
+
+        if self._parameterNode is not None and self._parameterObserver is not None:
+            self._parameterNode.RemoveObserver(self._parameterObserver)
+        self._parameterNode, self._parameterObserver = node, None
+        if node is not None:
+            self.logic.setDefaultParameters(node)
+            self._parameterObserver = node.AddObserver(vtk.vtkCommand.ModifiedEvent,
+                                                       self.updateGUIFromParameterNode)
+            self.updateGUIFromParameterNode()
+
+    def updateGUIFromParameterNode(self, caller=None, event=None):
+        node = self._parameterNode
+        if node is None or self._updatingGUI:
+            return
+        self._updatingGUI = True
+        try:
+            for name, role, kind in self.BINDINGS:
+                widget = getattr(self.ui, name)
+                if kind == "node":
+                    widget.setCurrentNode(node.GetNodeReference(role))
+                    continue
+                text = node.GetParameter(role)
+                if not text:
+                    continue
+                if kind == "text":
+                    widget.text = text
+                elif kind == "path":
+                    widget.currentPath = text
+                elif kind in ("float", "int", "bool"):
+                    widget_value = parameters.get(node, role, {"float": 0.0, "int": 0,
+                                                               "bool": False}[kind])
+                    if kind == "bool":
+                        widget.checked = widget_value
+                    else:
+                        widget.value = widget_value
+                elif kind == "choice":
+                    index = widget.findText(text)
+                    if index >= 0:
+                        widget.setCurrentIndex(index)
+            self.updateButtonStates()
+        finally:
+            self._updatingGUI = False
+
+    def updateParameterNodeFromGUI(self, *args):
+        node = self._parameterNode
+        if node is None or self._updatingGUI:
+            return
+        was = node.StartModify()
+        try:
+            for name, role, kind in self.BINDINGS:
+                widget = getattr(self.ui, name)
+                if kind == "node":
+                    node.SetNodeReferenceID(role, widget.currentNodeID)
+                elif kind == "text":
+                    parameters.set_value(node, role, widget.text)
+                elif kind == "path":
+                    parameters.set_value(node, role, widget.currentPath)
+                elif kind == "float":
+                    parameters.set_value(node, role, float(widget.value))
+                elif kind == "int":
+                    parameters.set_value(node, role, int(widget.value))
+                elif kind == "bool":
+                    parameters.set_value(node, role, bool(widget.checked))
+                elif kind == "choice":
+                    parameters.set_value(node, role, widget.currentText)
+        finally:
+            node.EndModify(was)
+
+    # -- long work, errors -----------------------------------------------------------
+    def runWithProgress(self, title, work):
+        """Run ``work(progress, cancel)`` with a modal progress dialog; its Cancel
+        button sets the cancel token, which the Lib checks between steps.
+
+        Returns the result, or None when the work failed (the error is shown)
+        or was cancelled (said in the status bar).
+        """
+        import qt
+        import slicer
+
+        from fluoguide.errors import FluoCancelled
+        from fluoguide.progress import CancelToken
+
+        dialog = slicer.util.createProgressDialog(parent=self.parent, value=0, maximum=100,
+                                                  labelText=title, windowTitle=title)
+        dialog.setWindowModality(qt.Qt.WindowModal)
+        token = CancelToken()
+        dialog.connect("canceled()", token.cancel)
+
+        def progress(fraction, message=""):
+            dialog.setValue(int(round(100.0 * fraction)))
+            if message:
+                dialog.setLabelText(f"{title}: {message}")
+            slicer.app.processEvents()
+
+        try:
+            return work(progress, token)
+        except FluoCancelled:
+            slicer.util.showStatusMessage(f"{title}: cancelled", 5000)
+            return None
+        except Exception as exc:
+            self.showError(title, exc)
+            return None
+        finally:
+            dialog.close()
+
+    def showError(self, title, exc):
+        """Bad input and device errors as their one-line message; anything else with
+        its type, and its traceback in the application log."""
+        import slicer
+
+        from fluoguide.errors import FluoError
+
+        if isinstance(exc, FluoError):
+            text = str(exc)
+        else:
+            log.exception("%s failed", title)
+            text = f"{type(exc).__name__}: {exc}"
+        slicer.util.errorDisplay(f"{title} failed:\n\n{text}", windowTitle=self.moduleName)
+
+    def run(self, title, fn, *args, **kwargs):
+        """Call ``fn`` (short work, no progress); errors are shown. Returns its result or None."""
+        import slicer
+
+        try:
+            with slicer.util.WaitCursor():
+                return fn(*args, **kwargs)
+        except Exception as exc:
+            self.showError(title, exc)
+            return None
