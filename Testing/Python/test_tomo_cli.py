@@ -141,7 +141,7 @@ def test_help_states_every_default():
     assert "fast = 1.5 mm" in text and "balanced" in text
     r = fluo("tomo", "simulate", "--help")
     text = " ".join(r.stdout.split())
-    assert "(default 1)" in text and "(default 0)" in text and "--engine" in text
+    assert "(default 1.0)" in text and "(default 0)" in text and "--engine" in text
 
 
 def _check(sc, summary, yield_file, method, tol):
@@ -238,7 +238,8 @@ def _mixed_meshes(tmp_path):
     from FluoTomoLib.meshing.structured import box_mesh
     from FluoTomoLib.meshing.vtu_io import write_vtu
 
-    m = box_mesh(np.linspace(-10, 10, 11), np.linspace(-10, 10, 11), np.linspace(-8, 0, 5))
+    # 1 mm cells: the resolution guard refuses mueff h > 1 (the ICG makes mueff 0.52 /mm)
+    m = box_mesh(np.linspace(-10, 10, 21), np.linspace(-10, 10, 21), np.linspace(-8, 0, 9))
     c = m.nodes_mm[m.elements].mean(axis=1)
     reg = np.where(np.linalg.norm(c - [0, 0, -4], axis=1) < 3.0, 7, 3)
     good = Mesh(m.nodes_mm, m.elements, reg).oriented()

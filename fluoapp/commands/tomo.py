@@ -148,7 +148,7 @@ def register(subparsers):
                    help="fluorescence yield eta*mua_f [1/mm] per label, e.g. 7:0.0026 "
                    "(labels not named: 0)")
     p.add_argument("--noise-pct", type=float, default=1.0,
-                   help="relative Gaussian noise per measurement [%%] (default 1)")
+                   help="relative Gaussian noise per measurement [%%] (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--sources", default=None, help="CSV of source points x,y,z (RAS mm) on the "
                    "tissue surface (default: a 4 x 4 grid, 3 mm pitch, over the target)")

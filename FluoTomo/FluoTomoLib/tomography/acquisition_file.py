@@ -48,7 +48,7 @@ detectors are the sources plus ``detector_factor - 1`` points between
 neighbours (dropped onto the surface along the beams); every pixel is cast
 onto the surface from the tracked camera pose and the unsaturated pixels in a
 ``roi_area_mm2`` disc around each detector are averaged; counts become fluence
-per watt as above (physics.md section 8).
+per watt as above (docs/physics.md section 8.2).
 """
 
 from __future__ import annotations
@@ -511,7 +511,7 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
     ``exclude_mm`` of the active source are left out.  Data: every pixel cast
     onto the surface from the tracked camera pose, the unsaturated pixels of a
     ``roi_area_mm2`` disc around each detector averaged, counts -> boundary
-    fluence per watt (physics.md section 8; ``n_tissue``, the tissue's
+    fluence per watt (docs/physics.md section 8.2; ``n_tissue``, the tissue's
     refractive index, sets the Robin factor 2A).
 
     Parameters are RAS (poses LaserToolToRAS and CameraToRAS, mm); returns an

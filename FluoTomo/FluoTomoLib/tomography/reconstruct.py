@@ -242,6 +242,11 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
     vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
     if "diverged" in res.stop_reason:
         notes.append(res.stop_reason)
+    # the solver's own diagnostics (under-determination, fit, damping): a
+    # result it warns about may be far from the truth, for the reasons given
+    for w in res.warnings:
+        if w not in notes:
+            notes.append(w)
     # region yields: nodes wholly inside each region (partial volume >= 0.99; a
     # rim node carries its neighbours' share whatever the method)
     v = nodal_volumes(mesh)
@@ -288,7 +293,8 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         "solver": {"iterations": res.iterations, "stop_reason": res.stop_reason,
                    "clipped_fraction": res.clipped_fraction,
                    "self_absorption_peaks": passes,
-                   "residual_ss": res.residual, "initial_residual_ss": res.residual_history[0]},
+                   "residual_ss": res.residual, "initial_residual_ss": res.residual_history[0],
+                   "diagnostics": dict(res.diagnostics)},
         "timings": timings,
         "seconds": seconds,
     }
