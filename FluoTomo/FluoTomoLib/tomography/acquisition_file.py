@@ -360,7 +360,8 @@ def _to_fluence_per_watt(data, units, doc, S, file, optics=None):
         exp = _per_source(_number(doc, "exposure_s", file), S, file, "exposure_s")
         ref = float(_number(doc, "reference_exposure_s", file))
         counts = offset + (data - offset) * (ref / exp)[:, None]
-    return counts_to_boundary_fluence(counts, offset, gain, robin_A(optics.n), 1.0) / power[:, None]
+    return counts_to_boundary_fluence(counts, offset, gain,
+                                      robin_A(optics.n, optics.boundary), 1.0) / power[:, None]
 
 
 def _atomic_folder_write(folder, files):
@@ -492,7 +493,8 @@ def _read_tracked_frames(doc, base, jpath, labelmap, optics):
     saturation = float(_number(doc, "saturation_adu", jpath, default=16383.0))
     acq = acquisition_from_tracked_frames(
         labelmap, frames, frames >= saturation, camera, cam_pose, poses, b_o, b_d, gain, offset,
-        power, n_tissue=optics.n, detector_factor=factor, exclude_mm=exclude,
+        power, n_tissue=optics.n, boundary=optics.boundary, detector_factor=factor,
+        exclude_mm=exclude,
         roi_area_mm2=roi_area, source=str(jpath))
     acq.meta.update({k: doc[k] for k in ("simulation", "comment") if k in doc})
     acq.units = "counts (tracked frames)"
@@ -502,7 +504,8 @@ def _read_tracked_frames(doc, base, jpath, labelmap, optics):
 def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_to_ras,
                                     laser_poses, beam_origin_tool_mm, beam_dir_tool, gain,
                                     offset_adu, laser_power_w, n_tissue=None, detector_factor=2,
-                                    exclude_mm=3.0, roi_area_mm2=1.0, source=None):
+                                    exclude_mm=3.0, roi_area_mm2=1.0, source=None,
+                                    boundary=None):
     """What the software makes of a tracked laser scan seen by a tracked camera.
 
     Sources: each tracked beam cast onto the label map's tissue surface.
@@ -512,7 +515,8 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
     onto the surface from the tracked camera pose, the unsaturated pixels of a
     ``roi_area_mm2`` disc around each detector averaged, counts -> boundary
     fluence per watt (docs/physics.md section 8.2; ``n_tissue``, the tissue's
-    refractive index, sets the Robin factor 2A).
+    refractive index, sets the Robin factor 2A with ``boundary``'s method,
+    ``optics.robin_A``; None: its default).
 
     Parameters are RAS (poses LaserToolToRAS and CameraToRAS, mm); returns an
     :class:`Acquisition`.
@@ -564,8 +568,8 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
                              field=f"frames[{s}] detector {dd}")
     if n_tissue is None:
         raise FluoInputError("the tissue's refractive index is needed", field="n_tissue")
-    y = counts_to_boundary_fluence(np.nan_to_num(counts), offset_adu, gain, robin_A(n_tissue),
-                                   laser_power_w)
+    y = counts_to_boundary_fluence(np.nan_to_num(counts), offset_adu, gain,
+                                   robin_A(n_tissue, boundary), laser_power_w)
     return Acquisition(src, det, np.where(mask, y, 0.0), mask, "counts (tracked frames)",
                        {"roi_counts": counts, "roi_pixels": n_pix}, source=source)
 

@@ -9,7 +9,8 @@
       "emission":   {"1": {"mua_per_mm": 0.0029, "musp_per_mm": 0.81},
                      "2": {"mua_per_mm": 0.0032, "musp_per_mm": 1.10}},
       "fluorophore": "ICG",
-      "names": {"1": "tissue", "2": "tumour"}
+      "names": {"1": "tissue", "2": "tumour"},
+      "boundary": "fresnel"
     }
 
 Labels are the label map's values (label 0 is air and is not listed).  The
@@ -19,6 +20,11 @@ table's slopes, an object ``{"mua_x_per_yield": .., "mua_m_per_yield": ..}``,
 or ``null``/absent for a dye whose absorption is negligible); the simulation
 adds it to the truth and the hard-prior reconstruction feeds it back
 (self-absorption).  ``n`` is the tissue's refractive index (outside: air).
+``boundary`` (optional) is the Robin boundary constant's method
+(``optics.robin_A``: ``"fresnel"``, the exact partial-current value, or
+``"empirical"``, the Reff polynomial the thesis's tables used); absent: the
+library's default (``optics.DEFAULT_BOUNDARY``, Fresnel), the same for the
+simulation and the reconstruction.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ import numpy as np
 from fluoguide.errors import FluoInputError
 
 _LABEL_KEYS = {"mua_per_mm", "musp_per_mm"}
-_TOP_KEYS = {"n", "excitation", "emission", "fluorophore", "names", "comment"}
+_TOP_KEYS = {"n", "excitation", "emission", "fluorophore", "names", "comment", "boundary"}
 
 
 @dataclass
@@ -51,6 +57,7 @@ class Optics:
     fluorophore: str | None = None
     names: dict = field(default_factory=dict)
     source: str | None = None
+    boundary: str | None = None        # optics.robin_A's method; None: its default
 
     @property
     def labels(self):
@@ -85,8 +92,11 @@ class Optics:
             y = np.clip(np.asarray(yield_nodes, float), 0.0, None)
             mua_x = mua_x + self.mua_per_yield[0] * y
             mua_m = mua_m + self.mua_per_yield[1] * y
-        return ({"mua_per_mm": mua_x, "musp_per_mm": musp_x, "n": self.n},
-                {"mua_per_mm": mua_m, "musp_per_mm": musp_m, "n": self.n})
+        px = {"mua_per_mm": mua_x, "musp_per_mm": musp_x, "n": self.n}
+        pm = {"mua_per_mm": mua_m, "musp_per_mm": musp_m, "n": self.n}
+        if self.boundary is not None:
+            px["boundary"] = pm["boundary"] = self.boundary
+        return px, pm
 
     def nodal_from_mesh(self, mesh, yield_by_label=None):
         """Nodal properties of a mesh whose elements carry region labels: each
@@ -132,6 +142,8 @@ class Optics:
                "emission": table(self.emission), "fluorophore": fl}
         if self.names:
             doc["names"] = {str(k): v for k, v in self.names.items()}
+        if self.boundary is not None:
+            doc["boundary"] = self.boundary
         return doc
 
 
@@ -233,7 +245,14 @@ def optics_from_dict(doc, file=None):
     else:
         raise FluoInputError("must be \"ICG\", an object or null", file=file,
                              field="fluorophore", value=fl)
-    return Optics(n, ex, em, slopes, name, names, None if file is None else str(file))
+    boundary = doc.get("boundary")
+    if boundary is not None:
+        from FluoTomoLib.optics import BOUNDARY_METHODS
+
+        if boundary not in BOUNDARY_METHODS:
+            raise FluoInputError(f"must be one of {', '.join(BOUNDARY_METHODS)} (or absent: "
+                                 "the default)", file=file, field="boundary", value=boundary)
+    return Optics(n, ex, em, slopes, name, names, None if file is None else str(file), boundary)
 
 
 def read_optics(path):

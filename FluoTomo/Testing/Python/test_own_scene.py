@@ -54,12 +54,20 @@ def test_optics_file_reads_and_names_every_bad_field(tmp_path):
         ({"n": 0.5}, "n"),
         ({"fluorophore": "fluorescein"}, "fluorophore"),
         ({"colour": "red"}, "unknown key"),
+        ({"boundary": "exact"}, "boundary"),
     ]
     for change, needle in bad:
         doc = json.loads(json.dumps(OPTICS))
         doc.update(change)
         with pytest.raises(FluoInputError, match=needle.replace(".", r"\.")):
             optics_from_dict(doc, file="optics.json")
+    # the boundary constant: the library's default unless optics.json names one,
+    # and then for every model built from it (simulation and reconstruction alike)
+    assert o.boundary is None and "boundary" not in o.nodal([3, 7], np.eye(2))[0]
+    emp = optics_from_dict(dict(OPTICS, boundary="empirical"))
+    px, pm = emp.nodal([3, 7], np.eye(2))
+    assert px["boundary"] == pm["boundary"] == "empirical"
+    assert optics_from_dict(emp.to_json()).boundary == "empirical"
     p.write_text("{not json")
     with pytest.raises(FluoInputError, match="line 1"):
         read_optics(p)
