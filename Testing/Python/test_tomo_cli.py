@@ -138,10 +138,15 @@ def test_help_states_every_default():
     for opt in ("--method", "--lambda", "--target", "--accuracy", "--element-mm", "--roi",
                 "--truncation-pct", "--data-model"):
         assert opt in text
-    assert "fast = 1.5 mm" in text and "balanced" in text
+    from FluoTomoLib.tomography.accuracy import LEVELS
+
+    for name, level in LEVELS.items():        # the help says what each level is
+        assert f"{name} = {level['recon_mm']:g} mm" in text, name
     r = fluo("tomo", "simulate", "--help")
     text = " ".join(r.stdout.split())
     assert "(default 1.0)" in text and "(default 0)" in text and "--engine" in text
+    assert all(f"{name} {level['simulate_mm']:g} / {level['simulate_coarse_mm']:g}" in text
+               for name, level in LEVELS.items())
 
 
 def _check(sc, summary, yield_file, method, tol):
@@ -220,8 +225,8 @@ def test_issue_scene_through_the_logic(issue_scene):
                                      meshNode=mesh)
     assert n_hp.GetID() != n_hp2.GetID() and n_hp2.GetName() == "FluoTomoYieldHP_1"
     assert s_hp["mesh"]["nodes"] == mrml_io.get_json_attribute(mesh, "FluoTomo.Mesh")["nodes"]
-    _check(sc, s_hp, None, "HP", 0.15)
-    _check(sc, s_sp, None, "SP", 0.30)
+    e_hp = _check(sc, s_hp, None, "HP", 0.15)
+    e_sp = _check(sc, s_sp, None, "SP", 0.30)
     for node in (n_hp, n_sp):
         g = mrml_io.volume_geometry(node)
         assert np.allclose(g["direction"], sc["direction"]) and np.allclose(g["origin"],
@@ -229,8 +234,7 @@ def test_issue_scene_through_the_logic(issue_scene):
         arr = mrml_io.volume_array(node)
         k, j, i = np.unravel_index(int(np.argmax(arr)), arr.shape)
         assert sc["labels_kji"][k, j, i] == sc["inclusion_label"]
-    out = tmp = None
-    del out, tmp
+    print("issue scene, logic:", {"HP": f"{100 * e_hp:+.1f} %", "SP": f"{100 * e_sp:+.1f} %"})
 
 
 def _mixed_meshes(tmp_path):

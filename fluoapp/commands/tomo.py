@@ -11,10 +11,35 @@ from fluoapp.cli import add_json_flag, cli_group
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
 
-ACCURACY_HELP = (
-    "accuracy level (default balanced): fast = 1.5 mm reconstruction elements, balanced = "
-    "1.0 mm, fine = 0.7 mm, each refined to half across the target; measured error and "
-    "time per level: docs/tomography-own-scene.md")
+def _accuracy_help(pct="%%", lead="accuracy level (default %(default)s): "):
+    """The levels' sizes and their measured error and time (accuracy.MEASURED);
+    ``pct``: "%%" in an option's help (%-formatted), "%" in a description."""
+    from FluoTomoLib.tomography.accuracy import LEVELS, MEASURED
+
+    parts = []
+    for name, lv in LEVELS.items():
+        m = MEASURED.get(name)
+        text = (f"{name} = {lv['recon_mm']:g} mm reconstruction elements, region-of-interest "
+                f"tolerance {lv['truncation_pct']:g} {pct}")
+        if m:
+            text += (f" (measured: HP {m['HP_pct']:+.1f} {pct}, SP {m['SP_pct']:+.1f} {pct}, "
+                     f"{m['seconds']:.0f} s per method)")
+        parts.append(text)
+    return (lead + "; ".join(parts) + "; each refined to "
+            "half across the target, capped at the sources' burial depth. Measured on the "
+            "issue's ellipsoid scene, docs/tomography-own-scene.md")
+
+
+ACCURACY_HELP = _accuracy_help()
+
+
+def _simulate_accuracy_help():
+    from FluoTomoLib.tomography.accuracy import LEVELS
+
+    sizes = ", ".join(f"{k} {v['simulate_mm']:g} / {v['simulate_coarse_mm']:g}"
+                      for k, v in LEVELS.items())
+    return ("simulation mesh (default %(default)s), element size near the optodes and target "
+            f"/ elsewhere [mm]: {sizes}")
 
 
 def _parse_yields(text):
@@ -64,6 +89,9 @@ def _simulate(args):
 
     t0 = time.perf_counter()
     yields = _parse_yields(args.yield_spec)
+    if args.photons is not None and args.engine != "mc":
+        raise FluoInputError("photons are for the Monte Carlo engine (--engine mc)",
+                             field="--photons", value=args.photons)
     if (args.sources is None) != (args.detectors is None):
         raise FluoInputError("give both --sources and --detectors, or neither (default scan)",
                              field="--sources" if args.sources is None else "--detectors")
@@ -84,11 +112,13 @@ def _simulate(args):
         acq, info = simulate_acquisition(
             lm, optics, yields, src, det, noise_pct=args.noise_pct, seed=args.seed,
             engine=args.engine, exclude_mm=args.exclude_mm, accuracy=args.accuracy,
-            simulate_mm=args.element_mm, target=args.target, progress=bar)
+            simulate_mm=args.element_mm, target=args.target, photons=args.photons,
+            progress=bar)
     write_acquisition(args.out, acq, simulation=info)
     return {"output": str(args.out), "sources": len(acq.sources_ras_mm),
             "detectors": len(acq.detectors_ras_mm), "measurements": acq.n_measurements,
             "engine": info["engine"], "simulation_mesh_nodes": info.get("mesh_nodes"),
+            "photon_noise_pct": info.get("photon_noise_pct"),
             "noise_pct": info["noise_pct"], "seed": info["seed"], "target": info["target"],
             "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
 
@@ -159,12 +189,16 @@ def register(subparsers):
                    "the largest)")
     p.add_argument("--exclude-mm", type=float, default=None, help="pairs closer than this to "
                    "their source are marked unused (default 3)")
-    p.add_argument("--engine", choices=["fem"], default="fem",
+    p.add_argument("--engine", choices=["fem", "mc"], default="fem",
                    help="the light-transport engine (default fem: diffusion FEM on a mesh of "
-                   "the whole label map)")
+                   "the whole label map; mc: Monte Carlo photon transport on the label map's "
+                   "voxels with MCX-CL/MCX, the 'mc' extra; needs cubic voxels)")
+    p.add_argument("--photons", type=int, default=None,
+                   help="--engine mc: photons per run, each source and detector run twice "
+                   "(default 100000; the time grows in proportion, the photon noise, reported "
+                   "in the output, falls as 1/sqrt(photons))")
     p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default="balanced",
-                   help="simulation mesh (default balanced): fast 1.0 mm near the optodes and "
-                   "target / 2.5 mm elsewhere, balanced 0.8 / 2.0, fine 0.6 / 1.5")
+                   help=_simulate_accuracy_help())
     p.add_argument("--element-mm", type=float, default=None, help="simulation element size "
                    "near the optodes and target [mm] (default: from --accuracy)")
     p.add_argument("--out", required=True, help="acquisition folder to write "
@@ -177,7 +211,8 @@ def register(subparsers):
         description="NP / SP / HP reconstruction of the yield on a label map from an "
         "acquisition folder; the region of interest is chosen from the light's decay length "
         "and its truncation error estimated; writes OUT/yield.nrrd on the label map's grid "
-        "(same origin, spacing and direction) and OUT/reconstruction.json. " + ACCURACY_HELP)
+        "(same origin, spacing and direction) and OUT/reconstruction.json. "
+        + _accuracy_help("%", "Accuracy levels: "))
     p.add_argument("--labels", required=True, help="label map (.nrrd, .nii(.gz), .seg.nrrd, "
                    ".mrml); its labels are the priors' regions")
     p.add_argument("--optics", required=True, help="optics.json (every label of the map)")

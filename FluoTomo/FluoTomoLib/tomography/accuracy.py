@@ -33,6 +33,11 @@ LEVELS = {
 }
 DEFAULT = "balanced"
 
+#: measured per level on the issue's ellipsoid scene (benchmarks/bench_own_scene.py,
+#: docs/tomography-own-scene.md): the inclusion's yield error of HP and SP [%] and
+#: the wall time of one method [s]; printed in ``fluo tomo reconstruct --help``
+MEASURED = {}
+
 
 def accuracy_settings(accuracy=DEFAULT, **override):
     """The settings of a level, with explicit values (not None) overriding it

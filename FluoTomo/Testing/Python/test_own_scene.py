@@ -245,3 +245,43 @@ def test_small_scene_simulated_and_reconstructed_in_any_direction(tmp_path):
         s["peak_yield_per_mm"], rel=1e-5)
     assert json.loads((tmp_path / "out" / "reconstruction.json").read_text())["method"] == "HP"
     assert summary["output"].endswith("yield.nrrd")
+
+
+# ------------------------------------------------------------------ the Monte Carlo engine
+
+@pytest.mark.slow
+def test_monte_carlo_engine_agrees_with_the_fem_engine():
+    """``simulate_acquisition(engine="mc")`` (MCX-CL photon transport on the
+    voxels, emission by reciprocity, exitance x 2A) against the FEM engine on
+    its own finer mesh, on a flat-topped block (no staircase under the optodes)
+    with labels 3 and 7 (MCX's media are 1..L), cubic 1 mm voxels, the
+    direction diag(-1, -1, 1) and an origin far from zero.  Tolerance: 12 %
+    (the diffusion model near a 4 mm fluorescent cube 2 mm under the surface,
+    as FluoTomoLib.montecarlo's own small-case test) plus 2.5 photon-noise
+    standard errors of the two MC runs."""
+    from FluoTomoLib.montecarlo.engine import engine_available
+    from FluoTomoLib.tomography import simulate_acquisition
+
+    if not engine_available("mcxcl"):
+        pytest.skip("MCX-CL is not installed (the 'mc' extra, .ci/install-mc.sh)")
+    nx, ny, nz = 36, 24, 14
+    lab = np.full((nz, ny, nx), 3, np.int16)
+    lab[nz - 6:nz - 2, ny // 2 - 2:ny // 2 + 2, nx // 2 - 2:nx // 2 + 2] = 7
+    d = np.diag([-1.0, -1.0, 1.0])
+    origin = np.array([240.0, 130.0, -410.0])
+    lm = LabelMap(lab, np.ones(3), origin, d)
+    top = origin[2] + (nz - 0.5)
+    centre = origin + d @ np.array([(nx - 1) / 2, (ny - 1) / 2, 0.0])
+    src = np.array([[centre[0] - 6.0, centre[1], top]])
+    det = np.array([[centre[0] + 2.0, centre[1], top], [centre[0] + 5.0, centre[1] + 1.0, top]])
+    optics = optics_from_dict(OPTICS)
+    kw = dict(noise_pct=0.0, seed=5, exclude_mm=0.0)
+    mc, info = simulate_acquisition(lm, optics, {7: 0.01}, src, det, engine="mc",
+                                    photons=20_000, **kw)
+    fem, _ = simulate_acquisition(lm, optics, {7: 0.01}, src, det, engine="fem",
+                                  accuracy="fine", **kw)
+    assert info["engine"] == "mc" and info["runs"] == 2 and info["photons_per_run"] == 20_000
+    assert not any("staircase" in w for w in info["warnings"]), info["warnings"]
+    se = np.array(info["photon_noise_pct"]["max"]) / 100
+    rel = np.abs(fem.clean / mc.clean - 1)
+    assert np.all(rel <= 0.12 + 2.5 * se), (rel, se)
