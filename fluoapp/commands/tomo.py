@@ -23,7 +23,7 @@ def _accuracy_help(pct="%%", lead="accuracy level (default %(default)s): "):
                 f"tolerance {lv['truncation_pct']:g} {pct}")
         if m:
             text += (f" (measured: HP {m['HP_pct']:+.1f} {pct}, SP {m['SP_pct']:+.1f} {pct}, "
-                     f"{m['seconds']:.0f} s per method)")
+                     f"HP {m['seconds']:.0f} s on a shared 2-core machine)")
         parts.append(text)
     return (lead + "; ".join(parts) + "; each refined to "
             "half across the target, capped at the sources' burial depth. Measured on the "
