@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.optics import robin_A
@@ -148,7 +148,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     solved = reconstruct_labelmap_methods(
         lm, optics_from_phantom(optics), acq, methods, lam, target=2, accuracy=accuracy,
         size_mm=coarse_mm, roi_ras=roi_ras, self_absorption=self_absorption,
-        progress=progress, cancel=cancel)
+        progress=scaled(progress, 0.35, 0.98, "reconstruction"), cancel=cancel)
     first = solved[tuple(solved)[0]]
     coarse = lm.mesh_to_ras(first["mesh"])
     timings.update({k: v for k, v in first["summary"]["timings"].items()
