@@ -33,6 +33,9 @@ from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 _JACOBIAN_COPIES = 2
 #: largest Jacobian memory [bytes] a reconstruction may take
 MAX_JACOBIAN_BYTES = 4e9
+#: largest regularisation lambda (docs/reconstruction.md's trade table ends at 1e3,
+#: the web app's over-regularised case is 1e6)
+MAX_LAMBDA = 1e9
 
 
 def nodal_to_grid(mesh, values, lm):
@@ -132,8 +135,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         if m not in ("NP", "SP", "HP"):
             raise FluoInputError("method must be NP, SP or HP", field="method", value=m)
     lam = 10.0 if lam is None else float(lam)
-    if not (np.isfinite(lam) and lam > 0):
-        raise FluoInputError("lambda must be a positive number", field="lambda", value=lam)
+    if not (np.isfinite(lam) and 0 < lam <= MAX_LAMBDA):
+        raise FluoInputError(f"lambda must be a number in (0, {MAX_LAMBDA:g}] (beyond it the "
+                             "prior alone decides the result)", field="lambda", value=lam)
     if data_model not in ("linear", "log"):
         raise FluoInputError("data model must be linear or log", field="data_model",
                              value=data_model)

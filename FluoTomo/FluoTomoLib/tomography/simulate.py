@@ -320,6 +320,14 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
     if not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2 ** 32:
         raise FluoInputError("seed must be an integer within 0..2**32-1", field="seed",
                              value=seed)
+    ex = float(DEFAULT_SCAN["exclude_mm"] if exclude_mm is None else exclude_mm)
+    if not (np.isfinite(ex) and 0 <= ex <= 100):
+        raise FluoInputError("must be a distance within 0..100 mm", field="exclude_mm", value=ex)
+    dist = np.linalg.norm(sources_ras[:, None] - detectors_ras[None], axis=2)
+    mask = dist > ex
+    if not mask.any():
+        raise FluoInputError("every pair is closer than this to its source: no measurement "
+                             "left", field="exclude_mm", value=ex)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         out = ENGINES[engine](lm, optics, sources_ras, detectors_ras, yield_by_label,
@@ -332,9 +340,6 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
     if noisy.shape != (len(sources_ras), len(detectors_ras)) or not np.all(np.isfinite(noisy)):
         raise FluoInputError("the engine returned data of the wrong shape or not finite",
                              field="engine", value=engine)
-    ex = float(DEFAULT_SCAN["exclude_mm"] if exclude_mm is None else exclude_mm)
-    dist = np.linalg.norm(sources_ras[:, None] - detectors_ras[None], axis=2)
-    mask = dist > ex
     info.update({"noise_pct": float(noise_pct), "seed": int(seed), "exclude_mm": ex,
                  "yield_by_label": {str(int(k)): float(v) for k, v in yield_by_label.items()},
                  "accuracy": settings["level"], "target": target, "scan": scan_cfg,
