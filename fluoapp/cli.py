@@ -8,6 +8,9 @@ Conventions every subcommand follows:
 
 - ``--json`` prints exactly one JSON object on stdout (progress goes to stderr).
 - Bad input raises ``FluoInputError``: one line on stderr, exit code 2.
+- A device or peer failure (``FluoError``): one line, exit code 1.
+- Anything else is a bug: one line ``fluo: internal error: ...``, exit code 1;
+  ``fluo --debug ...`` prints the traceback as well.
 - A handler returns a dict (the JSON result); without ``--json`` it is printed
   as readable ``key: value`` lines.
 """
@@ -67,6 +70,8 @@ def build_parser():
     from fluoguide import __version__
 
     parser.add_argument("--version", action="version", version=f"fluo {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="print the traceback of an unexpected error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in CLI_MODULES:
@@ -110,13 +115,31 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("fluo: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # the last resort: a bug, not the user's input
+        return _internal_error(exc, args)
     if result is None:
         return 0
-    if getattr(args, "json", False):
-        print(dumps(result))
+    try:
+        text = dumps(result) if getattr(args, "json", False) else None
+    except Exception as exc:  # an unserialisable result is a bug too
+        return _internal_error(exc, args)
+    if text is not None:
+        print(text)
     else:
         _print_human(result, sys.stdout)
     return 0
+
+
+def _internal_error(exc, args):
+    """One line for an unexpected exception (exit 1); the traceback under ``--debug``."""
+    if getattr(args, "debug", False):
+        import traceback
+
+        traceback.print_exception(exc, file=sys.stderr)
+    first = (str(exc).strip().splitlines() or [""])[0][:300]
+    hint = "" if getattr(args, "debug", False) else " (fluo --debug ... shows the traceback)"
+    print(f"fluo: internal error: {type(exc).__name__}: {first}{hint}", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

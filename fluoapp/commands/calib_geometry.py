@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import glob
-import json
 from pathlib import Path
 
 import numpy as np
@@ -21,15 +20,10 @@ def _images(pattern):
     return files
 
 
-def _load_json(path, field):
-    p = Path(path)
-    if not p.is_file():
-        raise FluoInputError("file not found", file=p, field=field)
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise FluoInputError(f"not valid JSON ({exc.msg}, line {exc.lineno})", file=p,
-                             field=field) from None
+def _load_json(path, field, expect=None):
+    from fluoguide.jsonable import read_json
+
+    return read_json(path, expect=expect, field=field)
 
 
 def _load_points(path, field):
@@ -38,32 +32,48 @@ def _load_points(path, field):
     if p.suffix.lower() == ".json":
         doc = _load_json(p, field)
         doc = doc.get("points", doc) if isinstance(doc, dict) else doc
-        arr = np.asarray(doc, dtype=float)
+        try:
+            arr = np.asarray(doc, dtype=float)
+        except (TypeError, ValueError):
+            raise FluoInputError('expected a list of [x, y, z] or {"points": [...]}', file=p,
+                                 field=field) from None
     else:
         if not p.is_file():
             raise FluoInputError("file not found", file=p, field=field)
         try:
             arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
-        except ValueError as exc:
-            raise FluoInputError(f"cannot parse points ({exc})", file=p, field=field) from None
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise FluoInputError(f"cannot parse points ({str(exc)[:100]})", file=p,
+                                 field=field) from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise FluoInputError("points must be N rows of x, y, z [mm]", file=p, field=field,
                              value=arr.shape)
     return arr
 
 
-def _store(args, camera=None, camera_to_tool=None, info=None, rms=None, registration=None):
+def _preflight(args):
+    """Check every output before any work (a refused run writes nothing); returns
+    the scene to store the result in, or None."""
+    from fluoguide import atomic, mrml_io
+
+    if getattr(args, "yaml", None):
+        atomic.check_writable(args.yaml, "--yaml")
+    if getattr(args, "scene", None):
+        return mrml_io.scene_to_update(args.scene)
+    return None
+
+
+def _store(args, scene, camera=None, camera_to_tool=None, info=None, rms=None, registration=None):
     if getattr(args, "yaml", None) and (camera is not None or camera_to_tool is not None):
         from FluoCalibLib.geometry.opencv_yaml import write_calibration_yaml
 
         write_calibration_yaml(args.yaml, camera, camera_to_tool, rms_px=rms)
-    if getattr(args, "scene", None):
+    if scene is not None:
         from fluoguide import mrml_io
 
         from FluoCalibLib.geometry import scene as gs
 
         path = Path(args.scene)
-        scene = mrml_io.load_scene(path) if path.is_file() else mrml_io.new_scene()
         if camera is not None:
             gs.store_intrinsics(scene, camera, {"rms_px": rms})
         if camera_to_tool is not None:
@@ -78,12 +88,13 @@ def _camera(args):
 
     from FluoCalibLib.geometry.intrinsics import calibrate_camera
 
+    scene = _preflight(args)
     with TqdmProgress("calib camera") as prog:
         res = calibrate_camera(_images(args.images), args.board,
                                "fisheye" if args.fisheye else "pinhole", args.holdout,
                                fix_k3=args.fix_k3, reject_outliers=not args.keep_outliers,
                                progress=prog)
-    _store(args, camera=res.camera, rms=res.rms_px)
+    _store(args, scene, camera=res.camera, rms=res.rms_px)
     return res.to_dict()
 
 
@@ -99,7 +110,7 @@ def _intrinsics_from(args, images):
             return cam
         from FluoCalibLib.geometry.camera_model import CameraModel
 
-        doc = _load_json(p, "--intrinsics")
+        doc = _load_json(p, "--intrinsics", expect=dict)
         return CameraModel.from_dict(doc.get("camera", doc))
     from FluoCalibLib.geometry.intrinsics import calibrate_camera
 
@@ -111,13 +122,16 @@ def _handeye(args):
     from FluoCalibLib.geometry.boards import parse_board
     from FluoCalibLib.geometry.intrinsics import detect_views, view_poses
 
+    scene = _preflight(args)
     board = parse_board(args.board)
     images = _images(args.images)
+    from FluoCalibLib.geometry.transforms import as_rigid, as_rigid_list
+
     doc = _load_json(args.poses, "--poses")
     if not isinstance(doc, dict) or "tool_to_tracker" not in doc:
         raise FluoInputError('poses file needs a "tool_to_tracker" list of 4x4 matrices',
                              file=args.poses, field="tool_to_tracker")
-    poses = [np.asarray(T, dtype=float) for T in doc["tool_to_tracker"]]
+    poses = as_rigid_list(doc["tool_to_tracker"], "tool_to_tracker", file=args.poses)
     if len(poses) != len(images):
         raise FluoInputError(f"{len(images)} images but {len(poses)} tool poses: each image "
                              "needs one synchronised pose", file=args.poses,
@@ -130,9 +144,10 @@ def _handeye(args):
     poses = [poses[i] for i in keep]
     if args.board_to_tracker:
         g = _load_json(args.board_to_tracker, "--board-to-tracker")
-        G = np.asarray(g.get("board_to_tracker", g) if isinstance(g, dict) else g, dtype=float)
+        G = as_rigid(g.get("board_to_tracker", g) if isinstance(g, dict) else g,
+                     "board_to_tracker", file=args.board_to_tracker)
     elif "board_to_tracker" in doc:
-        G = np.asarray(doc["board_to_tracker"], dtype=float)
+        G = as_rigid(doc["board_to_tracker"], "board_to_tracker", file=args.poses)
     else:
         G = None
     B = [v.board_to_camera for v in views]
@@ -149,7 +164,7 @@ def _handeye(args):
         raise FluoInputError("stored method was not run", field="--store-method", value=best)
     X = cmp[best]["camera_to_tool"]
     info = {"method": best, **{k: v for k, v in cmp[best].items() if k != "camera_to_tool"}}
-    _store(args, camera_to_tool=X, info=info)
+    _store(args, scene, camera_to_tool=X, info=info)
     return {"camera_to_tool": X, "method": best, "views_used": [v.name for v in views],
             "views_rejected": rejected, "methods": cmp}
 
@@ -157,6 +172,7 @@ def _handeye(args):
 def _register(args):
     from FluoCalibLib.geometry.registration import register_points, target_registration_error
 
+    scene = _preflight(args)
     moving = _load_points(args.moving, "--moving")
     fixed = _load_points(args.fixed, "--fixed")
     res = register_points(moving, fixed)
@@ -171,16 +187,18 @@ def _register(args):
         out["tre_mm"] = tre
         out["tre_mean_mm"] = float(tre.mean())
     info = {k: v for k, v in out.items() if k in ("fre_mm", "tre_mean_mm")}
-    _store(args, registration=res.transform, info=info)
+    _store(args, scene, registration=res.transform, info=info)
     return out
 
 
 def _pivot(args):
     from FluoCalibLib.geometry.registration import pivot_calibration
 
+    from FluoCalibLib.geometry.transforms import as_rigid_list
+
     doc = _load_json(args.poses, "--poses")
     poses = doc.get("tool_to_tracker", doc) if isinstance(doc, dict) else doc
-    return pivot_calibration([np.asarray(T, dtype=float) for T in poses])
+    return pivot_calibration(as_rigid_list(poses, "tool_to_tracker", file=args.poses))
 
 
 def _synth(args):

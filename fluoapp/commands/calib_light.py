@@ -4,7 +4,6 @@ from ``synth-light``)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -14,25 +13,48 @@ from fluoguide.errors import FluoInputError
 
 
 def _doc(folder, name):
+    from fluoguide.jsonable import read_json
+
     p = Path(folder) / name
+    if not Path(folder).is_dir():
+        raise FluoInputError("folder not found", file=folder)
     if not p.is_file():
         raise FluoInputError(f"folder needs {name}", file=p)
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise FluoInputError(f"not valid JSON ({exc.msg}, line {exc.lineno})", file=p) from None
+    return read_json(p)
 
 
 def _images(folder, doc, name):
     from FluoCalibLib.radiometry.camera_response import _read_image
+    from fluoguide.paths import inside
 
+    manifest = Path(folder) / name
     if not isinstance(doc.get("images"), list) or not doc["images"]:
-        raise FluoInputError("needs a non-empty 'images' list", file=Path(folder) / name,
-                             field="images")
-    return [_read_image(Path(folder) / f).astype(float) for f in doc["images"]]
+        raise FluoInputError("needs a non-empty 'images' list", file=manifest, field="images")
+    # a manifest names files in its own folder, never ../ or absolute paths
+    return [_read_image(inside(folder, f, file=manifest, field=f"images[{i}]")).astype(float)
+            for i, f in enumerate(doc["images"])]
 
 
-def _save(args, key, doc):
+def _preflight(args):
+    """Check every output before any work: a refused run writes nothing.
+
+    Returns the scene to store the result in (loaded, or new) or None.
+    """
+    from fluoguide import atomic, mrml_io
+    from fluoguide.jsonable import read_json
+
+    if getattr(args, "out", None):
+        atomic.check_writable(args.out, "--out", folder=True)
+    if getattr(args, "calibration", None):
+        atomic.check_writable(args.calibration, "--calibration")
+        if Path(args.calibration).exists():
+            read_json(args.calibration, field="--calibration")   # never overwrite a damaged one
+    if getattr(args, "scene", None):
+        return mrml_io.scene_to_update(args.scene)
+    return None
+
+
+def _save(args, key, doc, scene=None):
     from FluoCalibLib.radiometry import scene as light_scene
 
     if getattr(args, "calibration", None):
@@ -40,16 +62,15 @@ def _save(args, key, doc):
     if getattr(args, "scene", None):
         from fluoguide import mrml_io
 
-        path = Path(args.scene)
-        scene = mrml_io.load_scene(path) if path.is_file() else mrml_io.new_scene()
         light_scene.store_calibration(scene, key, doc)
-        mrml_io.save_scene(scene, path)
+        mrml_io.save_scene(scene, Path(args.scene))
 
 
 def _radiometry(args):
     from FluoCalibLib.radiometry.camera_response import characterize, load_stack
     from FluoCalibLib.radiometry.scene import RADIOMETRY_KEY
 
+    scene = _preflight(args)
     frames, meta = load_stack(args.stack)
     res = characterize(frames, bit_depth=args.bits)
     if args.out:
@@ -57,7 +78,7 @@ def _radiometry(args):
 
         res["plots"] = plot_radiometry(res, args.out)
     keep = {k: v for k, v in res.items() if k not in ("ptc", "linearity", "dark")}
-    _save(args, RADIOMETRY_KEY, keep)
+    _save(args, RADIOMETRY_KEY, keep, scene)
     if "truth" in meta:
         res["truth"] = meta["truth"]
     return {k: v for k, v in res.items() if k not in ("ptc", "linearity", "dark")} | (
@@ -69,6 +90,7 @@ def _illumination(args):
     from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
     from FluoCalibLib.radiometry.scene import ILLUMINATION_KEY
 
+    scene = _preflight(args)
     doc = _doc(args.folder, "illumination.json")
     for k in ("camera", "phantom_to_camera", "rd"):
         if k not in doc:
@@ -86,7 +108,7 @@ def _illumination(args):
         from FluoCalibLib.radiometry.plots import plot_ratio_images
 
         res["plots"] = plot_ratio_images(ratios, args.out)
-    _save(args, ILLUMINATION_KEY, res)
+    _save(args, ILLUMINATION_KEY, res, scene)
     if "truth" in doc:
         res["truth"] = doc["truth"]
     return res
@@ -97,6 +119,7 @@ def _laser(args):
     from FluoCalibLib.radiometry.laser_line import calibrate_laser
     from FluoCalibLib.radiometry.scene import LASER_KEY
 
+    scene = _preflight(args)
     doc = _doc(args.folder, "laser.json")
     for k in ("camera", "camera_to_tracker", "laser_to_tracker", "phantom_to_tracker"):
         if k not in doc:
@@ -105,7 +128,7 @@ def _laser(args):
     res = calibrate_laser(images, CameraModel.from_dict(doc["camera"]), doc["camera_to_tracker"],
                           doc["laser_to_tracker"], doc["phantom_to_tracker"],
                           doc.get("pointer_origin_tool_mm"), holdout=args.holdout)
-    _save(args, LASER_KEY, {k: v for k, v in res.items() if k != "spots_px"})
+    _save(args, LASER_KEY, {k: v for k, v in res.items() if k != "spots_px"}, scene)
     if "truth" in doc:
         res["truth"] = doc["truth"]
     return res
@@ -122,7 +145,10 @@ def _synth(args):
         write_laser_set,
     )
 
+    from fluoguide import atomic
+
     out = Path(args.out)
+    atomic.check_writable(out, "--out", folder=True)   # three sets: refuse before the first
     frames, truth = synthetic_stack(seed=args.seed)
     # plus frames at several f-numbers and wavelengths (same default camera)
     extra, t_extra = synthetic_lens_spectral_frames(

@@ -29,7 +29,16 @@ def _track(args):
     from FluoNavLib.devices.ndi_client import NDIClient
     from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
 
+    from fluoguide.errors import check_number
+
     _seconds(args.seconds)
+    # an option that would be ignored is refused: the user meant something by it
+    if args.rate is not None and not args.igtl:
+        raise FluoInputError("applies to --igtl only", field="--rate", value=args.rate)
+    if args.tools is not None:
+        if not args.serial:
+            raise FluoInputError("applies to --serial only", field="--tools", value=args.tools)
+        check_number("--tools", args.tools, 1, 16, integer=True)  # an NDI tracker's passive ports
     if args.igtl:
         return _track_igtl(args)
     sim = None
@@ -48,7 +57,7 @@ def _track(args):
             raise FluoInputError(f"cannot open serial port ({exc})", field="--serial",
                                  value=port) from None
         with client:
-            client.initialize([b"FluoGuide sim tool " * 4] * (2 if args.sim else args.tools))
+            client.initialize([b"FluoGuide sim tool " * 4] * (2 if args.sim else args.tools or 1))
             client.start()
             t0 = time.monotonic()
             stats = client.track(args.seconds)
@@ -110,7 +119,8 @@ def _record(args):
     sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(), seed=args.seed)
     port = sim.start()
     try:
-        with NDIClient(port) as client, Recorder(args.out) as rec, _frame_source(args) as frames:
+        # the camera first: a refused source must not leave a recording folder behind
+        with _frame_source(args) as frames, NDIClient(port) as client, Recorder(args.out) as rec:
             client.initialize([b"camera tool rom " * 4])
             client.start()
 
@@ -140,12 +150,20 @@ def _record(args):
 def _replay(args):
     from FluoNavLib.devices.recorder import replay, to_scene
 
+    if args.scene:       # refused before the replay, not after it
+        from fluoguide import atomic
+
+        if Path(args.scene).suffix != ".mrml":
+            raise FluoInputError("scene file must end in .mrml", file=args.scene, field="--scene")
+        atomic.check_writable(args.scene, "--scene")
     n = valid = 0
     t0 = time.monotonic()
-    for _, info, poses in replay(args.folder, "max" if args.max_speed else "recorded"):
+    stats = {}
+    for _, info, poses in replay(args.folder, "max" if args.max_speed else "recorded", stats):
         n += 1
         valid += bool(info["pose_valid"])
-    out = {"frames": n, "frames_with_pose": valid, "seconds": time.monotonic() - t0}
+    out = {"frames": n, "frames_with_pose": valid, "seconds": time.monotonic() - t0,
+           "gaps_shortened": stats["gaps_shortened"]}
     if args.scene:
         from fluoguide import mrml_io
 
@@ -167,7 +185,8 @@ def register(subparsers):
     p.add_argument("--seconds", type=float, default=5.0)
     p.add_argument("--inject-faults", action="store_true",
                    help="simulator: CRC errors, slow replies, dropouts and a disconnect")
-    p.add_argument("--tools", type=int, default=1, help="passive tools to request (--serial)")
+    p.add_argument("--tools", type=int, default=None,
+                   help="passive tools to request (--serial; default 1)")
     p.add_argument("--seed", type=int, default=0)
     add_json_flag(p)
     p.set_defaults(func=_track)

@@ -64,7 +64,11 @@ def _read_points_csv(path, field):
     if not p.is_file():
         raise FluoInputError("file not found", file=p, field=field)
     rows = []
-    for i, line in enumerate(p.read_text().splitlines(), start=1):
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise FluoInputError("not UTF-8 text", file=p, field=field) from None
+    for i, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -104,13 +108,16 @@ def _forward(args):
     data = fm.excitation_data()
     out = {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "sources": len(src),
            "detectors": len(det), "detector_fluence": data.tolist()}
-    if args.jacobian:
+    if args.jacobian or args.jacobian_out:   # a file to write implies computing it
         J = fm.jacobian_mua_x()
         out["jacobian_shape"] = list(J.shape)
         out["jacobian_mua_norm"] = float(np.linalg.norm(J))
         if args.jacobian_out:
-            np.save(args.jacobian_out, J)
-            out["jacobian_file"] = str(Path(args.jacobian_out).resolve())
+            from fluoguide import atomic
+
+            # exactly the path given (np.save would append .npy), complete or not at all
+            out["jacobian_file"] = str(atomic.save_npy(args.jacobian_out, J,
+                                                       field="--jacobian-out").resolve())
     out["log_valid_fraction"] = float(safe_log(data)[1].mean())
     out["solver"] = fm.solver_name
     out["timings"] = fm.timings

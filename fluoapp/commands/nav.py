@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
+from fluoguide import atomic
 from fluoguide.errors import FluoInputError
 
 
@@ -28,6 +29,7 @@ def _synth(args):
         view_poses,
     )
 
+    atomic.check_writable(Path(args.out) / "scene.mrml", "--out")   # before rendering
     caster, poly = oral_cavity_surface(args.triangles)
     cam = open_field_camera(args.binning)
     cone = coupled_light()
@@ -63,7 +65,7 @@ def _factor_png(path, vm):
         ax.set_title(name, fontsize=9)
         ax.axis("off")
         fig.colorbar(im, ax=ax, shrink=0.7)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    atomic.save_figure(fig, path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return str(path)
 
@@ -77,6 +79,7 @@ def _correct(args):
     from FluoNavLib.mapping.correct import correct_frame, load_context, map_frames_to_surface
 
     t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)    # before the work, not after
     scene = mrml_io.load_scene(args.scene)
     ctx = load_context(scene)
     t1 = time.perf_counter()
@@ -98,7 +101,6 @@ def _correct(args):
     numbers = dict(r.numbers)
     write_frame_images(scene, r.transport, r.mapped, S, numbers)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     files = []
     if r.mapped.any():
         _, raw_contour, _ = miss_rate(S, r.hits.visible & r.flux_valid)
@@ -110,8 +112,9 @@ def _correct(args):
                               f"optical transport T, 40 % contour (miss "
                               f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped)]
     files.append(_factor_png(out / "factors.png", r.vm))
-    np.save(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
-    np.save(out / "surface_flux_w_per_mm2.npy", np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
+    atomic.save_npy(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
+    atomic.save_npy(out / "surface_flux_w_per_mm2.npy",
+                    np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
     scene_path = mrml_io.save_scene(scene, out / "scene.mrml")
     seen = w_face > 0
     numbers.update({

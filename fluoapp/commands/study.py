@@ -23,6 +23,10 @@ def _handler(args):
         target = (d, depth)
     from FluoTomoLib.studies.thesis import run_study, run_sweep
 
+    if args.out:          # refused before minutes of work, not after
+        from fluoguide import atomic
+
+        atomic.check_writable(args.out, "--out", folder=True)
     t0 = time.perf_counter()
     with TqdmProgress(f"study {args.study}", force=not args.json) as bar:
         if args.sweep:
@@ -39,8 +43,9 @@ def _handler(args):
 
         from fluoapp.cli import dumps
 
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "study.json").write_text(dumps(out))
+        from fluoguide import atomic
+
+        atomic.write_text(Path(args.out) / "study.json", dumps(out))
         json.loads((Path(args.out) / "study.json").read_text())
     return out
 

@@ -14,7 +14,8 @@ import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fluoguide.errors import FluoError, FluoInputError
+from fluoguide import atomic
+from fluoguide.errors import FluoError, FluoInputError, check_number
 from fluoguide.progress import check_cancel, report
 
 
@@ -38,9 +39,7 @@ class DemoContext:
 def _write_json_atomic(path, data):
     from fluoapp.cli import dumps
 
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(dumps(data))
-    tmp.replace(path)
+    atomic.write_text(path, dumps(data))
 
 
 def _stages():
@@ -56,6 +55,14 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     fails; the message names the stage.
     """
     out = Path(out_dir).resolve()
+    names = [s[0] for s in _stages()]
+    if only is not None:
+        # an empty or misspelt selection would run nothing and report success
+        unknown = [n for n in only if n not in names]
+        if unknown or not only:
+            raise FluoInputError(f"unknown stage; choose from {', '.join(names)}", field="--only",
+                                 value=",".join(unknown) if unknown else "")
+    check_number("seed", seed, 0, 2**32 - 1, integer=True)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write-test"
@@ -78,7 +85,7 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
             fn(ctx)
         except Exception as exc:  # recorded, reported, then re-raised as one message
             ctx.metrics["stages_failed"][name] = f"{type(exc).__name__}: {exc}"
-            (out / f"{name}.error.txt").write_text(traceback.format_exc())
+            atomic.write_text(out / f"{name}.error.txt", traceback.format_exc())
             failure = (name, exc)
             break
         finally:
@@ -147,6 +154,4 @@ def write_report(ctx):
             parts.append(f"<figure><img src='{html.escape(name)}' alt='{html.escape(caption)}'>"
                          f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     parts.append("</body></html>")
-    tmp = ctx.out / "report.html.tmp"
-    tmp.write_text("\n".join(parts))
-    tmp.replace(ctx.out / "report.html")
+    atomic.write_text(ctx.out / "report.html", "\n".join(parts))

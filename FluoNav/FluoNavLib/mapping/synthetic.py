@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fluoguide.errors import check_number, seeded_rng
+
 from FluoCalibLib.geometry import transforms as tf
 from FluoCalibLib.geometry.camera_model import CameraModel
 from FluoCalibLib.radiometry.illumination_model import IlluminationCone
@@ -19,12 +21,19 @@ __all__ = ["oral_cavity_surface", "open_field_camera", "coupled_light", "view_po
            "render_view"]
 
 
+# The largest optical transport a synthetic view renders (dimensionless): far
+# above tissue's (< 1), below where the photon counts' Poisson draws overflow
+MAX_TRANSPORT = 100.0
+
+
 def oral_cavity_surface(target_triangles=62000, seed=0):
     """SurfaceCaster of the oral-cavity phantom's air-tissue surface (RAS mm)."""
     from fluoguide.phantoms import make_phantom
 
     from FluoNavLib.mapping.surface import surface_from_labelmap
 
+    check_number("target_triangles", target_triangles, 0, 10_000_000, integer=True,
+                 what="must be 0 (keep all) .. 10,000,000")
     p = make_phantom("oral-cavity", seed=seed)
     ijk = np.diag([*p.spacing_mm, 1.0])
     ijk[:3, 3] = p.origin_mm
@@ -35,6 +44,7 @@ def oral_cavity_surface(target_triangles=62000, seed=0):
 def open_field_camera(binning=1):
     """1392 x 1040 sensor, 6.45 um pixels, a 12 mm lens (f ~ 1860 px): the whole
     oral cavity from 120 mm."""
+    check_number("binning", binning, 1, 64, integer=True)
     cam = CameraModel(1860.0, 1860.0, 695.5, 519.5, (0.0, 0.0, 0.0, 0.0, 0.0), 1392, 1040)
     return cam.binned(binning) if binning > 1 else cam
 
@@ -48,6 +58,8 @@ def coupled_light():
 
 def view_poses(n=4, distance_mm=120.0, centre=(0.0, 0.0, -20.0)):
     """CameraToWorld poses looking into the cavity from above at several angles."""
+    check_number("views", n, 1, 360, integer=True)
+    check_number("distance_mm", distance_mm, 0.0, 10_000.0, lo_open=True)
     poses = []
     for k in range(n):
         az = 2 * np.pi * k / max(n, 1)
@@ -59,9 +71,14 @@ def view_poses(n=4, distance_mm=120.0, centre=(0.0, 0.0, -20.0)):
 
 
 def render_view(caster, camera, camera_to_world, cone, transport=0.3, radiometric=None, seed=0):
-    """(noisy counts [ADU], hits, view model) of one view of homogeneous tissue."""
+    """(noisy counts [ADU], hits, view model) of one view of homogeneous tissue.
+
+    ``transport`` is the optical transport T (dimensionless, 0..100; tissue's is
+    below 1, larger values only saturate the sensor).
+    """
+    check_number("transport", transport, 0.0, MAX_TRANSPORT)
     rcam = radiometric or RadiometricCamera(gain_adu_per_e=1.0)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     hits = cast_camera(caster, camera, camera_to_world)
     vm = view_model(hits, cone, camera_to_world)
     S = forward_image(vm, cone, transport)                      # ADU above offset

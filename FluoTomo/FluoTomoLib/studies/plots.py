@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fluoguide import atomic
+
 
 def plot_case(out_dir, index, title, fields):
     """PNG of every reconstruction of one case next to the truth (same scale)."""
@@ -16,7 +18,6 @@ def plot_case(out_dir, index, title, fields):
     import matplotlib.tri as mtri
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     vmax = max(float(np.max(v)) for _, v in fields.values())
     n = len(fields)
     fig, axes = plt.subplots(1, n, figsize=(3.3 * n, 2.8))
@@ -43,6 +44,6 @@ def plot_case(out_dir, index, title, fields):
     fig.colorbar(im, ax=list(axes), shrink=0.8, label="yield [1e-3 / mm]")
     fig.suptitle(title, fontsize=10)
     path = out / f"case_{index:02d}.png"
-    fig.savefig(path, dpi=80)
+    atomic.save_figure(fig, path, dpi=80)
     plt.close(fig)
     return str(path)

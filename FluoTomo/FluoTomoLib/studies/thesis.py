@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, seeded_rng
 from fluoguide.progress import check_cancel, report
 
 from FluoTomoLib.fem.forward import FluorescenceModel
@@ -173,7 +173,7 @@ def run_case(case, diameter_mm, top_depth_mm, inner_diameter_mm=0.0, prior_diame
     inside, centre_depth = disc(diameter_mm, top_depth_mm, inner_diameter_mm)
     truth_f = np.where(inside(fine.nodes_mm), YIELD_TARGET, YIELD_BG)
     y_clean = J_f @ truth_f
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     y = y_clean * (1.0 + rng.normal(0.0, noise_pct / 300.0, y_clean.shape))
     prior_shape, _ = disc(prior_diameter_mm or diameter_mm, top_depth_mm)
     prior = RegionPrior(node_regions_from_shape(coarse, prior_shape))
@@ -220,6 +220,7 @@ def run_study(name, seed=0, target=None, out_dir=None, dim=2, scheme="nirfast",
     (discs in a 50 x 30 mm section) or 3D (spheres in a 50 x 30 x 20 mm slab),
     with a reconstruction ``scheme`` and ``hp_basis`` as in :func:`run_case`."""
     _recon_options(scheme, hp_basis)      # bad names fail before any mesh is built
+    seeded_rng(seed)                      # and so does a bad seed
     if target is not None:
         cases = [(f"custom: {target[0]:g} mm disc, top {target[1]:g} mm",
                   dict(diameter_mm=target[0], top_depth_mm=target[1]))]
@@ -264,6 +265,7 @@ def run_sweep(kind, target=(6.0, 3.5), dim=2, seed=0, scheme="nirfast", hp_basis
     if kind not in SWEEPS:
         raise FluoInputError(f"sweep must be one of {', '.join(SWEEPS)}", field="--sweep",
                              value=kind)
+    seeded_rng(seed)
     rows = []
     base = study_meshes(dim=dim)
     for i, value in enumerate(SWEEPS[kind]):
