@@ -62,7 +62,8 @@ class NavPanel:
 
     def stream(self):
         """Track with the simulated NDI tracker and render/correct frames of the
-        oral-cavity phantom at the tracked pose (background job)."""
+        oral-cavity phantom at the tracked pose (background job) for ``nav_seconds``
+        or until Stop: stopping a stream ends it normally, with its summary."""
         from FluoCalibLib.geometry import transforms as tf
         from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
         from FluoNavLib.mapping.contours import miss_rate
@@ -76,8 +77,12 @@ class NavPanel:
         from FluoNavLib.devices.ndi_client import NDIClient
         from FluoNavLib.devices.ndi_simulator import NDISimulator, SimTool
 
-        seconds = float(self.app.state.nav_seconds)
+        from fluoguide.errors import check_number
+
+        seconds = check_number("seconds", float(self.app.state.nav_seconds or 0), 0.0, 3600.0,
+                               lo_open=True)
         frames = self._frames
+        self.app.state.nav_frames_shown = 0     # counts this stream's frames
 
         def work(progress, cancel):
             caster, poly = oral_cavity_surface(20000)
@@ -90,6 +95,7 @@ class NavPanel:
             sim = NDISimulator(tools=[tool])
             port = sim.start()
             shown = 0
+            stopped = False
             try:
                 with NDIClient(port) as client:
                     client.initialize([b"camera tool" * 4])
@@ -98,8 +104,9 @@ class NavPanel:
 
                     t_end = time.monotonic() + seconds
                     while time.monotonic() < t_end:
-                        if cancel is not None:
-                            cancel.check()
+                        if cancel is not None and cancel.cancelled:
+                            stopped = True      # Stop ends a live stream; it is no failure
+                            break
                         reply = None
                         while reply is None:
                             reply = client.poll()
@@ -127,10 +134,12 @@ class NavPanel:
                     stats = client.stats
             finally:
                 sim.stop()
-            return {"frames": shown, "tracker_frames": stats.frames, "lost_unreported": stats.lost_unreported()}
+            return {"frames": shown, "tracker_frames": stats.frames,
+                    "lost_unreported": stats.lost_unreported(), "stopped": stopped}
 
         def done(result):
-            self.app.notify(f"Streamed {result['frames']} corrected frames from "
+            how = "Stream stopped after" if result["stopped"] else "Streamed"
+            self.app.notify(f"{how} {result['frames']} corrected frames from "
                             f"{result['tracker_frames']} tracker frames (unreported losses: "
                             f"{result['lost_unreported']})", "success")
 
