@@ -2,15 +2,15 @@
 
 Each capability registers its own subcommands from a small ``*_cli`` module
 listed in ``CLI_MODULES``; this file only builds the parser, runs the chosen
-command and turns errors into one-line messages.
+command and turns errors into one-line messages: bad input (``FluoInputError``)
+exit code 2, a device or peer failure (``FluoError``) exit code 1, anything else
+is a bug: one line ``fluo: internal error: ...``, exit code 1, and the traceback
+only under ``fluo --debug``.
 
 Conventions every subcommand follows:
 
 - ``--json`` prints exactly one JSON object on stdout (progress goes to stderr).
 - Bad input raises ``FluoInputError``: one line on stderr, exit code 2.
-- A device or peer failure (``FluoError``): one line, exit code 1.
-- Anything else is a bug: one line ``fluo: internal error: ...``, exit code 1;
-  ``fluo --debug ...`` prints the traceback as well.
 - A handler returns a dict (the JSON result); without ``--json`` it is printed
   as readable ``key: value`` lines.
 """
@@ -119,12 +119,8 @@ def main(argv=None):
         return _internal_error(exc, args)
     if result is None:
         return 0
-    try:
-        text = dumps(result) if getattr(args, "json", False) else None
-    except Exception as exc:  # an unserialisable result is a bug too
-        return _internal_error(exc, args)
-    if text is not None:
-        print(text)
+    if getattr(args, "json", False):
+        print(dumps(result))
     else:
         _print_human(result, sys.stdout)
     return 0

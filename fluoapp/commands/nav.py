@@ -30,8 +30,9 @@ def _synth(args):
     )
 
     atomic.check_writable(Path(args.out) / "scene.mrml", "--out")   # before rendering
+    cam = open_field_camera(args.binning)       # the cheap checks before the surface
+    poses = view_poses(args.views)
     caster, poly = oral_cavity_surface(args.triangles)
-    cam = open_field_camera(args.binning)
     cone = coupled_light()
     rc = RadiometricCamera(gain_adu_per_e=1.0)
     scene = mrml_io.new_scene()
@@ -42,7 +43,7 @@ def _synth(args):
     mrml_io.set_transform(scene, "TrackerToReference", np.eye(4))
     mrml_io.set_transform(scene, "CameraToTracker", np.eye(4))   # hand-eye: camera = tool frame
     frame_store.new_recording(scene)
-    for k, pose in enumerate(view_poses(args.views)):
+    for k, pose in enumerate(poses):
         counts, _, _ = render_view(caster, cam, pose, cone, args.transport, rc, seed=k)
         frame_store.append_tracked_frame(scene, counts.astype(np.uint16), 1.0 + k / 10,
                                          {"CameraToolToTracker": pose}, exposure_s=rc.exposure_s)
