@@ -11,8 +11,10 @@ folder); a crash after it is rolled forward by :func:`recover`, which every
 loader and every later commit calls first, so a reader sees the old set or the
 new set, never a mix.
 
-A new folder (a phantom written where none was) is staged beside its final
-name and appears with one rename (:func:`stage_beside`, :func:`publish_folder`).
+A set of files written as a whole (:func:`staged_folder`: a phantom, a synthetic
+data set) is staged beside a new folder and appears with one rename
+(:func:`stage_beside`, :func:`publish_folder`), or is committed into an existing
+folder as above.
 
 A kill -9 cannot run cleanup code, so it leaves hidden debris (a ``.NAME.tmp-PID-*``
 file, a ``.NAME.stage-PID-*`` folder), never a damaged final name; the next
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import json
 import os
 import shutil
@@ -66,7 +69,7 @@ def _remove_debris(folder, prefix, max_age_s=86400.0):
     """Remove ``folder/prefix<pid>-*`` entries of processes that are gone (or a day old)."""
     now = time.time()
     with contextlib.suppress(OSError):
-        for entry in Path(folder).glob(f"{prefix}*"):
+        for entry in Path(folder).glob(glob.escape(prefix) + "*"):
             pid = entry.name[len(prefix):].split("-", 1)[0]
             try:
                 stale = (not pid.isdigit() or not _pid_alive(int(pid))
@@ -300,8 +303,14 @@ def recover(out_dir, stale_after_s=600.0):
     if journal_path.is_file():
         try:
             journal = json.loads(journal_path.read_text())
-            files = journal["files"]
-            ok = isinstance(files, list) and all(isinstance(f, str) and "/" not in f for f in files)
+            files, stage = journal["files"], journal["stage"]
+            # a hostile folder's journal must not move files in from elsewhere or
+            # delete a folder outside (the roll ends by removing the stage)
+            ok = (isinstance(files, list) and all(isinstance(f, str) and "/" not in f
+                                                  and f not in ("", ".", "..") for f in files)
+                  and isinstance(stage, str) and stage.startswith(STAGING_PREFIX)
+                  and "/" not in stage and ".." not in stage
+                  and (out_dir / stage).is_dir() and not (out_dir / stage).is_symlink())
         except (ValueError, KeyError, TypeError, OSError):
             ok = False
         if ok:
