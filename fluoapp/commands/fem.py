@@ -82,7 +82,11 @@ def _read_points_csv(path, field):
     if not p.is_file():
         raise FluoInputError("file not found", file=p, field=field)
     rows = []
-    for i, line in enumerate(p.read_text().splitlines(), start=1):
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise FluoInputError("not UTF-8 text", file=p, field=field) from None
+    for i, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -126,8 +130,9 @@ def _forward(args):
     out = {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "sources": len(src),
            "detectors": len(det)}
     check = None
+    want_jacobian = args.jacobian or args.jacobian_out   # a file to write implies computing it
     if args.model in ("auto", "analytic"):
-        if args.jacobian and args.model == "analytic":
+        if want_jacobian and args.model == "analytic":
             raise FluoInputError("the Jacobian needs the FEM (--model fem or auto)",
                                  field="--model", value=args.model)
         check = half_space_check(mesh, args.mua, args.musp, args.n, src, det)
@@ -136,7 +141,7 @@ def _forward(args):
             raise FluoInputError(f"the analytic half-space model does not apply: "
                                  f"{check['reason']}", file=args.mesh, field="--model",
                                  value="analytic")
-    if check is not None and check["usable"] and not args.jacobian:
+    if check is not None and check["usable"] and not want_jacobian:
         from FluoTomoLib.optics import diffusion_validity, transport_mfp_mm
         from FluoTomoLib.optics import NEAR_SOURCE_MFP
 
@@ -167,13 +172,16 @@ def _forward(args):
     data = fm.excitation_data()
     out["model"] = "fem"
     out["detector_fluence"] = data.tolist()
-    if args.jacobian:
+    if want_jacobian:
         J = fm.jacobian_mua_x()
         out["jacobian_shape"] = list(J.shape)
         out["jacobian_mua_norm"] = float(np.linalg.norm(J))
         if args.jacobian_out:
-            np.save(args.jacobian_out, J)
-            out["jacobian_file"] = str(Path(args.jacobian_out).resolve())
+            from fluoguide import atomic
+
+            # exactly the path given (np.save would append .npy), complete or not at all
+            out["jacobian_file"] = str(atomic.save_npy(args.jacobian_out, J,
+                                                       field="--jacobian-out").resolve())
     out["log_valid_fraction"] = float(safe_log(data)[1].mean())
     out["accuracy"] = {k: acc[k] for k in ("target_rel_err", "estimated_rel_err",
                                             "element_size_needed_mm")}

@@ -112,6 +112,9 @@ def _handler(args):
         return _quality(args, labels, spacing, origin, direction, roi, t0)
     if args.refine:
         raise FluoInputError("--refine needs the quality mesher (drop --fast)", field="--refine")
+    if args.threads is not None:
+        raise FluoInputError("--threads applies to the quality mesher (drop --fast)",
+                             field="--threads", value=args.threads)
     edges = _optode_edges(args, labels, spacing, origin, direction) if args.optodes else None
     mesh = mesh_labelmap_structured(labels, spacing, origin, args.size, roi=roi,
                                     direction=direction, edges_mm=edges)

@@ -108,7 +108,14 @@ def _cell_labels(labels_kji, spacing, origin, roi, size_mm, anchor_mm=None, refi
                              value=list(roi))
     sub = labels_kji[np.ix_(keep_k, keep_j, keep_i)]
     ci, cj, ck = ii[keep_i], jj[keep_j], kk[keep_k]
-    n_labels = int(sub.max()) + 1
+    if sub.min() < 0:
+        raise FluoInputError("label values must be >= 0 (0 = outside)", field="labels",
+                             value=int(sub.min()))
+    # Count per label actually present (0, air, always first): a label value of
+    # 65535 must not mean 65536 count columns per cell (3.95 GB for 4,800 voxels)
+    values = np.union1d([0], np.unique(sub))
+    sub = np.searchsorted(values, sub)
+    n_labels = len(values)
     counts = np.zeros((n_cells[0], n_cells[1], n_cells[2], n_labels), dtype=np.int32)
     K, J, I = np.meshgrid(ck, cj, ci, indexing="ij")
     np.add.at(counts, (I.ravel(), J.ravel(), K.ravel(), sub.ravel().astype(np.int64)), 1)
@@ -149,7 +156,7 @@ def _cell_labels(labels_kji, spacing, origin, roi, size_mm, anchor_mm=None, refi
             chosen[cand[:k]] = False
         cell.ravel()[chosen] = r
         taken |= chosen
-    return cell, edges
+    return values[cell], edges
 
 
 def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=None,
@@ -211,6 +218,14 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
         raise FluoInputError("roi must be x0,x1,y0,y1,z0,z1 with x0<x1 etc.", field="roi",
                              value=roi.tolist())
     roi = np.clip(roi, np.repeat(extent_lo, 2), np.repeat(extent_hi, 2))
+    if np.any(roi[1::2] <= roi[0::2]):
+        raise FluoInputError("region of interest does not overlap the label map", field="roi",
+                             value=roi.tolist())
+    across = float(np.max(roi[1::2] - roi[0::2]))
+    if size_mm > across:
+        # one cell would hold everything: a mesh, but of nothing the label map says
+        raise FluoInputError(f"element size is larger than the label map ({across:.3g} mm "
+                             "across)", field="size_mm", value=size_mm)
     n_est = np.prod((roi[1::2] - roi[0::2]) / size_mm) * (8 if refine is not None else 1)
     if n_est > 3e6:
         raise FluoInputError(f"about {n_est:.3g} cells: choose a larger element size or a "
