@@ -2,7 +2,10 @@
 
 Each capability registers its own subcommands from a small ``*_cli`` module
 listed in ``CLI_MODULES``; this file only builds the parser, runs the chosen
-command and turns errors into one-line messages.
+command and turns errors into one-line messages: bad input (``FluoInputError``)
+exit code 2, a device or peer failure (``FluoError``) exit code 1, anything else
+is a bug: one line ``fluo: internal error: ...``, exit code 1, and the traceback
+only under ``fluo --debug``.
 
 Conventions every subcommand follows:
 
@@ -74,6 +77,8 @@ def build_parser():
                         help="threads of the numerical libraries (BLAS, MKL/PARDISO, numba): a "
                         "count, 'auto' (every core) or 'system' (the libraries' own defaults); "
                         "default: $FLUO_THREADS, else 1 (docs/performance.md)")
+    parser.add_argument("--debug", action="store_true",
+                        help="print the traceback of an unexpected error (default: one line)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in CLI_MODULES:
@@ -116,6 +121,8 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("fluo: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # the last resort: a bug, not the user's input
+        return _internal_error(exc, args)
     if result is None:
         return 0
     # a handler whose work partly failed (a run with failed tasks) returns its
@@ -128,6 +135,18 @@ def main(argv=None):
 
         print(format_result(result, command_name(args)))
     return rc
+
+
+def _internal_error(exc, args):
+    """One line for an unexpected exception (exit 1); the traceback under ``--debug``."""
+    if getattr(args, "debug", False):
+        import traceback
+
+        traceback.print_exception(exc, file=sys.stderr)
+    first = (str(exc).strip().splitlines() or [""])[0][:300]
+    hint = "" if getattr(args, "debug", False) else " (fluo --debug ... shows the traceback)"
+    print(f"fluo: internal error: {type(exc).__name__}: {first}{hint}", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

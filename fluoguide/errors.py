@@ -76,3 +76,57 @@ def require_positive(name, value, file=None, allow_zero=False):
         need = "non-negative" if allow_zero else "positive"
         raise FluoInputError(f"must be {need}", file=file, field=name, value=float(bad))
     return arr
+
+
+def check_number(name, value, lo=None, hi=None, *, lo_open=False, hi_open=False, integer=False,
+                 file=None, what=None):
+    """``value`` if it is a finite number within the bounds, else FluoInputError.
+
+    NaN passes every ``<``/``>`` range check (all its comparisons are False), so
+    each parameter that reaches arithmetic is checked here, where it is used.
+
+    Parameters
+    ----------
+    name : str
+        The field or option named in the message (``"--views"``, ``"noise_sigma"``).
+    value : number
+    lo, hi : number, optional
+        Bounds (inclusive unless ``lo_open`` / ``hi_open``).
+    integer : bool
+        Require an integer (bool is refused).
+    file : path, optional
+        The file the value came from.
+    what : str, optional
+        The requirement in words, for every message (default: built from the bounds).
+    """
+    import numbers
+
+    import numpy as np
+
+    ok_type = (isinstance(value, numbers.Integral) if integer else isinstance(value, numbers.Real))
+    if isinstance(value, (bool, np.bool_)) or not ok_type:
+        raise FluoInputError(what or ("must be an integer" if integer else "must be a number"),
+                             file=file, field=name, value=value)
+    if not np.isfinite(value):
+        raise FluoInputError(what or "must be a finite number", file=file, field=name,
+                             value=float(value))
+    bad = ((lo is not None and (value <= lo if lo_open else value < lo))
+           or (hi is not None and (value >= hi if hi_open else value > hi)))
+    if bad:
+        if what is None:
+            lb = "(" if lo_open else "["
+            rb = ")" if hi_open else "]"
+            what = f"must be within {lb}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}{rb}"
+        raise FluoInputError(what, file=file, field=name, value=value)
+    return value
+
+
+def seeded_rng(seed, name="seed"):
+    """``numpy.random.default_rng(seed)`` for a seed in 0..2**32-1 (None: fresh entropy;
+    a Generator is passed through); anything else is a FluoInputError naming ``name``."""
+    import numpy as np
+
+    if seed is None or isinstance(seed, np.random.Generator):
+        return np.random.default_rng(seed)
+    check_number(name, seed, 0, 2**32 - 1, integer=True, what="must be an integer within 0..2**32-1")
+    return np.random.default_rng(int(seed))

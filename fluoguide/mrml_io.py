@@ -562,6 +562,20 @@ def _check_transforms(scene, path):
             parent_id = parent.GetTransformNodeID() if parent is not None else None
 
 
+def scene_to_update(path, field="--scene"):
+    """The scene at ``path`` to add results to and save back (a new one if the
+    file does not exist yet).
+
+    Called before any work, so a scene that cannot be read or written refuses
+    the run while nothing has been written.
+    """
+    path = Path(path)
+    if path.suffix != ".mrml":
+        raise FluoInputError("scene file must end in .mrml", file=path, field=field)
+    atomic.check_writable(path, field)
+    return load_scene(path) if path.exists() else new_scene()
+
+
 def load_scene(path):
     """Read a .mrml scene and the storage files it refers to.
 

@@ -17,9 +17,6 @@ phantom centred on x = y = 0.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from fluoguide import atomic
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, seeded_rng
 from fluoguide.optics_table import icg_liquid_optics, non_fluorescent_optics
 from fluoguide.voxelize import voxelize
 
@@ -121,7 +118,7 @@ def slab(voxel_mm=0.8, seed=0):
 
     vols = {1: a * b * h}
     labels, fr = voxelize([(1, inside)], shape, (v, v, v), origin, vols)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     cbct = _render_cbct(labels, fr, {0: HU["air"], 1: HU["polyurethane"]}, (v, v, v), rng)
     return Phantom("slab", cbct, labels, np.array([v, v, v]), origin,
                    {0: "air", 1: "polyurethane"},
@@ -174,7 +171,7 @@ def cylinder_tube(voxel_mm=0.8, seed=0, depth_mm=4.7, tube_diameter_mm=2.4,
     v_tube = _tube_in_cylinder_volume(R, r)
     vols = {1: np.pi * R * R * H - v_tube, 2: v_tube}
     labels, fr = voxelize([(1, liquid), (2, tube)], shape, (v, v, v), origin, vols)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     cbct = _render_cbct(labels, fr, {0: HU["air"], 1: HU["water"], 2: HU["icg_tube"]}, (v, v, v), rng)
     optics = {1: icg_liquid_optics(background_icg_ug_per_ml),
               2: icg_liquid_optics(tube_icg_ug_per_ml)}
@@ -244,7 +241,7 @@ def oral_cavity(voxel_mm=0.8, seed=0, tissue_icg_ug_per_ml=0.4, tongue_icg_ug_pe
     v_overlap = _half_ellipsoid_overlap(cav, (t_centre, t_axes))
     vols = {1: v_block - v_cav - (v_tongue - v_overlap), 2: v_tongue}
     labels, fr = voxelize([(1, tissue), (2, tongue)], shape, (v, v, v), origin, vols)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     cbct = _render_cbct(labels, fr, {0: HU["air"], 1: HU["agar"], 2: HU["tongue"]}, (v, v, v), rng)
     optics = {1: icg_liquid_optics(tissue_icg_ug_per_ml, base_mua_x=0.003, base_mua_m=0.003),
               2: icg_liquid_optics(tongue_icg_ug_per_ml, base_mua_x=0.003, base_mua_m=0.003)}
@@ -300,29 +297,11 @@ def write_phantom(phantom, out_dir):
     from fluoguide import mrml_io
 
     out_dir = Path(out_dir).resolve()
-    if out_dir.exists() and not out_dir.is_dir():
-        raise FluoInputError("output exists and is not a folder", file=out_dir)
-    fresh = not out_dir.exists()
-    try:
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        # a new phantom is staged beside its folder and appears with one rename;
-        # over an existing one it is staged inside and committed as a transaction
-        tmp = (Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.stage-", dir=out_dir.parent))
-               if fresh else atomic.staging_folder(out_dir))
-    except OSError as exc:
-        raise FluoInputError(f"cannot write here ({exc.strerror})", file=out_dir) from None
-    try:
+    with atomic.staged_folder(out_dir, last=("truth.json", "scene.mrml")) as tmp:
         scene = mrml_io.new_scene()
         add_phantom_to_scene(scene, phantom)
         mrml_io.save_scene(scene, tmp / "scene.mrml")
         (tmp / "truth.json").write_text(json.dumps(phantom.truth(), indent=2, allow_nan=False))
-        if fresh:
-            os.replace(tmp, out_dir)
-        else:
-            names = sorted(f.name for f in tmp.iterdir() if f.name not in ("scene.mrml", "truth.json"))
-            atomic.commit_files(tmp, out_dir, names + ["truth.json", "scene.mrml"])
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return out_dir / "scene.mrml"
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from fluoguide.errors import FluoInputError
 
 from FluoTomoLib.optics import (
+    MAX_COEFFICIENT_PER_MM,
     check_properties,
     diffusion_coefficient,
     mueff,
@@ -249,10 +250,12 @@ def total_diffuse_fluorescence(props_x, props_m, yield_per_mm, n, include_unscat
     yield_per_mm : eta * mua_f,x
     include_unscattered : add the unscattered beam e^{-mut'_x z} to Phi_x
     """
+    from fluoguide.errors import check_number
+
     mua_x, musp_x = (float(v) for v in props_x)
     mua_m, musp_m = (float(v) for v in props_m)
-    if not (np.isfinite(yield_per_mm) and yield_per_mm >= 0):
-        raise FluoInputError("must be finite and >= 0", field="yield_per_mm", value=yield_per_mm)
+    # eta * mua_f: a part of the excitation absorption, so bounded like it
+    check_number("yield_per_mm", yield_per_mm, 0.0, MAX_COEFFICIENT_PER_MM)
     check_properties(mua_x, musp_x, n, where="excitation", warn=False)
     check_properties(mua_m, musp_m, n, where="emission", warn=False)
     if mua_m <= 0:

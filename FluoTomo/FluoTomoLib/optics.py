@@ -20,6 +20,10 @@ class DiffusionValidityWarning(UserWarning):
     """Diffusion theory is inaccurate here (musp/mua < 10 or too close to a source)."""
 
 
+# Largest absorption or reduced scattering accepted [1/mm]: tissue is 1e-3..10 /mm
+MAX_COEFFICIENT_PER_MM = 1e3
+
+
 def check_properties(mua_per_mm, musp_per_mm, n=None, where="optical properties", warn=True):
     """Validate absorption, scattering and refractive index; return float arrays."""
     mua = np.asarray(mua_per_mm, dtype=float)
@@ -37,6 +41,12 @@ def check_properties(mua_per_mm, musp_per_mm, n=None, where="optical properties"
         bad = np.flatnonzero(np.atleast_1d(musp) <= 0)[0]
         raise FluoInputError("reduced scattering must be > 0", field=f"{where}.musp_per_mm[{bad}]",
                              value=float(np.atleast_1d(musp)[bad]))
+    # beyond any tissue by orders of magnitude (and where the closed forms overflow)
+    for name, v in (("mua_per_mm", mua), ("musp_per_mm", musp)):
+        if np.any(v > MAX_COEFFICIENT_PER_MM):
+            bad = np.flatnonzero(np.atleast_1d(v) > MAX_COEFFICIENT_PER_MM)[0]
+            raise FluoInputError(f"must be at most {MAX_COEFFICIENT_PER_MM:g} /mm",
+                                 field=f"{where}.{name}[{bad}]", value=float(np.atleast_1d(v)[bad]))
     if n is not None:
         n_arr = np.asarray(n, dtype=float)
         if not np.all(np.isfinite(n_arr)) or np.any(n_arr < 1.0) or np.any(n_arr > 3.0):

@@ -239,3 +239,22 @@ def test_a_damaged_calibration_json_is_refused_not_overwritten(tmp_path):
     path.write_text("[1, 2]")
     with pytest.raises(FluoInputError, match="expected a JSON object"):
         write_calibration_json(path, RADIOMETRY_KEY, {"gain": 1.0})
+
+
+def test_a_hostile_commit_journal_moves_and_deletes_nothing_outside(tmp_path):
+    """A scene folder's journal names its staging folder; one that names a folder
+    outside (../victim) must not move its files in, nor delete it afterwards."""
+    import json
+
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "precious.txt").write_text("keep me")
+    target = tmp_path / "s" / "scene.mrml"
+    mrml_io.save_scene(_scene_with(1), target)
+    for stage in ("../victim", str(victim), ".fluo-stage-1/../../victim"):
+        (target.parent / atomic.JOURNAL).write_text(
+            json.dumps({"stage": stage, "files": ["precious.txt"]}))
+        assert _versions(target) == {1}              # load_scene runs the recovery
+        assert (victim / "precious.txt").read_text() == "keep me"
+        assert not (target.parent / "precious.txt").exists()
+        assert not (target.parent / atomic.JOURNAL).exists()

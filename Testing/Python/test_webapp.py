@@ -73,10 +73,10 @@ def test_job_runner_cancel_and_errors_become_state_not_exceptions():
 
 
 @pytest.fixture(scope="module")
-def app():
+def app(tmp_path_factory):
     from fluoapp.webapp.app import create_app
 
-    return create_app()
+    return create_app(workspace=tmp_path_factory.mktemp("workspace"))
 
 
 def _panel(app, key):
@@ -161,16 +161,25 @@ def test_tomo_reconstruction_job_overlays_the_result(app):
 
 
 def test_nav_stream_from_the_simulated_tracker(app):
-    nav = _panel(app, "FluoNav")
-    app.state.nav_seconds = 2
+    # The stream runs until Stop; the test stops it once the page has shown two
+    # frames. (A 2 s stream showed one frame on a loaded machine: the first
+    # frame's compile and render ate the window, and frames that arrive between
+    # two polls show as one.)
+    app.state.nav_seconds = 600
     app.ctrl.nav_stream()
     t0 = time.time()
-    while app.jobs.busy and time.time() - t0 < 60:
+    while app.jobs.busy and app.state.nav_frames_shown < 2 and time.time() - t0 < 300:
+        app.poll()
+        time.sleep(0.1)
+    assert app.jobs.busy, app.jobs.state.error      # still streaming when stopped
+    app.ctrl.fluo_cancel_job()                     # the Stop button
+    while app.jobs.busy and time.time() - t0 < 360:
         app.poll()
         time.sleep(0.1)
     app.poll()
     assert not app.jobs.busy and not app.jobs.state.error, app.jobs.state.error
     assert app.state.nav_frames_shown >= 2
+    assert "Stream stopped after" in app.state.fluo_message
     frame = app.state.nav_frame
     assert frame["raw"].startswith("data:image/png;base64,") and frame["miss_corrected"] < 5
     assert mrml_io.get_node(app.scene, "FluoNavCamera") is not None
@@ -196,7 +205,7 @@ def test_calib_panel_runs_the_light_calibrations(app):
     from FluoCalibLib.radiometry import scene as light_scene
 
     assert light_scene.load_calibration(app.scene, light_scene.LASER_KEY)["error_3d_mm"] < 0.5
-    app.state.calib_light_folder = "/nonexistent"
+    app.state.calib_light_folder = "nonexistent"
     app.ctrl.calib_light_run()
     assert "folder not found" in app.state.fluo_message
 
@@ -240,6 +249,9 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, tm
 
     sc = ellipsoid_inclusion_labelmap(semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0),
                                       inclusion_gap_mm=2.5, inclusion_offset_mm=(1.0, -1.0))
+    # the UI takes paths inside its workspace (issue #21)
+    tmp_path = app.workspace.root / "own"
+    tmp_path.mkdir(exist_ok=True)
     write_volume_nrrd(tmp_path / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"],
                       sc["origin_mm"], sc["direction"])
     optics = {"n": 1.37, "fluorophore": "ICG",
@@ -254,12 +266,15 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, tm
                         str(tmp_path / "acq")], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     s = app.state
-    s.tomo_own_labels = str(tmp_path / "missing.nrrd")
-    s.tomo_own_optics = str(tmp_path / "optics.json")
-    s.tomo_own_acquisition = str(tmp_path / "acq")
+    s.tomo_own_labels = "own/missing.nrrd"
+    s.tomo_own_optics = "own/optics.json"
+    s.tomo_own_acquisition = "own/acq"
     app.ctrl.tomo_load_own()
     assert "missing.nrrd" in s.fluo_message and s.fluo_message_color == "error"
-    s.tomo_own_labels = str(tmp_path / "labels.nrrd")
+    s.tomo_own_labels = str(tmp_path.parent.parent / "labels.nrrd")      # outside: refused
+    app.ctrl.tomo_load_own()
+    assert "inside the workspace" in s.fluo_message and s.fluo_message_color == "error"
+    s.tomo_own_labels = "own/labels.nrrd"
     app.ctrl.tomo_load_own()
     assert s.tomo_own and "labels [3, 7]" in s.tomo_own_info, s.fluo_message
     s.tomo_mesh_size_mm = 1.5
@@ -288,3 +303,49 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, tm
     # back to the phantom route: its mesh step says plainly that it is a preview
     app.ctrl.tomo_load()
     assert not s.tomo_own
+
+
+def test_ui_paths_stay_in_the_workspace_and_messages_show_no_server_path(app, tmp_path):
+    """Issue #21: a scripted client made the server write scene.mrml anywhere, list
+    /etc through the image glob's message and read files outside a stack folder."""
+    import json
+    from pathlib import Path
+
+    ws = app.workspace.root
+    s = app.state
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    for target in (str(outside / "evil.mrml"), "../evil.mrml", "/etc/fluo-evil.mrml"):
+        s.calib_save_path = target
+        app.ctrl.calib_save()
+        assert "inside the workspace" in s.fluo_message and s.fluo_message_color == "error"
+    assert list(outside.iterdir()) == [] and not (ws.parent / "evil.mrml").exists()
+    s.calib_save_path = "session/scene.mrml"
+    app.ctrl.calib_save()
+    assert (ws / "session" / "scene.mrml").is_file()
+    assert s.fluo_message == "Scene saved to session/scene.mrml"
+    for pattern in ("/etc/*", "../*", str(outside / "*")):
+        s.calib_images = pattern
+        app.ctrl.calib_run()
+        assert "relative to the workspace" in s.fluo_message and not app.jobs.busy
+    # a hostile manifest names a file outside its folder: refused, nothing read
+    (outside / "secret.png").write_bytes(b"not for you")
+    (ws / "hostile").mkdir()
+    (ws / "hostile" / "stack.json").write_text(json.dumps(
+        {"frames": [{"file": str(outside / "secret.png"), "exposure_s": 0.01}]}))
+    s.calib_light_kind, s.calib_light_folder = "radiometry", "hostile"
+    app.ctrl.calib_light_run()
+    _wait(app.jobs)
+    app.poll()
+    assert "must be inside its folder" in s.fluo_message
+    # a Lib error names its file: shown relative to the workspace, no server path
+    (ws / "empty").mkdir()
+    s.calib_light_folder = "empty"
+    app.ctrl.calib_light_run()
+    _wait(app.jobs)
+    app.poll()
+    assert "empty/stack.json" in s.fluo_message
+    for text in (s.fluo_message, json.dumps(s.job)):
+        assert str(ws) not in text and str(outside) not in text, text
+    s.calib_images = "bundled:opencv_left/left*.jpg"
+    assert len(app.workspace.glob(s.calib_images, "images")) >= 3

@@ -1,10 +1,12 @@
 """The web app in a real headless Chromium (Debian's ``chromium``, driven by
 Playwright with ``executable_path``): the whole FluoTomo workflow by clicks,
 the overlay checked in the screenshot's pixels, UI latency measured while the
-reconstruction runs.  Screenshots are kept in ``test-artifacts/browser/``."""
+reconstruction runs, and the single-user session rule with several browser
+contexts.  Screenshots are kept in ``test-artifacts/browser/``."""
 
 import json
 import os
+import re
 import shutil
 import socket
 import statistics
@@ -37,25 +39,32 @@ def _free_port():
         return s.getsockname()[1]
 
 
+# the app's workspace: the UI takes paths inside it (issue #21)
+WORKSPACE = {}
+
+
 @pytest.fixture(scope="module")
-def server():
+def server(tmp_path_factory):
+    """The app's address with this launch's secret (``fluo app`` prints it)."""
     port = _free_port()
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     log = open(ARTIFACTS / "server.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "fluoapp.cli", "app", "--port", str(port)],
+    workspace = tmp_path_factory.mktemp("workspace")
+    WORKSPACE["root"] = workspace
+    proc = subprocess.Popen([sys.executable, "-m", "fluoapp", "app", "--port", str(port),
+                             "--workspace", str(workspace)],
                             cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}/"
     t0 = time.time()
-    while time.time() - t0 < 120:
+    url = None
+    while time.time() - t0 < 180 and url is None:
         if proc.poll() is not None:
             pytest.fail(f"app exited ({proc.returncode}); see {ARTIFACTS / 'server.log'}")
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                break
+        m = re.search(r"FluoGuide app: (http://\S+/\?secret=\S+)", (ARTIFACTS / "server.log").read_text())
+        url = m.group(1) if m else None
         time.sleep(0.5)
-    else:
+    if url is None:
         proc.kill()
-        pytest.fail("app did not start in 120 s")
+        pytest.fail("app did not start in 180 s")
     yield url
     proc.terminate()
     try:
@@ -177,7 +186,8 @@ def test_own_label_map_from_files_in_the_browser(page, tmp_path_factory):
     from fluoguide.labelmap_io import write_volume_nrrd
     from fluoguide.phantoms import ellipsoid_inclusion_labelmap
 
-    d = tmp_path_factory.mktemp("own")
+    d = WORKSPACE["root"] / "own"
+    d.mkdir(exist_ok=True)
     sc = ellipsoid_inclusion_labelmap()
     write_volume_nrrd(d / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"], sc["origin_mm"],
                       sc["direction"])
@@ -194,9 +204,9 @@ def test_own_label_map_from_files_in_the_browser(page, tmp_path_factory):
     assert r.returncode == 0, r.stderr
     pg = page
     pg.click("#tool-FluoTomo") if not pg.is_visible("#tomo-own-load") else None
-    pg.fill("#tomo-own-labels", str(d / "labels.nrrd"))
-    pg.fill("#tomo-own-optics", str(d / "optics.json"))
-    pg.fill("#tomo-own-acquisition", str(d / "acq"))
+    pg.fill("#tomo-own-labels", "own/labels.nrrd")
+    pg.fill("#tomo-own-optics", "own/optics.json")
+    pg.fill("#tomo-own-acquisition", "own/acq")
     pg.click("#tomo-own-load")
     _wait_text(pg, "#tomo-own-info", "labels [3, 7]", 120000)
     pg.fill("#tomo-mesh-size", "0.8")
@@ -249,3 +259,41 @@ def test_nav_panel_streams_tracked_frames(page):
     assert "corrected" in text and "tracker frame" in text
     src = pg.get_attribute("#nav-raw", "src")
     assert src and src.startswith("data:image/png;base64,")
+
+
+def test_one_browser_session_at_a_time(page, server):
+    """trame shares one state per server: a second browser context is refused while
+    the first is open (a page that says so), and gets in by itself once the first
+    closes; a page without the secret never gets a session."""
+    browser = page.context.browser
+    bare = server.split("?")[0]
+    second = browser.new_context(viewport={"width": 1200, "height": 800})
+    p2 = second.new_page()
+    r = p2.goto(server)
+    assert r.status == 409
+    assert "open in another browser session" in p2.inner_text("#fluo-single-user")
+    p2.screenshot(path=str(ARTIFACTS / "07-second-session-refused.png"))
+    # the first session ends: the waiting page retries on its own and gets the app
+    page.close()
+    p2.wait_for_selector("#fluo-ping", timeout=90000)   # the app bar: any panel
+    p2.screenshot(path=str(ARTIFACTS / "08-second-session-admitted.png"))
+    third = browser.new_context()
+    p3 = third.new_page()
+    assert p3.goto(bare).status == 409              # the second one holds the app now
+    second.close()
+    # nobody holds it: a page without the secret loads the client but no session ...
+    assert p3.goto(bare).status == 200
+    p3.wait_for_timeout(8000)
+    assert p3.query_selector("#fluo-ping") is None
+    # ... and takes no slot: the next page with the secret gets in
+    fourth = browser.new_context()
+    p4 = fourth.new_page()
+    assert p4.goto(server).status == 200
+    p4.wait_for_selector("#fluo-ping", timeout=90000)
+    # and sees the scene: the views render for it (the CBCT of the first session)
+    p4.wait_for_timeout(5000)
+    p4.screenshot(path=str(ARTIFACTS / "09-next-session.png"))
+    lit = [int(np.count_nonzero(v.sum(axis=2) > 150)) for v in _views(p4, "09-next-session")]
+    assert sum(n > 1000 for n in lit) >= 2, lit
+    for ctx in (third, fourth):
+        ctx.close()

@@ -28,13 +28,14 @@ def module_logic(module, scene=None):
 
 def scene_for(path):
     """The MRML scene a ``--scene`` option names: loaded when the file exists, else new
-    (saved there by :func:`save_scene_to`); a new scene when no path is given."""
-    from pathlib import Path
-
+    (saved there by :func:`save_scene_to`); a new scene when no path is given.
+    A path that is not ``.mrml``, not writable or not a readable scene is refused."""
     from fluoguide import mrml_io
 
-    if path and Path(path).is_file():
-        return mrml_io.load_scene(path)
+    if path:
+        # checked before any work: a scene that cannot be read or written refuses
+        # the run while nothing has been written
+        return mrml_io.scene_to_update(path)
     return mrml_io.new_scene()
 
 

@@ -14,7 +14,12 @@ __all__ = ["register"]
 
 
 def _calib(args):
-    """The FluoCalib logic over the ``--scene`` scene (or a new one)."""
+    """The FluoCalib logic over the ``--scene`` scene (or a new one), after every
+    output was checked: a refused run writes nothing."""
+    from fluoguide import atomic
+
+    if getattr(args, "yaml", None):
+        atomic.check_writable(args.yaml, "--yaml")
     return module_logic("FluoCalib", scene_for(getattr(args, "scene", None)))
 
 

@@ -12,7 +12,17 @@ from fluoguide.progress import TqdmProgress, report
 
 
 def _calib(args):
-    """The FluoCalib logic over the ``--scene`` scene (or a new one)."""
+    """The FluoCalib logic over the ``--scene`` scene (or a new one), after every
+    output was checked: a refused run writes nothing."""
+    from fluoguide import atomic
+    from fluoguide.jsonable import read_json
+
+    if getattr(args, "out", None):
+        atomic.check_writable(args.out, "--out", folder=True)
+    if getattr(args, "calibration", None):
+        atomic.check_writable(args.calibration, "--calibration")
+        if Path(args.calibration).exists():
+            read_json(args.calibration, field="--calibration")   # never overwrite a damaged one
     return module_logic("FluoCalib", scene_for(getattr(args, "scene", None)))
 
 
@@ -56,7 +66,10 @@ def _synth(args):
         write_laser_set,
     )
 
+    from fluoguide import atomic
+
     out = Path(args.out)
+    atomic.check_writable(out, "--out", folder=True)   # three sets: refuse before the first
     with TqdmProgress("calib synth-light") as prog:
         report(prog, 0.0, "camera stack")
         frames, truth = synthetic_stack(seed=args.seed)

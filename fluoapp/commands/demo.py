@@ -10,7 +10,7 @@ from fluoguide.progress import TqdmProgress
 
 
 def _handler(args):
-    only = args.only.split(",") if args.only is not None else None
+    only = [s.strip() for s in args.only.split(",")] if args.only is not None else None
     with TqdmProgress("fluo demo") as bar:
         metrics = run_demo(args.out, quick=args.quick, seed=args.seed, progress=bar, only=only)
     metrics["report"] = str(Path(args.out).resolve() / "report.html")

@@ -24,14 +24,23 @@ def _devices(args):
 
 
 def _track(args):
+    from fluoguide.errors import check_number
+
     _seconds(args.seconds)
+    # an option that would be ignored is refused: the user meant something by it
+    if args.rate is not None and not args.igtl:
+        raise FluoInputError("applies to --igtl only", field="--rate", value=args.rate)
+    if args.tools is not None:
+        if not args.serial:
+            raise FluoInputError("applies to --serial only", field="--tools", value=args.tools)
+        check_number("--tools", args.tools, 1, 16, integer=True)  # an NDI tracker's passive ports
     if args.igtl:
         source, address, options = "igtl", args.igtl, {"rate_hz": args.rate}
     elif args.sim:
         source, address = "ndi-sim", None
         options = {"inject_faults": args.inject_faults, "seed": args.seed}
     elif args.serial:
-        source, address, options = "ndi", args.serial, {"tools": args.tools}
+        source, address, options = "ndi", args.serial, {"tools": args.tools or 1}
     else:
         raise FluoInputError("choose --sim or --serial PORT", field="source")
     logic = module_logic("FluoNav")
@@ -66,7 +75,8 @@ def _record(args):
     sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(), seed=args.seed)
     port = sim.start()
     try:
-        with NDIClient(port) as client, Recorder(args.out) as rec, _frame_source(args) as frames:
+        # the camera first: a refused source must not leave a recording folder behind
+        with _frame_source(args) as frames, NDIClient(port) as client, Recorder(args.out) as rec:
             client.initialize([b"camera tool rom " * 4])
             client.start()
 
@@ -96,6 +106,8 @@ def _record(args):
 def _replay(args):
     from fluoguide import mrml_io
 
+    if args.scene:       # refused before the replay, not after it
+        mrml_io.scene_to_update(args.scene)
     logic = module_logic("FluoNav")
     logic.connectTracker("replay", args.folder, speed="max" if args.max_speed else "recorded")
     try:
@@ -126,8 +138,8 @@ def register(subparsers):
                    help="how long to track [s] (default %(default)s)")
     p.add_argument("--inject-faults", action="store_true",
                    help="simulator: CRC errors, slow replies, dropouts and a disconnect")
-    p.add_argument("--tools", type=int, default=1,
-                   help="passive tools to request (--serial; default %(default)s)")
+    p.add_argument("--tools", type=int, default=None,
+                   help="passive tools to request (--serial only; default 1)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the simulator's faults (default %(default)s)")
     add_json_flag(p)

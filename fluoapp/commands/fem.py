@@ -82,7 +82,11 @@ def _read_points_csv(path, field):
     if not p.is_file():
         raise FluoInputError("file not found", file=p, field=field)
     rows = []
-    for i, line in enumerate(p.read_text().splitlines(), start=1):
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise FluoInputError("not UTF-8 text", file=p, field=field) from None
+    for i, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -144,7 +148,7 @@ def _forward_optics(args, mesh):
     return optics, yields
 
 
-def _forward_analytic(args, mesh, src, det, out, t0):
+def _forward_analytic(args, mesh, src, det, out, t0, want_jacobian):
     """The exact half-space answer when the check says the tissue under the
     optodes is one (one material, flat, far boundaries); None otherwise."""
     from FluoTomoLib.fem.forward import safe_log
@@ -152,7 +156,7 @@ def _forward_analytic(args, mesh, src, det, out, t0):
     from FluoTomoLib.optics import NEAR_SOURCE_MFP, diffusion_validity, transport_mfp_mm
 
     if args.model == "analytic":
-        if args.jacobian:
+        if want_jacobian:
             raise FluoInputError("the Jacobian needs the FEM (--model fem or auto)",
                                  field="--model", value=args.model)
         if args.optics is not None or args.yield_spec is not None:
@@ -167,7 +171,7 @@ def _forward_analytic(args, mesh, src, det, out, t0):
         raise FluoInputError(f"the analytic half-space model does not apply: "
                              f"{check['reason']}", file=args.mesh, field="--model",
                              value="analytic")
-    if not check["usable"] or args.jacobian:
+    if not check["usable"] or want_jacobian:
         return None
     data = half_space_excitation_data(mesh, args.mua, args.musp, args.n, src, det)
     out["model"] = "analytic"
@@ -204,8 +208,12 @@ def _forward(args):
     out = {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "sources": len(src),
            "detectors": len(det), "regions": [int(r) for r in mesh.regions],
            "reoriented_elements": flipped}
+    # a file to write implies computing it
+    want_jacobian = bool(args.jacobian or args.jacobian_out or args.yield_jacobian_out)
+    if args.yield_jacobian_out and yields is None:
+        raise FluoInputError("the yield Jacobian needs --yield", field="--yield-jacobian-out")
     if args.model in ("auto", "analytic"):
-        done = _forward_analytic(args, mesh, src, det, out, t0)
+        done = _forward_analytic(args, mesh, src, det, out, t0, want_jacobian)
         if done is not None:
             return done
     props_x, props_m, y_nodes = optics.nodal_from_mesh(mesh, yields)
@@ -223,20 +231,25 @@ def _forward(args):
     if yields is not None:
         out["fluorescence"] = fm.emission_data(y_nodes).tolist()
         out["yield_by_region"] = {str(k): v for k, v in yields.items()}
-    if args.jacobian:
+    if want_jacobian:
         J = fm.jacobian_mua_x()
         out["jacobian_shape"] = list(J.shape)
         out["jacobian_mua_norm"] = float(np.linalg.norm(J))
         if args.jacobian_out:
-            np.save(args.jacobian_out, J)
-            out["jacobian_file"] = str(Path(args.jacobian_out).resolve())
+            from fluoguide import atomic
+
+            # exactly the path given (np.save would append .npy), complete or not at all
+            out["jacobian_file"] = str(atomic.save_npy(args.jacobian_out, J,
+                                                       field="--jacobian-out").resolve())
         if yields is not None:
             Jy = fm.jacobian_yield()
             out["jacobian_yield_shape"] = list(Jy.shape)
             out["jacobian_yield_norm"] = float(np.linalg.norm(Jy))
             if args.yield_jacobian_out:
-                np.save(args.yield_jacobian_out, Jy)
-                out["jacobian_yield_file"] = str(Path(args.yield_jacobian_out).resolve())
+                from fluoguide import atomic
+
+                out["jacobian_yield_file"] = str(atomic.save_npy(
+                    args.yield_jacobian_out, Jy, field="--yield-jacobian-out").resolve())
     out["log_valid_fraction"] = float(safe_log(data)[1].mean())
     out["accuracy"] = {k: acc[k] for k in ("target_rel_err", "estimated_rel_err",
                                             "element_size_needed_mm")}

@@ -52,6 +52,9 @@ def _handler(args):
         return _quality(args, labels, spacing, origin, direction, roi, t0)
     if args.refine:
         raise FluoInputError("--refine needs the quality mesher (drop --fast)", field="--refine")
+    if args.threads is not None:
+        raise FluoInputError("--threads applies to the quality mesher (drop --fast)",
+                             field="--threads", value=args.threads)
     import warnings
 
     from FluoTomoLib.meshing.voxel import MeshFidelityWarning

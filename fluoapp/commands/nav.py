@@ -11,6 +11,7 @@ import numpy as np
 from fluoapp.cli import add_json_flag, cli_group
 from fluoapp.commands import module_logic
 from fluoguide.progress import TqdmProgress, report
+from fluoguide import atomic
 
 
 def _synth(args):
@@ -19,6 +20,12 @@ def _synth(args):
     holds the CBCT-derived surface, tracked poses and a hand-eye with errors."""
     from fluoguide import mrml_io
 
+    from fluoguide.errors import check_number
+
+    # a scene without frames is the logic's "room only" (the web app's stream); here it is
+    # an empty result
+    check_number("--views", args.views, 1, 64, integer=True)
+    atomic.check_writable(Path(args.out) / "scene.mrml", "--out")   # before rendering
     logic = module_logic("FluoNav")
     with TqdmProgress("nav synth") as prog:
         info = logic.makeSyntheticAcquisition(views=args.views, binning=args.binning,
@@ -54,7 +61,7 @@ def _factor_png(path, vm, frame, distance_mm):
     d = distance_mm[vm.lit] if vm.lit.any() else np.array([np.nan])
     fig.suptitle(f"frame {frame}: camera to surface {np.min(d):.0f}-{np.max(d):.0f} mm "
                  f"(median {np.median(d):.0f} mm) over the lit pixels", fontsize=10)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    atomic.save_figure(fig, path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return str(path)
 
@@ -65,6 +72,7 @@ def _correct(args):
     from FluoNavLib.mapping.contours import overlay_png
 
     t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)    # before the work, not after
     prog = TqdmProgress("nav correct")      # closed before the return (an error ends the run)
     report(prog, 0.0, "loading the scene and its surface")
     logic = module_logic("FluoNav", mrml_io.load_scene(args.scene))
@@ -79,7 +87,6 @@ def _correct(args):
     report(prog, 0.8, "writing images and the scene")
     numbers = dict(r.numbers)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     files = []
     if r.mapped.any():
         classes = logic.classifyContours(r)
@@ -92,8 +99,9 @@ def _correct(args):
                               f"{numbers['miss_rate_corrected_pct']:.1f} %)", r.mapped,
                               colorbar_label="optical transport T (dimensionless)")]
     files.append(_factor_png(out / "factors.png", r.vm, args.frame, r.hits.distance_mm))
-    np.save(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
-    np.save(out / "surface_flux_w_per_mm2.npy", np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
+    atomic.save_npy(out / "transport.npy", np.where(r.mapped, r.transport, np.nan))
+    atomic.save_npy(out / "surface_flux_w_per_mm2.npy",
+                    np.where(r.flux_valid, r.flux_w_per_mm2, np.nan))
     scene_path = mrml_io.save_scene(logic.scene, out / "scene.mrml")
     numbers.update({
         "frames_on_surface": mapped["frames_on_surface"], "frames_skipped": mapped["frames_skipped"],

@@ -80,6 +80,10 @@ def _handler(args):
 
     study_tasks(spec)                 # every task's parameters checked before any work
     spec.warnings.clear()
+    if args.out:          # refused before minutes of work, not after
+        from fluoguide import atomic
+
+        atomic.check_writable(args.out, "--out", folder=True)
     t0 = time.perf_counter()
     with TqdmProgress(f"study {spec.label}") as bar, executor_for(args, threads) as ex:
         out = run_spec(spec, out_dir=args.out, progress=bar, executor=ex, resume=args.resume,
@@ -94,11 +98,11 @@ def _handler(args):
 
     out["library_threads"] = current_threads()      # fluo --threads / FLUO_THREADS
     if args.out:
-        from fluoguide.atomic import atomic_path
         from fluoguide.jsonable import dumps
 
-        with atomic_path(Path(args.out) / "study.json") as tmp:
-            Path(tmp).write_text(dumps(out))
+        from fluoguide import atomic
+
+        atomic.write_text(Path(args.out) / "study.json", dumps(out))
         out["out"] = str(args.out)
     if out["failures"]:
         out["_exit_code"] = 1     # the table is written; the run is not a success

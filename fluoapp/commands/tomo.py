@@ -87,7 +87,10 @@ def _load(args):
 def _simulate(args):
     from FluoTomoLib.tomography import simulate_acquisition, write_acquisition
 
+    from fluoguide import atomic
+
     t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)      # before any work
     yields = _parse_yields(args.yield_spec)
     if args.photons is not None and args.engine != "mc":
         raise FluoInputError("photons are for the Monte Carlo engine (--engine mc)",
@@ -127,7 +130,10 @@ def _reconstruct(args):
     from FluoTomoLib.tomography import read_acquisition, reconstruct_labelmap
     from FluoTomoLib.tomography.reconstruct import write_reconstruction
 
+    from fluoguide import atomic
+
     t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)      # before any work
     lm, optics = _load(args)
     acq = read_acquisition(args.acquisition, labelmap=lm, optics=optics)
     roi = None

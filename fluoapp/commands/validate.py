@@ -23,13 +23,29 @@ def _command_line():
 
 
 def _out_dir(path):
+    from fluoguide import atomic
+
     if path is None:
         raise FluoInputError("needs an output folder", field="--out")
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise FluoInputError("exists and is not a folder", file=p, field="--out")
-    p.mkdir(parents=True, exist_ok=True)
-    return p
+    # checked now, created at the first write: a refused run leaves no folder
+    return atomic.check_writable(path, "--out", folder=True)
+
+
+def _check_budget(args):
+    """The Monte Carlo options: in range, and refused where no Monte Carlo runs
+    (with --mc-in they would be silently ignored)."""
+    from fluoguide.errors import check_number
+
+    check_number("--seed", args.seed, 0, 2**32 - 1, integer=True)
+    given = [name for name, v in (("--photons", args.photons), ("--runs", args.runs),
+                                  ("--quick", args.quick or None)) if v is not None]
+    if args.mc_in is not None and given:
+        raise FluoInputError("applies when Monte Carlo runs (drop --mc-in)", field=given[0],
+                             value=getattr(args, given[0][2:]))
+    if args.photons is not None:
+        check_number("--photons", args.photons, 1, 1e9, integer=True)
+    if args.runs is not None:
+        check_number("--runs", args.runs, 1, 1000, integer=True)
 
 
 def _positive(value, field, upper=None):
@@ -59,6 +75,7 @@ def _mc(args):
     from FluoTomoLib.montecarlo.halfspace import HalfSpace, simulate_halfspace
     from FluoTomoLib.montecarlo.plots import validation_figure
 
+    _check_budget(args)
     out = _out_dir(args.out)
     t0 = time.perf_counter()
     budget = dict(QUICK if args.quick else FULL)
@@ -66,7 +83,7 @@ def _mc(args):
         budget["photons"] = args.photons
     if args.runs is not None:
         budget["runs"] = args.runs
-    if args.mc_in:
+    if args.mc_in is not None:        # '' is a (bad) file name, not 'run Monte Carlo'
         data = reference.read_set(args.mc_in)
         if data["kind"] != "halfspace":
             raise FluoInputError("is not a half-space set", file=args.mc_in, field="kind",
@@ -84,13 +101,14 @@ def _mc(args):
         medium = HalfSpace(_positive(args.mua, "--mua", 10) or 0.01,
                            _positive(args.musp, "--musp", 100) or 1.0,
                            n, g=0.9 if args.g is None else args.g)
-        with TqdmProgress("Monte Carlo", force=not args.json) as bar:
+        with TqdmProgress("Monte Carlo") as bar:
             from FluoTomoLib.montecarlo.engine import load_engine
 
             eng = load_engine(args.engine)
             merged = simulate_halfspace(medium, budget["photons"], runs=budget["runs"],
                                         seed=args.seed, engine=eng, progress=bar)
         mc_source = "this run"
+        out.mkdir(parents=True, exist_ok=True)
         reference.write_json_atomic(out / "mc_halfspace.json",
                                     reference.halfspace_set(medium, merged, _command_line()))
     ref = None
@@ -104,10 +122,11 @@ def _mc(args):
         raise FluoInputError("the reference run's n differs from the medium's", field="--reference",
                              value=ref["n_inside"])
     boundaries = ("empirical", "fresnel") if args.boundary == "both" else (args.boundary,)
-    with TqdmProgress("FEM", force=not args.json) as bar:
+    with TqdmProgress("FEM") as bar:
         res = compare.validate_halfspace(medium, merged, boundaries=boundaries,
                                          level=args.mesh_level, reference=ref, progress=bar)
     text = f"mua {medium.mua:g}/mm, musp {medium.musp:g}/mm, g {medium.g:g}, n {medium.n:g}"
+    out.mkdir(parents=True, exist_ok=True)
     validation_figure(res, text, out / "validate_mc.png")
     rkeys = list(res["rows"][0].keys())
     _write_csv(out / "validate_mc_reflectance.csv", res["rows"], rkeys)
@@ -162,10 +181,11 @@ def _mc_fluorescence(args):
     from FluoTomoLib.montecarlo.acquisition import simulate_acquisition
     from FluoTomoLib.optics import robin_A
 
+    _check_budget(args)
     out = _out_dir(args.out)
     t0 = time.perf_counter()
     case = reference.fluorescence_case()
-    if args.mc_in:
+    if args.mc_in is not None:        # '' is a (bad) file name, not 'run Monte Carlo'
         data = reference.read_set(args.mc_in)
         if data["kind"] != "fluorescence":
             raise FluoInputError("is not a fluorescence set", file=args.mc_in, field="kind",
@@ -180,11 +200,12 @@ def _mc_fluorescence(args):
         photons = args.photons or (20_000 if args.quick else 100_000)
         runs = args.runs or (2 if args.quick else 3)
         radius = 2.0
-        with TqdmProgress("Monte Carlo", force=not args.json) as bar:
+        with TqdmProgress("Monte Carlo") as bar:
             res = simulate_acquisition(*[case[k] for k in keys], photons=photons, seed=args.seed,
                                        runs=runs, detector_radius_mm=radius, engine=args.engine,
                                        progress=bar)
         data = reference.fluorescence_set(case, res, _command_line())
+        out.mkdir(parents=True, exist_ok=True)
         reference.write_json_atomic(out / "mc_fluorescence.json", data)
         mc = {k: np.asarray(res[k], float) for k in ("excitation", "excitation_se", "emission",
                                                      "emission_se")}
@@ -212,6 +233,7 @@ def _mc_fluorescence(args):
                 row[f"fem_{b}_emission_vs_mc_pct"] = compare._pct(f["emission"][s, d],
                                                                   mc["emission"][s, d])
             rows.append(row)
+    out.mkdir(parents=True, exist_ok=True)
     _write_csv(out / "validate_mc_fluorescence.csv", rows, list(rows[0].keys()))
     warnings = ["excitation pairs closer than 5 mm (a source's own position) are diffusion's "
                 "near-source regime: not a test of the model"]

@@ -14,7 +14,8 @@ import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fluoguide.errors import FluoError, FluoInputError
+from fluoguide import atomic
+from fluoguide.errors import FluoError, FluoInputError, check_number
 from fluoguide.progress import check_cancel, report, scaled
 
 
@@ -75,9 +76,7 @@ class DemoContext:
 def _write_json_atomic(path, data):
     from fluoapp.cli import dumps
 
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(dumps(data))
-    tmp.replace(path)
+    atomic.write_text(path, dumps(data))
 
 
 def _stages():
@@ -96,6 +95,7 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     """
     names = stages_to_run(only)
     out = Path(out_dir).resolve()
+    check_number("seed", seed, 0, 2**32 - 1, integer=True)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write-test"
@@ -119,7 +119,7 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
             fn(ctx)
         except Exception as exc:  # recorded, reported, then re-raised as one message
             ctx.metrics["stages_failed"][name] = f"{type(exc).__name__}: {exc}"
-            (out / f"{name}.error.txt").write_text(traceback.format_exc())
+            atomic.write_text(out / f"{name}.error.txt", traceback.format_exc())
             failure = (name, exc)
             break
         finally:
@@ -188,6 +188,4 @@ def write_report(ctx):
             parts.append(f"<figure><img src='{html.escape(name)}' alt='{html.escape(caption)}'>"
                          f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     parts.append("</body></html>")
-    tmp = ctx.out / "report.html.tmp"
-    tmp.write_text("\n".join(parts))
-    tmp.replace(ctx.out / "report.html")
+    atomic.write_text(ctx.out / "report.html", "\n".join(parts))

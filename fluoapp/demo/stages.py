@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fluoguide import mrml_io
+from fluoguide import atomic, mrml_io
 from fluoguide.phantoms import add_phantom_to_scene, make_phantom, write_phantom
 from fluoguide.progress import report, scaled
 
@@ -89,7 +89,7 @@ def stage_phantoms(ctx):
     axes[2].set_title("oral-cavity labels (0 air, 1 agar, 2 tongue)")
     axes[2].set_xlabel("x [mm]")
     fig.tight_layout(w_pad=4.0)
-    fig.savefig(ctx.out / "phantoms.png", dpi=90)
+    atomic.save_figure(fig, ctx.out / "phantoms.png", dpi=90)
     plt.close(fig)
     ctx.figure("phantoms", "phantoms.png", "Digital phantoms: synthetic CBCT (HU) and label maps.")
 
@@ -117,7 +117,7 @@ def _tomo_figures(ctx, runs):
     axes[0].legend(fontsize=8)
     fig.suptitle("Depth profiles through the tube (x = y = 0)")
     fig.tight_layout()
-    fig.savefig(ctx.out / "tomo_profiles.png", dpi=90)
+    atomic.save_figure(fig, ctx.out / "tomo_profiles.png", dpi=90)
     plt.close(fig)
     ctx.figure("tomography", "tomo_profiles.png",
                "Reconstructed yield along the depth profile through the tube, per depth.")
@@ -134,7 +134,7 @@ def _tomo_figures(ctx, runs):
         ax.set_title(title)
         ax.legend()
     fig.tight_layout()
-    fig.savefig(ctx.out / "tomo_errors.png", dpi=90)
+    atomic.save_figure(fig, ctx.out / "tomo_errors.png", dpi=90)
     plt.close(fig)
     ctx.figure("tomography", "tomo_errors.png", "Yield and centroid errors vs tube depth (NP, SP, HP).")
 
@@ -159,7 +159,7 @@ def _tomo_figures(ctx, runs):
     ax.set_xlabel("x [px, 4x4 binned]")
     ax.set_ylabel("y [px]")
     fig.tight_layout()
-    fig.savefig(ctx.out / "tomo_frame.png", dpi=90)
+    atomic.save_figure(fig, ctx.out / "tomo_frame.png", dpi=90)
     plt.close(fig)
     ctx.figure("tomography", "tomo_frame.png",
                "A rendered fluorescence frame (every pixel ray-cast onto the surface, emission "
@@ -208,7 +208,7 @@ def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8, true_circ
         ax.set_xlabel("y [mm]")
     axes[0].set_ylabel("z [mm]")
     fig.colorbar(im, ax=axes, shrink=0.9, fraction=0.02, label="yield [1e-3 / mm]")
-    fig.savefig(path, dpi=90)
+    atomic.save_figure(fig, path, dpi=90)
     plt.close(fig)
 
 

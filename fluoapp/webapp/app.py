@@ -11,7 +11,13 @@ Rules the panels follow:
   an error becomes a message in the page, never a dead page;
 - long work runs through :attr:`jobs` (one background job, progress bar,
   cancel button); its result is applied to the scene on the server's event
-  loop by :meth:`poll`, so the UI never freezes and MRML stays single-threaded.
+  loop by :meth:`poll`, so the UI never freezes and MRML stays single-threaded;
+- every path a user types goes through :attr:`workspace` (confined to the
+  workspace folder given at launch), and every message through
+  :meth:`Workspace.scrub` (no server paths).
+
+Who may connect (a per-launch secret, same-origin pages only, one browser
+session at a time) is in :mod:`fluoapp.webapp.security`.
 """
 
 from __future__ import annotations
@@ -19,11 +25,11 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
-import time
 
 from fluoguide.errors import FluoError
 
 from fluoapp.webapp.jobs import JobRunner
+from fluoapp.webapp.security import Workspace
 
 __all__ = ["FluoGuideApp", "create_app"]
 
@@ -35,7 +41,13 @@ class FluoGuideApp:
 
     POLL_S = 0.2
 
-    def __init__(self, server=None, scene_path=None):
+    def __init__(self, server=None, scene_path=None, workspace=None):
+        import tempfile
+
+        from fluoguide import mrml_io
+
+        if scene_path:
+            mrml_io.load_scene(scene_path)  # a bad scene is refused before the app is built
         from trame.app import get_server
         from trame_slicer import module as trame_slicer_module
         from trame_slicer.app.logic import LayoutButtonLogic
@@ -50,11 +62,18 @@ class FluoGuideApp:
         self.layout_logic = LayoutButtonLogic(self.server, self.slicer_app)
         self.segment_logic = SegmentEditorLogic(self.server, self.slicer_app)
         self.jobs = JobRunner()
+        # no workspace given (tests, scripts): a new empty one, never the cwd
+        if isinstance(workspace, Workspace):
+            self.workspace = workspace
+        else:
+            self.workspace = Workspace(workspace if workspace is not None
+                                       else tempfile.mkdtemp(prefix="fluoguide-workspace-"))
+        self.gate = None
         self.state.trame__title = "FluoGuide"
         self.state.fluo_message = ""
         self.state.fluo_message_color = "info"
         self.state.fluo_message_visible = False
-        self.state.job = self.jobs.state.as_dict()
+        self.state.job = self._job_state()
         self.state.ping_count = 0
         self.ctrl.fluo_ping = self._ping
         self.ctrl.fluo_cancel_job = self.guarded(self.jobs.cancel)
@@ -96,7 +115,8 @@ class FluoGuideApp:
 
     # -- messages and guarded callbacks --------------------------------------
     def notify(self, text, color="info"):
-        self.state.fluo_message = str(text)
+        text = self.workspace.scrub(text)
+        self.state.fluo_message = text
         self.state.fluo_message_color = color
         self.state.fluo_message_visible = True
         (log.warning if color == "error" else log.info)("%s", text)
@@ -128,7 +148,13 @@ class FluoGuideApp:
                 self.notify(f"{name} failed: {text}", "error")
 
         self.jobs.start(name, work, on_done=on_done, on_error=on_error)
-        self.state.job = self.jobs.state.as_dict()
+        self.state.job = self._job_state()
+
+    def _job_state(self):
+        job = self.jobs.state.as_dict()
+        job["message"], job["error"] = (self.workspace.scrub(job["message"]),
+                                        self.workspace.scrub(job["error"]))
+        return job
 
     def _ping(self):
         # The browser tests time this round trip while a job runs.
@@ -150,7 +176,7 @@ class FluoGuideApp:
         """Apply finished jobs and publish job progress to the browser."""
         with self.state:
             self.jobs.poll()
-            self.state.job = self.jobs.state.as_dict()
+            self.state.job = self._job_state()
             for panel in self.panels:
                 hook = getattr(panel, "on_poll", None)
                 if hook is not None:
@@ -208,12 +234,38 @@ class FluoGuideApp:
         for view in self.slicer_app.view_manager.get_views():
             view.schedule_render()
 
-    def start(self, port=8080, host="127.0.0.1", **kwargs):
-        t0 = time.perf_counter()
-        log.info("FluoGuide app on http://%s:%s/ (built in %.1f s)", host, port,
-                 time.perf_counter() - t0)
-        return self.server.start(port=port, host=host, open_browser=False, **kwargs)
+    def start(self, port=8080, host="127.0.0.1", secret=None, allow_origins=(), announce=print,
+              **kwargs):
+        """Serve the app (blocking) to the holder of ``secret`` (default: a new one).
+
+        ``announce`` receives the address with the secret, the one line a user
+        needs (``fluo app`` prints it).
+        """
+        from trame_server.protocol import CoreServer
+
+        from fluoapp.webapp.security import SessionGate, new_secret, origin_middleware
+
+        secret = secret or new_secret()
+        self.gate = SessionGate(secret)
+        # wslink compares the hello's secret with this one unless a link protocol
+        # decides (the gate does: right secret and no other session)
+        self.server.cli.set_defaults(authKey=secret)
+        CoreServer.authentication_token = secret
+        self.server.add_protocol_to_configure(
+            lambda protocol: protocol.registerLinkProtocol(self.gate.protocol))
+        middleware = origin_middleware(self.gate, host, allow_origins)
+        self.server.controller.on_server_bind.add(
+            lambda wslink_server: wslink_server.app.middlewares.append(middleware))
+
+        def ready(**_):
+            shown = f"[{host}]" if ":" in host else host
+            announce(f"FluoGuide app: http://{shown}:{self.server.port}/?secret={secret}")
+            announce(f"workspace: {self.workspace.root} (the UI reads and writes only here)")
+
+        self.ctrl.on_server_ready.add(ready)
+        return self.server.start(port=port, host=host, open_browser=False,
+                                 show_connection_info=False, **kwargs)
 
 
-def create_app(server=None, scene_path=None):
-    return FluoGuideApp(server=server, scene_path=scene_path)
+def create_app(server=None, scene_path=None, workspace=None):
+    return FluoGuideApp(server=server, scene_path=scene_path, workspace=workspace)

@@ -25,11 +25,12 @@ class CalibPanel:
         self.app = app
         self.logic = logic
         s = app.state
-        s.calib_images = str(bundled_board_images()[0].parent / "left*.jpg") if bundled_board_images() else ""
+        # paths are relative to the app's workspace; bundled:... is the shipped example data
+        s.calib_images = "bundled:opencv_left/left*.jpg" if bundled_board_images() else ""
         s.calib_board = "chessboard:9x6:25"
         s.calib_result = None
         s.calib_plot = ""
-        s.calib_save_path = str(Path.cwd() / "fluoguide-session" / "scene.mrml")
+        s.calib_save_path = "fluoguide-session/scene.mrml"
         s.calib_light_kind = "radiometry"
         s.calib_light_folder = ""
         s.calib_light_result = None
@@ -40,10 +41,8 @@ class CalibPanel:
         app.ctrl.calib_light_run = app.guarded(self.light_run)
 
     def _images(self):
-        import glob
-
         pattern = str(self.app.state.calib_images or "").strip()
-        files = sorted(glob.glob(pattern))
+        files = self.app.workspace.glob(pattern, "images")
         if len(files) < 3:
             raise FluoInputError(f"need at least 3 board images, found {len(files)}",
                                  field="images", value=pattern)
@@ -76,8 +75,6 @@ class CalibPanel:
     def light_synth(self):
         """Write synthetic stack / illumination / laser sets (known truth) and point the
         folder field at the chosen one."""
-        import tempfile
-
         from FluoCalibLib.radiometry.camera_response import write_stack
         from FluoCalibLib.radiometry.synthetic import (
             synthetic_illumination,
@@ -87,7 +84,7 @@ class CalibPanel:
             write_laser_set,
         )
 
-        root = Path(tempfile.mkdtemp(prefix="fluo-light-"))
+        root = self.app.workspace.path("synthetic-light", "folder", what="folder", writable=True)
 
         def work(progress, cancel):
             progress(0.1, "camera stack")
@@ -100,9 +97,10 @@ class CalibPanel:
             return root
 
         def done(folder):
-            self.app.state.calib_light_folder = str(folder / ("stack" if self.app.state.calib_light_kind
-                                                              == "radiometry" else self.app.state.calib_light_kind))
-            self.app.notify(f"Synthetic data sets in {folder}", "success")
+            kind = self.app.state.calib_light_kind
+            shown = self.app.workspace.shown
+            self.app.state.calib_light_folder = shown(folder / ("stack" if kind == "radiometry" else kind))
+            self.app.notify(f"Synthetic data sets in {shown(folder)}", "success")
 
         self.app.start_job("synthetic light data", work, on_done=done)
 
@@ -113,9 +111,8 @@ class CalibPanel:
 
         s = self.app.state
         kind = str(s.calib_light_kind)
-        folder = Path(str(s.calib_light_folder or ""))
-        if not folder.is_dir():
-            raise FluoInputError("folder not found", field="folder", value=str(folder))
+        folder = self.app.workspace.path(s.calib_light_folder, "folder", what="folder",
+                                         must_exist=True)
         calls = {"radiometry": (self.logic.prepareCameraCharacterization,
                                 self.logic.storeCameraCharacterization),
                  "illumination": (self.logic.prepareIlluminationCalibration,
@@ -173,9 +170,9 @@ class CalibPanel:
     def save(self):
         from fluoguide import mrml_io
 
-        path = Path(str(self.app.state.calib_save_path))
+        path = self.app.workspace.path(self.app.state.calib_save_path, "scene file", writable=True)
         mrml_io.save_scene(self.app.scene, path)
-        self.app.notify(f"Scene saved to {path}", "success")
+        self.app.notify(f"Scene saved to {self.app.workspace.shown(path)}", "success")
 
     def build_ui(self):
         from trame.widgets import html
@@ -184,7 +181,8 @@ class CalibPanel:
         busy = "job.running"
         html.Div("FluoCalib", classes="text-h6")
         html.Div("Camera intrinsics from board images", classes="text-subtitle-2 mt-2")
-        v.VTextField(v_model=("calib_images",), label="Images (glob)", density="compact",
+        v.VTextField(v_model=("calib_images",), label="Images (glob in the workspace, or "
+                     "bundled:...)", density="compact",
                      hide_details=True, id="calib-images")
         v.VTextField(v_model=("calib_board",), label="Board (chessboard:COLSxROWS:SQUARE_MM)",
                      density="compact", hide_details=True, classes="mt-2", id="calib-board")
@@ -224,7 +222,8 @@ class CalibPanel:
             html.Img(src=("calib_light_plot",), v_if="calib_light_plot",
                      style="width: 100%; background: white;")
         html.Div("Save", classes="text-subtitle-2 mt-4")
-        v.VTextField(v_model=("calib_save_path",), label="Scene file (.mrml)", density="compact",
+        v.VTextField(v_model=("calib_save_path",), label="Scene file (.mrml, in the workspace)",
+                     density="compact",
                      hide_details=True, id="calib-save-path")
         v.VBtn("Save scene", click=self.app.ctrl.calib_save, block=True, classes="mt-2",
                disabled=(busy,), id="calib-save")

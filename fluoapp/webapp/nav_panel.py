@@ -67,14 +67,19 @@ class NavPanel:
 
         The simulated operating room (surface, calibrations) lives in a scene of
         its own, so the app's scene keeps the user's data; the app's scene gets
-        the tracked camera (``CameraToolToTracker``, ``FluoNavCamera``)."""
+        the tracked camera (``CameraToolToTracker``, ``FluoNavCamera``).  It runs for
+        ``nav_seconds`` from its first frame or until Stop: stopping a stream ends
+        it normally, with its summary."""
         from fluoguide.slicer_compat import import_module_file
 
         from FluoCalibLib.geometry import transforms as tf
         from FluoNavLib.devices.ndi_simulator import SimTool
         from FluoNavLib.mapping.synthetic import render_view
 
-        seconds = float(self.app.state.nav_seconds)
+        from fluoguide.errors import check_number
+
+        seconds = check_number("seconds", float(self.app.state.nav_seconds or 0), 0.0, 3600.0,
+                               lo_open=True)
         frames = self._frames
         FluoNavLogic = import_module_file("FluoNav").FluoNavLogic
         # the simulated camera tool circles 120 mm above the cavity
@@ -83,11 +88,13 @@ class NavPanel:
         session = self.logic.connectTracker("ndi-sim", sim_tools=[tool],
                                             roms=[b"camera tool" * 4])
         classify = self.logic.classifyContours
+        self.app.state.nav_frames_shown = 0     # counts this stream's frames
 
         def work(progress, cancel):
             import time
 
             shown = 0
+            stopped = False
             try:
                 progress(0.0, "building the simulated operating room")
                 # a scene of its own, touched by this thread only
@@ -99,8 +106,9 @@ class NavPanel:
                 # compiles the ray caster and starts the plotting: slow on a busy machine)
                 t_end = time.monotonic() + seconds + 120.0
                 while time.monotonic() < t_end:
-                    if cancel is not None:
-                        cancel.check()
+                    if cancel is not None and cancel.cancelled:
+                        stopped = True      # Stop ends a live stream; it is no failure
+                        break
                     poses = session.poll()
                     pose_tool = None if poses is None else poses.get("CameraToolToTracker")
                     if pose_tool is None:
@@ -132,11 +140,12 @@ class NavPanel:
             finally:
                 session.close()
             return {"frames": shown, "tracker_frames": stats.frames,
-                    "lost_unreported": stats.lost_unreported()}
+                    "lost_unreported": stats.lost_unreported(), "stopped": stopped}
 
         def done(result):
             self.logic.disconnect()
-            self.app.notify(f"Streamed {result['frames']} corrected frames from "
+            how = "Stream stopped after" if result["stopped"] else "Streamed"
+            self.app.notify(f"{how} {result['frames']} corrected frames from "
                             f"{result['tracker_frames']} tracker frames (unreported losses: "
                             f"{result['lost_unreported']})", "success")
 

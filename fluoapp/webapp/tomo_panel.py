@@ -99,14 +99,17 @@ class TomoPanel:
 
     def load_own(self):
         """Load the user's label map file, optics.json and acquisition folder
-        (paths on the server); everything is checked now, one message if not."""
+        (paths relative to the workspace, as every path the UI takes);
+        everything is checked now, one message if not."""
         s = self.app.state
-        paths = {"label map": str(s.tomo_own_labels or "").strip(),
-                 "optics": str(s.tomo_own_optics or "").strip(),
-                 "acquisition": str(s.tomo_own_acquisition or "").strip()}
-        for what, path in paths.items():
-            if not path:
-                raise FluoInputError(f"give the {what} path", field=what)
+        entries = {"label map": (s.tomo_own_labels, "file"), "optics": (s.tomo_own_optics, "file"),
+                   "acquisition": (s.tomo_own_acquisition, "folder")}
+        paths = {}
+        for what, (text, kind) in entries.items():
+            if not str(text or "").strip():
+                raise FluoInputError(f"give the {what} path (relative to the workspace)",
+                                     field=what)
+            paths[what] = str(self.app.workspace.path(text, what, what=kind, must_exist=True))
         node = self.logic.loadLabelMap(paths["label map"])
         try:
             optics = self.logic.readOptics(paths["optics"])
@@ -408,11 +411,14 @@ class TomoPanel:
                color="primary", disabled=(busy,), id="tomo-load")
 
         html.Div("1b. Or your own scene (files on this computer)", classes="text-subtitle-2 mt-4")
-        v.VTextField(v_model=("tomo_own_labels",), label="Label map (.nrrd, .seg.nrrd)",
+        v.VTextField(v_model=("tomo_own_labels",),
+                     label="Label map in the workspace (.nrrd, .seg.nrrd)",
                      density="compact", hide_details=True, id="tomo-own-labels")
-        v.VTextField(v_model=("tomo_own_optics",), label="optics.json", density="compact",
+        v.VTextField(v_model=("tomo_own_optics",), label="optics.json in the workspace",
+                     density="compact",
                      hide_details=True, classes="mt-1", id="tomo-own-optics")
-        v.VTextField(v_model=("tomo_own_acquisition",), label="Acquisition folder",
+        v.VTextField(v_model=("tomo_own_acquisition",),
+                     label="Acquisition folder in the workspace",
                      density="compact", hide_details=True, classes="mt-1",
                      id="tomo-own-acquisition")
         v.VBtn("Load my scene", click=self.app.ctrl.tomo_load_own, block=True, classes="mt-2",

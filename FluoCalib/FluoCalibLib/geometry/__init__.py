@@ -28,6 +28,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "registration": ["RegistrationResult", "register_points", "target_registration_error", "pivot_calibration"],
     "scene": ["CALIBRATION_NODE", "INTRINSICS_KEY", "HANDEYE_KEY", "REGISTRATION_KEY", "HANDEYE_TRANSFORM", "LEGACY_HANDEYE_TRANSFORMS", "TOOL_TRANSFORM", "REGISTRATION_TRANSFORM", "calibration_node", "store_intrinsics", "load_intrinsics", "intrinsics_doc", "store_handeye", "handeye_node", "load_handeye", "store_registration"],
     "synthetic_boards": ["SyntheticView", "random_board_poses", "render_view", "make_dataset", "default_camera", "default_camera_to_tool"],
-    "transforms": ["make_rigid", "invert_rigid", "apply_rigid", "rotation_matrix", "rotvec_to_matrix", "matrix_to_rotvec", "matrix_to_quaternion", "quaternion_to_matrix", "slerp", "look_at", "is_rigid", "orthonormalize", "rotation_angle"],
+    "transforms": ["make_rigid", "invert_rigid", "apply_rigid", "rotation_matrix", "rotvec_to_matrix", "matrix_to_rotvec", "matrix_to_quaternion", "quaternion_to_matrix", "slerp", "look_at", "is_rigid", "as_rigid", "as_rigid_list", "orthonormalize", "rotation_angle"],
     "undistort": ["undistort_maps", "undistort_image", "clear_cache"],
 })

@@ -70,7 +70,9 @@ def _matrix(value, file, field):
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise FluoInputError("must be a finite 4x4 matrix", file=file, field=field,
                              value=m.shape)
-    return m
+    from FluoCalibLib.geometry.transforms import as_rigid
+
+    return as_rigid(m, field, file)      # a pose: rotation and translation only
 
 
 def read_matrix(path, field, key=None):

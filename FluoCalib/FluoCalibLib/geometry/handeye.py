@@ -60,13 +60,7 @@ MIN_AXIS_SPREAD_DEG = 5.0
 
 
 def _as_poses(name, poses):
-    out = []
-    for i, T in enumerate(poses):
-        T = np.asarray(T, dtype=float)
-        if T.shape != (4, 4) or not tf.is_rigid(T, 1e-4):
-            raise FluoInputError("is not a rigid 4x4 transform", field=f"{name}[{i}]")
-        out.append(T)
-    return out
+    return tf.as_rigid_list(poses, name)
 
 
 def check_motion(tool_to_tracker):

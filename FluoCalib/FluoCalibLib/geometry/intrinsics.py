@@ -108,17 +108,27 @@ class IntrinsicsResult:
 
 # ------------------------------------------------------------------ detection
 
+# Smallest image side a board can be found in [px]
+MIN_IMAGE_PX = 32
+
 def _read_gray(item):
     if isinstance(item, np.ndarray):
         img = item
         name = "array"
     else:
+        from fluoguide.errors import FluoInputError
+        from fluoguide.images import read_image
+
         name = str(item)
         if not Path(name).is_file():
             return None, name, "file not found"
-        img = cv2.imread(name, cv2.IMREAD_UNCHANGED)
-        if img is None:
-            return None, name, "cannot read image (corrupt or not an image file)"
+        try:
+            img = read_image(name)
+        except FluoInputError as exc:  # a view is rejected with its reason, the others go on
+            return None, name, exc.problem
+    if min(img.shape[:2]) < MIN_IMAGE_PX:
+        # OpenCV's corner finder asserts (and throws) on images this small
+        return None, name, f"image too small ({img.shape[1]} x {img.shape[0]} px)"
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if img.dtype != np.uint8:

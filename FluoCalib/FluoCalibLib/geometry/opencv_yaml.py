@@ -9,7 +9,6 @@ Values are written with full double precision, so a round trip is exact.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -25,27 +24,28 @@ __all__ = ["write_calibration_yaml", "read_calibration_yaml"]
 def write_calibration_yaml(path, camera=None, camera_to_tool=None, board_to_tracker=None,
                            rms_px=None):
     """Write an OpenCV YAML file (atomically: temporary name, then rename)."""
+    from fluoguide import atomic
+
     path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix or '.yaml'}")
-    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
-    if not fs.isOpened():
-        raise FluoInputError("cannot write file", file=path)
-    try:
-        if camera is not None:
-            fs.write("camera_model", camera.model)
-            fs.write("image_width", int(camera.width))
-            fs.write("image_height", int(camera.height))
-            fs.write("camera_matrix", camera.K)
-            fs.write("distortion_coefficients", camera.dist_array.reshape(1, -1))
-        if rms_px is not None:
-            fs.write("avg_reprojection_error", float(rms_px))
-        if camera_to_tool is not None:
-            fs.write("camera_to_tool", np.asarray(camera_to_tool, dtype=float))
-        if board_to_tracker is not None:
-            fs.write("board_to_tracker", np.asarray(board_to_tracker, dtype=float))
-    finally:
-        fs.release()
-    os.replace(tmp, path)
+    with atomic.atomic_path(path, field="yaml") as tmp:
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+        if not fs.isOpened():
+            raise FluoInputError("cannot write file", file=path)
+        try:
+            if camera is not None:
+                fs.write("camera_model", camera.model)
+                fs.write("image_width", int(camera.width))
+                fs.write("image_height", int(camera.height))
+                fs.write("camera_matrix", camera.K)
+                fs.write("distortion_coefficients", camera.dist_array.reshape(1, -1))
+            if rms_px is not None:
+                fs.write("avg_reprojection_error", float(rms_px))
+            if camera_to_tool is not None:
+                fs.write("camera_to_tool", np.asarray(camera_to_tool, dtype=float))
+            if board_to_tracker is not None:
+                fs.write("board_to_tracker", np.asarray(board_to_tracker, dtype=float))
+        finally:
+            fs.release()
     return path
 
 

@@ -122,13 +122,10 @@ def pivot_calibration(tool_to_tracker, min_angle_deg=15.0):
         ``tip_in_tool_mm`` (3,), ``pivot_in_tracker_mm`` (3,), ``rms_mm``
         (RMS distance of the per-pose tip positions from the pivot), ``residuals_mm``.
     """
-    Ts = [np.asarray(T, dtype=float) for T in tool_to_tracker]
+    Ts = tf.as_rigid_list(tool_to_tracker, "poses")
     if len(Ts) < 3:
         raise FluoInputError("pivot calibration needs at least 3 poses", field="poses",
                              value=len(Ts))
-    for T in Ts:
-        if not tf.is_rigid(T, 1e-4):
-            raise FluoInputError("pose is not a rigid 4x4 transform", field="poses")
     spread = max(tf.rotation_angle(Ts[0][:3, :3].T @ T[:3, :3]) for T in Ts)
     if np.degrees(spread) < min_angle_deg:
         raise FluoInputError(f"pointer rotated only {np.degrees(spread):.1f} deg about the "

@@ -16,14 +16,13 @@ area integration), then Gaussian blur and Gaussian noise are applied.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, check_number, seeded_rng
 from fluoguide.progress import check_cancel, report
 
 from FluoCalibLib.geometry.boards import parse_board
@@ -40,6 +39,13 @@ BACKGROUND_LEVEL = 120.0
 
 def default_camera(width=800, height=600):
     """A moderately distorted camera (about 60 deg horizontal field of view)."""
+    from fluoguide.images import MAX_IMAGE_PIXELS
+
+    check_number("width", width, 16, 20000, integer=True)
+    check_number("height", height, 16, 20000, integer=True)
+    if width * height > MAX_IMAGE_PIXELS:
+        raise FluoInputError(f"image larger than {MAX_IMAGE_PIXELS} pixels", field="width x height",
+                             value=(width, height))
     f = 0.87 * width
     return CameraModel(f, f * 1.002, width / 2 - 0.5 + 7.3, height / 2 - 0.5 - 4.1,
                        (-0.28, 0.11, 6e-4, -4e-4, -0.02), width, height)
@@ -228,7 +234,16 @@ def make_dataset(out_dir=None, camera=None, board="chessboard:9x6:20", n_views=1
     """
     board = parse_board(board)
     camera = camera or default_camera()
-    rng = np.random.default_rng(seed)
+    if out_dir is not None:
+        from fluoguide import atomic
+
+        atomic.check_writable(out_dir, "out_dir", folder=True)   # before rendering
+    check_number("n_views", n_views, 1, 1000, integer=True)
+    check_number("blur_sigma_px", blur_sigma_px, 0.0, 50.0)
+    check_number("noise_sigma", noise_sigma, 0.0, 255.0, what="must be 0..255 grey levels")
+    check_number("tracker_noise_mm", tracker_noise_mm, 0.0, 100.0)
+    check_number("tracker_noise_deg", tracker_noise_deg, 0.0, 90.0)
+    rng = seeded_rng(seed)
     X = default_camera_to_tool() if camera_to_tool is None else np.asarray(camera_to_tool, float)
     if board_to_tracker is None:
         board_to_tracker = tf.make_rigid(tf.rotation_matrix([1.0, 0.2, 0.1], 2.8),
@@ -262,13 +277,12 @@ def make_dataset(out_dir=None, camera=None, board="chessboard:9x6:20", n_views=1
                   "motion": motion, "seed": seed},
     }
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, v in zip(names, views):
-            tmp = out / f".{name}.tmp.png"
-            cv2.imwrite(str(tmp), v.image)
-            os.replace(tmp, out / name)
-        tmp = out / ".truth.json.tmp"
-        tmp.write_text(json.dumps(truth, indent=1))
-        os.replace(tmp, out / "truth.json")
+        from fluoguide import atomic
+
+        # the data set as a whole: a kill leaves the old set or the new one
+        with atomic.staged_folder(out_dir, last=("truth.json",)) as stage:
+            for name, v in zip(names, views):
+                if not cv2.imwrite(str(stage / name), v.image):
+                    raise FluoInputError("cannot write image", file=Path(out_dir) / name)
+            (stage / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
     return {**truth, "views": views}

@@ -28,6 +28,8 @@ __all__ = [
     "slerp",
     "look_at",
     "is_rigid",
+    "as_rigid",
+    "as_rigid_list",
     "orthonormalize",
     "rotation_angle",
 ]
@@ -314,3 +316,31 @@ def is_rigid(T, tol=1e-6):
     if abs(np.linalg.det(R) - 1.0) > tol:
         return False
     return bool(np.max(np.abs(arr[3] - [0.0, 0.0, 0.0, 1.0])) <= tol)
+
+
+def as_rigid(T, name, file=None, tol=1e-4):
+    """``T`` as a (4, 4) float rigid transform, or FluoInputError naming ``name``.
+
+    For values read from files (JSON of any shape): anything that is not a 4x4
+    array of finite numbers forming a proper rigid transform within ``tol`` is
+    refused, never half used.
+    """
+    try:
+        arr = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        raise FluoInputError("expected a 4x4 matrix of numbers", file=file, field=name) from None
+    if arr.shape != (4, 4):
+        raise FluoInputError("expected a 4x4 matrix", file=file, field=name, value=arr.shape)
+    if not np.all(np.isfinite(arr)):
+        raise FluoInputError("matrix has NaN or inf entries", file=file, field=name)
+    if not is_rigid(arr, tol):
+        raise FluoInputError("is not a rigid 4x4 transform", file=file, field=name)
+    return arr
+
+
+def as_rigid_list(poses, name, file=None, tol=1e-4):
+    """A list of rigid 4x4 transforms (see :func:`as_rigid`); ``name[i]`` in messages."""
+    if isinstance(poses, (str, bytes, dict)) or not hasattr(poses, "__len__"):
+        raise FluoInputError("expected a list of 4x4 matrices", file=file, field=name,
+                             value=type(poses).__name__)
+    return [as_rigid(T, f"{name}[{i}]", file, tol) for i, T in enumerate(poses)]

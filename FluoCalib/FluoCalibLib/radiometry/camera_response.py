@@ -50,18 +50,9 @@ class Frame:
 
 
 def _read_image(path):
-    path = Path(path)
-    if path.suffix == ".npy":
-        try:
-            return np.load(path)
-        except (OSError, ValueError) as exc:
-            raise FluoInputError(f"cannot read ({exc})", file=path) from None
-    import cv2
+    from fluoguide.images import read_image
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise FluoInputError("cannot read image", file=path)
-    return img
+    return read_image(path)
 
 
 def load_stack(folder):
@@ -69,14 +60,15 @@ def load_stack(folder):
     ``exposure_s``, ``kind`` (light/dark) and optionally ``f_number``,
     ``wavelength_nm``, ``radiance_w_per_mm2_sr``; images are 16-bit PNG/TIFF
     or .npy.  Returns (frames, metadata dict)."""
+    from fluoguide.errors import check_number
+    from fluoguide.jsonable import read_json
+    from fluoguide.paths import inside
+
     folder = Path(folder)
     meta_path = folder / "stack.json"
     if not meta_path.is_file():
         raise FluoInputError("stack folder needs a stack.json", file=meta_path)
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise FluoInputError(f"not valid JSON ({exc.msg}, line {exc.lineno})", file=meta_path) from None
+    meta = read_json(meta_path)
     entries = meta.get("frames") if isinstance(meta, dict) else None
     if not isinstance(entries, list) or not entries:
         raise FluoInputError("needs a non-empty 'frames' list", file=meta_path, field="frames")
@@ -90,38 +82,43 @@ def load_stack(folder):
         if kind not in ("light", "dark"):
             raise FluoInputError("kind must be 'light' or 'dark'", file=meta_path,
                                  field=f"{where}.kind", value=kind)
-        try:
-            t = float(e["exposure_s"])
-        except (TypeError, ValueError):
-            raise FluoInputError("exposure must be a number", file=meta_path,
-                                 field=f"{where}.exposure_s", value=e["exposure_s"]) from None
-        img = _read_image(folder / e["file"])
-        frames.append(Frame(img, t, kind, e.get("f_number"), e.get("wavelength_nm"),
-                            e.get("radiance_w_per_mm2_sr"), str(e["file"])))
+        t = check_number(f"{where}.exposure_s", e["exposure_s"], 0.0, 3600.0, file=meta_path,
+                         what="exposure must be a number of seconds within 0..3600")
+        optional = {}
+        for key, hi in (("f_number", 1000.0), ("wavelength_nm", 1e5), ("radiance_w_per_mm2_sr", None)):
+            if e.get(key) is not None:
+                optional[key] = check_number(f"{where}.{key}", e[key], 0.0, hi, lo_open=True,
+                                             file=meta_path)
+        # the manifest names files in its own folder, never ../ or absolute paths
+        img = _read_image(inside(folder, e["file"], file=meta_path, field=f"{where}.file"))
+        frames.append(Frame(img, float(t), kind, optional.get("f_number"),
+                            optional.get("wavelength_nm"), optional.get("radiance_w_per_mm2_sr"),
+                            str(e["file"])))
     return frames, meta
 
 
 def write_stack(folder, frames, extra=None):
-    """Write frames as 16-bit PNGs plus ``stack.json`` (atomic per file)."""
+    """Write frames as 16-bit PNGs plus ``stack.json``, the folder as a whole
+    (``fluoguide.atomic.staged_folder``: a kill leaves the old set or the new one)."""
     import cv2
 
+    from fluoguide import atomic
+
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    entries = []
-    for i, f in enumerate(frames):
-        name = f.name or f"{f.kind}_{i:03d}.png"
-        img = np.clip(np.round(f.image), 0, 65535).astype(np.uint16)
-        if not cv2.imwrite(str(folder / name), img):
-            raise FluoInputError("cannot write image", file=folder / name)
-        e = {"file": name, "exposure_s": float(f.exposure_s), "kind": f.kind}
-        for k in ("f_number", "wavelength_nm", "radiance_w_per_mm2_sr"):
-            if getattr(f, k) is not None:
-                e[k] = float(getattr(f, k))
-        entries.append(e)
-    doc = {"frames": entries, **(extra or {})}
-    tmp = folder / "stack.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=1))
-    tmp.replace(folder / "stack.json")
+    with atomic.staged_folder(folder, last=("stack.json",)) as stage:
+        entries = []
+        for i, f in enumerate(frames):
+            name = f.name or f"{f.kind}_{i:03d}.png"
+            img = np.clip(np.round(f.image), 0, 65535).astype(np.uint16)
+            if not cv2.imwrite(str(stage / name), img):
+                raise FluoInputError("cannot write image", file=folder / name)
+            e = {"file": name, "exposure_s": float(f.exposure_s), "kind": f.kind}
+            for k in ("f_number", "wavelength_nm", "radiance_w_per_mm2_sr"):
+                if getattr(f, k) is not None:
+                    e[k] = float(getattr(f, k))
+            entries.append(e)
+        doc = {"frames": entries, **(extra or {})}
+        (stage / "stack.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
     return folder
 
 
@@ -189,6 +186,9 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
     ``lens_exponent`` / ``spectral_responsivity``, plus the curves (``ptc``,
     ``linearity``, ``dark``) for plots.
     """
+    from fluoguide.errors import check_number
+
+    check_number("bit_depth", bit_depth, 1, 32, integer=True, what="must be 1..32 bits")
     adc_max = float(2 ** int(bit_depth) - 1)
     if not frames:
         raise FluoInputError("no frames", field="frames")

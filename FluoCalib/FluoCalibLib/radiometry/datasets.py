@@ -27,6 +27,7 @@ def read_dataset(folder, name, required=()):
     or an unreadable image.
     """
     from FluoCalibLib.radiometry.camera_response import _read_image
+    from fluoguide.paths import inside
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -40,5 +41,7 @@ def read_dataset(folder, name, required=()):
             raise FluoInputError("missing key", file=p, field=key)
     if not isinstance(doc.get("images"), list) or not doc["images"]:
         raise FluoInputError("needs a non-empty 'images' list", file=p, field="images")
-    images = [_read_image(folder / str(f)).astype(float) for f in doc["images"]]
+    # a manifest names files in its own folder, never ../ or absolute paths
+    images = [_read_image(inside(folder, f, file=p, field=f"images[{i}]")).astype(float)
+              for i, f in enumerate(doc["images"])]
     return images, doc

@@ -79,7 +79,10 @@ def calibrate_laser(images, camera, camera_to_tracker, laser_to_tracker, phantom
         (laser-tool coordinates); its projection onto the line is the origin
     holdout : images (evenly spaced) kept out of the fit for the accuracy
     """
+    from fluoguide.errors import check_number
+
     n = len(images)
+    check_number("holdout", holdout, 0, None, integer=True, what="must be 0 or more images")
     if not (len(laser_to_tracker) == len(phantom_to_tracker) == n):
         raise FluoInputError("one laser and one phantom pose per image", field="poses",
                              value=(n, len(laser_to_tracker), len(phantom_to_tracker)))

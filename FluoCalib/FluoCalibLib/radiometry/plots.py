@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fluoguide import atomic
+
 __all__ = ["plot_radiometry", "plot_ratio_images"]
 
 
@@ -23,7 +25,6 @@ def plot_radiometry(res, out_dir):
     """photon_transfer.png, linearity.png, dark.png; returns their paths."""
     plt = _plt()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     paths = []
     mu = np.array(res["ptc"]["mean_adu"])
     var = np.array(res["ptc"]["var_adu2"])
@@ -39,7 +40,7 @@ def plot_radiometry(res, out_dir):
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     paths.append(out / "photon_transfer.png")
-    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
+    atomic.save_figure(fig, paths[-1], dpi=120, bbox_inches="tight")
     plt.close(fig)
     t = np.array(res["linearity"]["exposure_s"])
     fig, ax = plt.subplots(figsize=(5, 3.6))
@@ -52,7 +53,7 @@ def plot_radiometry(res, out_dir):
     ax.set_title(f"Linearity: R² {res['linearity_r2']:.5f}, NL {res['nonlinearity_pct']:.2f} %")
     ax.grid(alpha=0.3)
     paths.append(out / "linearity.png")
-    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
+    atomic.save_figure(fig, paths[-1], dpi=120, bbox_inches="tight")
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(5, 3.6))
     t_dark = np.array(res["dark"]["exposure_s"], float)
@@ -68,7 +69,7 @@ def plot_radiometry(res, out_dir):
     ax.set_title(f"Dark: {res['dark_current_e_per_s']:.2f} e-/s, bias {res['bias_e']:.1f} e-")
     ax.grid(alpha=0.3)
     paths.append(out / "dark.png")
-    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
+    atomic.save_figure(fig, paths[-1], dpi=120, bbox_inches="tight")
     plt.close(fig)
     return [str(p) for p in paths]
 
@@ -81,7 +82,6 @@ def plot_ratio_images(ratios, out_dir, phantom_to_camera=None):
     against the optical axis."""
     plt = _plt()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     n = len(ratios)
     fig, axes = plt.subplots(1, n, figsize=(3.4 * n, 3.2), squeeze=False)
     for k, (ax, r) in enumerate(zip(axes[0], ratios)):
@@ -98,6 +98,6 @@ def plot_ratio_images(ratios, out_dir, phantom_to_camera=None):
         ax.axis("off")
     fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="measured / model (dimensionless)")
     path = out / "ratio_images.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    atomic.save_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return [str(path)]

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, seeded_rng
 
 from FluoCalibLib.geometry import transforms as tf
 from FluoCalibLib.geometry.camera_model import CameraModel
@@ -36,7 +36,7 @@ def synthetic_stack(camera=None, shape=(260, 348), n_light=12, n_dark=6, pairs=2
     response: S' = S (1 - nonlinearity * S / S_max).
     """
     cam = camera or RadiometricCamera()
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     # radiance that fills the full well in 1 s
     L = cam.full_well_e / cam.with_(exposure_s=1.0).electrons_per_radiance()
     field = np.full(shape, L)
@@ -84,7 +84,7 @@ def synthetic_lens_spectral_frames(camera=None, f_numbers=(1.4, 2.0, 2.8, 4.0, 5
     """
     cam = (camera or RadiometricCamera()).with_(exposure_s=float(exposure_s))
     qe = dict(DEFAULT_QE_BY_WAVELENGTH if qe_by_wavelength is None else qe_by_wavelength)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     frames = []
     f_min = min(f_numbers) if len(f_numbers) else cam.f_number
     L = radiance_w_per_mm2_sr
@@ -165,7 +165,7 @@ def synthetic_illumination(camera=None, cone=None, poses=None, rd=0.5, radiometr
     cone = cone or endoscope_cone()
     poses = poses or plane_poses()
     rcam = radiometric or RadiometricCamera(gain_adu_per_e=1.0)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     images = []
     for T in poses:
         pts, valid = ray_plane_points(cam, T)
@@ -193,7 +193,6 @@ def _write_pngs(folder, images, prefix):
     """16-bit PNGs ``<prefix>_NN.png``; returns their names."""
     import cv2
 
-    folder.mkdir(parents=True, exist_ok=True)
     names = []
     for i, img in enumerate(images):
         name = f"{prefix}_{i:02d}.png"
@@ -204,13 +203,17 @@ def _write_pngs(folder, images, prefix):
 
 
 def write_illumination_set(folder, images, truth):
-    """``illumination.json`` (camera, offset, Rd, per-image PhantomToCamera) + PNGs."""
+    """``illumination.json`` (camera, offset, Rd, per-image PhantomToCamera) + PNGs,
+    the folder as a whole (a kill leaves the old set or the new one)."""
+    from fluoguide import atomic
+
     folder = Path(folder)
-    names = _write_pngs(folder, images, "illum")
-    doc = {"camera": truth["camera"], "offset_adu": truth["offset_adu"], "rd": truth["rd"],
-           "saturation_adu": truth["saturation_adu"], "images": names, "phantom_to_camera": truth["phantom_to_camera"],
-           "truth": {"cone": truth["cone"]}}
-    (folder / "illumination.json").write_text(json.dumps(doc, indent=1))
+    with atomic.staged_folder(folder, last=("illumination.json",)) as stage:
+        names = _write_pngs(stage, images, "illum")
+        doc = {"camera": truth["camera"], "offset_adu": truth["offset_adu"], "rd": truth["rd"],
+               "saturation_adu": truth["saturation_adu"], "images": names,
+               "phantom_to_camera": truth["phantom_to_camera"], "truth": {"cone": truth["cone"]}}
+        (stage / "illumination.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
     return folder
 
 
@@ -225,7 +228,7 @@ def synthetic_laser(camera=None, n_images=10, seed=0, pose_noise_mm=0.1, pose_no
     true beam is a line in laser-tool coordinates.  Returns (images, truth).
     """
     cam = camera or CameraModel(4279.0 / 4, 4279.0 / 4, 739.3 / 4, 510.2 / 4, (0, 0, 0, 0, 0), 348, 260)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     origin_tool = np.array([2.0, -1.0, 15.0])                 # collimator exit in tool coords
     direction_tool = tf.rotation_matrix([1.0, 0.3, 0.0], np.deg2rad(2.0)) @ np.array([0.0, 0.0, 1.0])
     # the laser tool hangs above the phantom, beam pointing down (-z of tracker)
@@ -266,12 +269,15 @@ def synthetic_laser(camera=None, n_images=10, seed=0, pose_noise_mm=0.1, pose_no
 
 
 def write_laser_set(folder, images, truth):
-    """``laser.json`` (camera, poses, pointer origin) + PNGs."""
+    """``laser.json`` (camera, poses, pointer origin) + PNGs, the folder as a whole."""
+    from fluoguide import atomic
+
     folder = Path(folder)
-    names = _write_pngs(folder, images, "laser")
-    doc = {k: truth[k] for k in ("camera", "camera_to_tracker", "laser_to_tracker",
-                                 "phantom_to_tracker", "pointer_origin_tool_mm")}
-    doc["images"] = names
-    doc["truth"] = {"origin_mm": truth["origin_mm"], "direction": truth["direction"]}
-    (folder / "laser.json").write_text(json.dumps(doc, indent=1))
+    with atomic.staged_folder(folder, last=("laser.json",)) as stage:
+        names = _write_pngs(stage, images, "laser")
+        doc = {k: truth[k] for k in ("camera", "camera_to_tracker", "laser_to_tracker",
+                                     "phantom_to_tracker", "pointer_origin_tool_mm")}
+        doc["images"] = names
+        doc["truth"] = {"origin_mm": truth["origin_mm"], "direction": truth["direction"]}
+        (stage / "laser.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
     return folder

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, check_number, seeded_rng
 
 __all__ = ["Frame", "OpenCVSource", "ImageSequenceSource", "RecordingSource", "SyntheticSource",
            "IMAGE_SUFFIXES"]
@@ -76,6 +76,14 @@ class OpenCVSource(_Source):
         self._cv2 = cv2
         self.device = device
         self.is_file = not isinstance(device, int)
+        if not self.is_file:
+            # OpenCV crashes (SIGSEGV) on a negative index
+            check_number("camera", device, 0, 1023, integer=True)
+        for name, v in (("width", width), ("height", height)):
+            if v is not None:
+                check_number(name, v, 1, 20000, integer=True)
+        if fps is not None:
+            check_number("fps", fps, 0.0, 1000.0, lo_open=True)
         self.cap = cv2.VideoCapture(str(device) if self.is_file else device)
         if not self.cap.isOpened():
             self.cap.release()
@@ -126,14 +134,9 @@ class ImageSequenceSource(_Source):
         if self.n >= len(self.files):
             return None
         path = self.files[self.n]
-        if path.suffix.lower() == ".npy":
-            img = np.load(path)
-        else:
-            import cv2
+        from fluoguide.images import read_image
 
-            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise FluoInputError("unreadable image", file=path)
+        img = read_image(path)
         self.n += 1
         t = (self.n - 1) / self.fps
         if self.realtime:         # played as a live camera: paced, stamped with the host clock
@@ -157,10 +160,12 @@ class RecordingSource(_Source):
             return None
         doc = self._docs[self.n]
         self.n += 1
-        poses = {tool: None if v is None else np.array(v, float).reshape(4, 4)
-                 for tool, v in doc["poses"].items()}
-        return Frame(np.load(doc["path"]), doc["timestamp_s"], doc["frame"], doc["exposure_s"],
-                     poses, {"pose_valid": doc["pose_valid"], "pose_status": doc["pose_status"]})
+        from fluoguide.images import read_image
+
+        # read_recording checked the poses (16 finite numbers) and the file name
+        return Frame(read_image(doc["path"]), doc["timestamp_s"], doc["frame"], doc["exposure_s"],
+                     doc["poses"], {"pose_valid": doc["pose_valid"],
+                                    "pose_status": doc["pose_status"]})
 
 
 class SyntheticSource(_Source):
@@ -168,13 +173,18 @@ class SyntheticSource(_Source):
     simulator): the mean level varies slowly so frames differ."""
 
     def __init__(self, fps=20.0, width=348, height=260, n_frames=None, seed=0):
-        if not fps > 0 or width < 1 or height < 1:
-            raise FluoInputError("fps, width and height must be > 0", field="synthetic camera",
-                                 value=(fps, width, height))
+        from fluoguide.images import MAX_IMAGE_PIXELS
+
+        check_number("fps", fps, 0.0, 1000.0, lo_open=True)
+        check_number("width", width, 1, 20000, integer=True)
+        check_number("height", height, 1, 20000, integer=True)
+        if width * height > MAX_IMAGE_PIXELS:
+            raise FluoInputError(f"frame larger than {MAX_IMAGE_PIXELS} pixels",
+                                 field="width x height", value=(width, height))
         self.period_s = 1.0 / float(fps)
         self.shape = (int(height), int(width))
         self.n_frames = n_frames
-        self.rng = np.random.default_rng(seed)
+        self.rng = seeded_rng(seed)
         self.n = 0
         self._next = None
 

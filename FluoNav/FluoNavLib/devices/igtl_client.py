@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from fluoguide import mrml_io
-from fluoguide.errors import FluoDeviceError, FluoInputError
+from fluoguide.errors import FluoDeviceError, FluoInputError, check_number
 
 __all__ = ["IGTLReceiver", "TIMESTAMP_ATTRIBUTE"]
 
@@ -62,6 +62,9 @@ class IGTLReceiver:
     def __init__(self, scene, host="127.0.0.1", port=18944, nominal_rate_hz=None,
                  max_body_bytes=64 * 2**20):
         self.scene = scene
+        check_number("port", port, 1, 65535, integer=True)
+        if nominal_rate_hz is not None:
+            check_number("nominal_rate_hz", nominal_rate_hz, 0.0, 10_000.0, lo_open=True)
         self.host, self.port = host, int(port)
         self.nominal_rate_hz = nominal_rate_hz
         self.max_body_bytes = int(max_body_bytes)

@@ -28,6 +28,10 @@ __all__ = ["NDIClient", "TrackingStats", "parse_handle"]
 
 log = logging.getLogger("fluoguide.ndi")
 
+# The longest reply read [bytes]: a TX reply for 16 tools in text mode is under
+# 2 KB; a device streaming bytes without a CR must not grow the buffer forever
+MAX_REPLY_BYTES = 64 * 1024
+
 
 def parse_handle(body):
     """The port handle of a PHRQ reply: two hex digits (raises NDIProtocolError)."""
@@ -97,9 +101,13 @@ class NDIClient:
         """Send a command and return the checked reply body (raises NDIProtocolError)."""
         self.serial.reset_input_buffer()
         self.serial.write(command(name, *args))
-        raw = self.serial.read_until(b"\r")
+        raw = self.serial.read_until(b"\r", MAX_REPLY_BYTES)
         if not raw:
             raise NDIProtocolError(f"no reply to {name} within {self.timeout_s} s", "timeout")
+        if not raw.endswith(b"\r") and len(raw) >= MAX_REPLY_BYTES:
+            self.serial.reset_input_buffer()
+            raise NDIProtocolError(f"reply to {name} longer than {MAX_REPLY_BYTES} bytes "
+                                   "without an end")
         return check_reply(raw)
 
     def _request_retry(self, name, *args, tries=3):

@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fluoguide.errors import seeded_rng
+
 from FluoNavLib.devices.ndi_protocol import (
     PORT_ENABLED,
     PORT_INITIALIZED,
@@ -86,7 +88,7 @@ class NDISimulator:
                                     SimTool("LaserTool", centre_mm=(100.0, 20.0, -1400.0))])
         self.rate_hz = float(rate_hz)
         self.faults = faults or Faults()
-        self.rng = np.random.default_rng(seed)
+        self.rng = seeded_rng(seed)
         self._master = self._slave = None
         self._thread = None
         self._stop = threading.Event()

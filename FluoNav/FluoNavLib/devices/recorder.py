@@ -31,10 +31,17 @@ class Recorder:
     """Append tracked frames to ``folder`` (created; must be empty or new)."""
 
     def __init__(self, folder, tools=("CameraToolToTracker",)):
+        from fluoguide import atomic
+
         self.folder = Path(folder)
+        if self.folder.exists() and not self.folder.is_dir():
+            raise FluoInputError("output exists and is not a folder", file=self.folder)
         if self.folder.exists() and any(self.folder.iterdir()):
             raise FluoInputError("recording folder exists and is not empty", file=self.folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise atomic.output_error(exc, self.folder) from None
         self.tools = list(tools)
         self.n = 0
         self._last_t = None
@@ -86,57 +93,128 @@ class Recorder:
         self.close()
 
 
+def _frame_doc(doc, folder, log, line, tools):
+    """Check one log line's frame record (a damaged log is named, never half used)."""
+    from fluoguide.paths import inside
+
+    where = f"line {line}"
+    if not isinstance(doc, dict):
+        raise FluoInputError("log line is not a JSON object", file=log, field=where)
+    for key in ("file", "timestamp_s", "poses"):
+        if key not in doc:
+            raise FluoInputError(f"log line lacks '{key}'", file=log, field=where)
+    t = doc["timestamp_s"]
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not np.isfinite(t):
+        raise FluoInputError("timestamp must be a finite number [s]", file=log,
+                             field=f"{where}.timestamp_s", value=t)
+    e = doc.get("exposure_s")
+    if e is not None and (isinstance(e, bool) or not isinstance(e, (int, float))
+                          or not np.isfinite(e) or e < 0):
+        raise FluoInputError("exposure must be a non-negative number [s]", file=log,
+                             field=f"{where}.exposure_s", value=e)
+    if not isinstance(doc["poses"], dict):
+        raise FluoInputError("poses must be an object of tool -> 16 numbers", file=log,
+                             field=f"{where}.poses")
+    poses = {}
+    for tool, v in doc["poses"].items():
+        if v is None:
+            poses[tool] = None
+            continue
+        try:
+            m = np.array(v, dtype=float)
+        except (TypeError, ValueError):
+            m = np.zeros(0)
+        if m.size != 16 or not np.all(np.isfinite(m)):
+            raise FluoInputError("a pose must be 16 finite numbers (4x4, row-major)", file=log,
+                                 field=f"{where}.poses.{tool}")
+        poses[tool] = m.reshape(4, 4)
+    path = inside(folder, doc["file"], file=log, field=f"{where}.file")
+    if not path.is_file():
+        raise FluoInputError("frame file of the log is missing", file=path)
+    return {"frame": doc.get("frame", line - 2), "file": doc["file"], "path": path,
+            "timestamp_s": float(t), "exposure_s": None if e is None else float(e),
+            "pose_valid": bool(doc.get("pose_valid", True)),
+            "pose_status": str(doc.get("pose_status", "OK")), "poses": poses}
+
+
 def read_recording(folder):
-    """(tools, list of frame dicts with ``image`` loaded lazily via ``load()``).
+    """(tools, list of frame dicts with their ``path``, checked).
 
     A last log line cut by a crash is ignored; a frame file missing for a
-    complete line is an error naming it.
+    complete line, a file name outside the folder, a damaged pose or a
+    timestamp that is not finite or does not increase is an error naming the
+    line.
     """
     folder = Path(folder)
     log = folder / "log.jsonl"
+    if not folder.is_dir():
+        raise FluoInputError("recording folder not found", file=folder)
     if not log.is_file():
         raise FluoInputError("not a recording (no log.jsonl)", file=folder)
-    lines = log.read_text(encoding="utf-8").splitlines()
+    try:
+        lines = log.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError:
+        raise FluoInputError("recording log is not UTF-8 text", file=log) from None
     if not lines:
         raise FluoInputError("empty recording log", file=log)
     try:
         header = json.loads(lines[0])
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, RecursionError):
         raise FluoInputError("corrupt recording header", file=log, field="line 1") from None
+    if not isinstance(header, dict) or not isinstance(header.get("tools", []), list):
+        raise FluoInputError("recording header must be an object with a 'tools' list", file=log,
+                             field="line 1")
     frames = []
     for k, line in enumerate(lines[1:], start=2):
         try:
             doc = json.loads(line)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             if k == len(lines):
                 break             # the frame in flight when the recorder died
             raise FluoInputError("corrupt log line", file=log, field=f"line {k}") from None
-        path = folder / doc["file"]
-        if not path.is_file():
-            raise FluoInputError("frame file of the log is missing", file=path)
-        doc["path"] = path
-        frames.append(doc)
-    return header.get("tools", []), frames
+        frame = _frame_doc(doc, folder, log, k, header.get("tools", []))
+        if frames and not frame["timestamp_s"] > frames[-1]["timestamp_s"]:
+            raise FluoInputError("timestamps must increase", file=log,
+                                 field=f"line {k}.timestamp_s", value=frame["timestamp_s"])
+        frames.append(frame)
+    return [str(t) for t in header.get("tools", [])], frames
 
 
-def _poses(doc):
-    return {tool: None if v is None else np.array(v, float).reshape(4, 4)
-            for tool, v in doc["poses"].items()}
+def _load_frame(doc):
+    from fluoguide.images import read_image
+
+    return read_image(doc["path"])
 
 
-def replay(folder, speed="recorded"):
+# a longer pause between two recorded frames is replayed as this long (it is
+# counted): a damaged timestamp must not make a replay wait for days
+MAX_REPLAY_GAP_S = 5.0
+
+
+def replay(folder, speed="recorded", stats=None):
     """Yield (image, info, poses) in order; ``speed`` "recorded" keeps the
-    recorded intervals, "max" goes as fast as the disk allows."""
+    recorded intervals (a pause longer than ``MAX_REPLAY_GAP_S`` is shortened
+    to it and counted in ``stats["gaps_shortened"]``), "max" goes as fast as
+    the disk allows."""
     _, frames = read_recording(folder)
+    stats = {} if stats is None else stats
+    stats["gaps_shortened"] = 0
     t_wall0 = time.monotonic()
-    t_rec0 = frames[0]["timestamp_s"] if frames else 0.0
+    shift = 0.0                       # recorded time skipped by shortened gaps
+    prev = frames[0]["timestamp_s"] if frames else 0.0
+    t_rec0 = prev
     for doc in frames:
         if speed == "recorded":
-            wait = (doc["timestamp_s"] - t_rec0) - (time.monotonic() - t_wall0)
+            gap = doc["timestamp_s"] - prev
+            if gap > MAX_REPLAY_GAP_S:
+                shift += gap - MAX_REPLAY_GAP_S
+                stats["gaps_shortened"] += 1
+            wait = (doc["timestamp_s"] - t_rec0 - shift) - (time.monotonic() - t_wall0)
             if wait > 0:
                 time.sleep(wait)
+        prev = doc["timestamp_s"]
         info = {k: doc[k] for k in ("frame", "timestamp_s", "exposure_s", "pose_valid", "pose_status")}
-        yield np.load(doc["path"]), info, _poses(doc)
+        yield _load_frame(doc), info, doc["poses"]
 
 
 def to_scene(folder, scene=None):
@@ -149,7 +227,7 @@ def to_scene(folder, scene=None):
     scene = scene or mrml_io.new_scene()
     frame_store.new_recording(scene, tools=tools)
     for doc in frames:
-        frame_store.append_tracked_frame(scene, np.load(doc["path"]), doc["timestamp_s"],
-                                         _poses(doc), doc["exposure_s"], doc["pose_valid"],
+        frame_store.append_tracked_frame(scene, _load_frame(doc), doc["timestamp_s"],
+                                         doc["poses"], doc["exposure_s"], doc["pose_valid"],
                                          doc["pose_status"])
     return scene

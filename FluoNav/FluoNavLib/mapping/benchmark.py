@@ -16,6 +16,8 @@ import time
 
 import numpy as np
 
+from fluoguide.errors import seeded_rng
+
 __all__ = ["run_mapping_benchmark"]
 
 
@@ -32,7 +34,7 @@ def _reference_accuracy(caster, cam, pose, methods, n_pixels=400, seed=0):
     """Each cast method against the exact float64 brute force on random pixels."""
     from FluoNavLib.mapping.pixel_cast import cast_camera, reference_cast
 
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     h, w = cam.height, cam.width
     idx = rng.choice(h * w, n_pixels, replace=False)
     rays = (cam.pixel_grid_rays() @ pose[:3, :3].T).reshape(-1, 3)[idx]
@@ -52,6 +54,12 @@ def _reference_accuracy(caster, cam, pose, methods, n_pixels=400, seed=0):
 
 
 def run_mapping_benchmark(repeats=5, binning=10, decimated_triangles=15000, progress=None):
+    from fluoguide.errors import check_number
+
+    # a median needs one repeat; 100 repeats of the slowest step take minutes already
+    check_number("repeats", repeats, 1, 100, integer=True)
+    check_number("binning", binning, 1, 64, integer=True)
+    check_number("decimated_triangles", decimated_triangles, 100, 10_000_000, integer=True)
     from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
 
     from FluoNavLib.mapping.flux_map import transport_image, view_model

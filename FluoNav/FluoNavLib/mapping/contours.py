@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fluoguide import atomic
 from fluoguide.errors import FluoInputError
 
 __all__ = ["miss_rate", "overlay_png"]
@@ -50,6 +51,6 @@ def overlay_png(path, image, contour_mask, title, mask=None,
     ax.set_title(title, fontsize=9)
     ax.axis("off")
     fig.colorbar(im, ax=ax, shrink=0.8, label=colorbar_label)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    atomic.save_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return str(path)

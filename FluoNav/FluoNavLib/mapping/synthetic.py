@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, check_number, seeded_rng
 
 from FluoCalibLib.geometry import transforms as tf
 from FluoCalibLib.geometry.camera_model import CameraModel
@@ -31,6 +31,11 @@ __all__ = ["oral_cavity_surface", "open_field_camera", "coupled_light", "view_po
            "tracked_acquisition"]
 
 
+# The largest optical transport a synthetic view renders (dimensionless): far
+# above tissue's (< 1), below where the photon counts' Poisson draws overflow
+MAX_TRANSPORT = 100.0
+
+
 def oral_cavity_surface(target_triangles=62000, seed=0, voxel_mm=0.8, source="labels"):
     """(SurfaceCaster, vtkPolyData) of the oral-cavity phantom's air-tissue surface
     (RAS mm), extracted from its CBCT voxelised at ``voxel_mm``: from the label
@@ -42,6 +47,9 @@ def oral_cavity_surface(target_triangles=62000, seed=0, voxel_mm=0.8, source="la
 
     if source not in ("labels", "cbct"):
         raise FluoInputError("choose labels or cbct", field="source", value=source)
+    if target_triangles is not None:
+        check_number("target_triangles", target_triangles, 0, 10_000_000, integer=True,
+                     what="must be 0 (keep all) .. 10,000,000")
     p = make_phantom("oral-cavity", seed=seed, voxel_mm=voxel_mm)
     ijk = np.diag([*p.spacing_mm, 1.0])
     ijk[:3, 3] = p.origin_mm
@@ -84,6 +92,7 @@ class PoseError:
 def open_field_camera(binning=1):
     """1392 x 1040 sensor, 6.45 um pixels, a 12 mm lens (f ~ 1860 px): the whole
     oral cavity from 120 mm."""
+    check_number("binning", binning, 1, 64, integer=True)
     cam = CameraModel(1860.0, 1860.0, 695.5, 519.5, (0.0, 0.0, 0.0, 0.0, 0.0), 1392, 1040)
     return cam.binned(binning) if binning > 1 else cam
 
@@ -97,6 +106,8 @@ def coupled_light():
 
 def view_poses(n=4, distance_mm=120.0, centre=(0.0, 0.0, -20.0)):
     """CameraToWorld poses looking into the cavity from above at several angles."""
+    check_number("views", n, 1, 360, integer=True)
+    check_number("distance_mm", distance_mm, 0.0, 10_000.0, lo_open=True)
     poses = []
     for k in range(n):
         az = 2 * np.pi * k / max(n, 1)
@@ -108,18 +119,25 @@ def view_poses(n=4, distance_mm=120.0, centre=(0.0, 0.0, -20.0)):
 
 
 def render_view(caster, camera, camera_to_world, cone, transport=0.3, radiometric=None, seed=0):
-    """(noisy counts [ADU], hits, view model) of one view of homogeneous tissue."""
+    """(noisy counts [ADU], hits, view model) of one view of homogeneous tissue.
+
+    ``transport`` is the optical transport T (dimensionless, 0..100; tissue's is
+    below 1, larger values only saturate the sensor).
+    """
+    check_number("transport", transport, 0.0, MAX_TRANSPORT)
     hits = cast_camera(caster, camera, camera_to_world)
     counts, vm = render_hits(hits, cone, camera_to_world, transport, radiometric, seed)
     return counts, hits, vm
 
 
 def render_hits(hits, cone, camera_to_world, transport=0.3, radiometric=None, seed=0):
-    """(noisy counts [ADU], view model) of tissue of transport T seen at ``hits``
-    (a ray cast, or :func:`exact_oral_cavity_hits`): S = Dsys T I, then
-    Poisson shot noise, dark current, full well, bias, read noise and the ADC."""
+    """(noisy counts [ADU], view model) of tissue of transport T (dimensionless,
+    0..100) seen at ``hits`` (a ray cast, or :func:`exact_oral_cavity_hits`):
+    S = Dsys T I, then Poisson shot noise, dark current, full well, bias, read
+    noise and the ADC."""
+    check_number("transport", transport, 0.0, MAX_TRANSPORT)
     rcam = radiometric or RadiometricCamera(gain_adu_per_e=1.0)
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     vm = view_model(hits, cone, camera_to_world)
     S = forward_image(vm, cone, transport)                      # ADU above offset
     e = np.maximum(S / rcam.gain_adu_per_e, 0.0)
@@ -262,7 +280,8 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
     rng = np.random.default_rng(seed)
     hand_eye_reported = hand_eye.fixed(rng)
     frames, tool_poses, true_poses = [], [], []
-    for k, pose in enumerate(view_poses(n_views)):
+    # no views: the room alone (surface, calibrations), for a live stream
+    for k, pose in enumerate(view_poses(n_views) if n_views else []):
         check_cancel(cancel)
         report(progress, 0.2 + 0.8 * k / n_views, f"view {k + 1} of {n_views}")
         counts, _ = render_hits(exact_oral_cavity_hits(cam, pose, geometry), cone, pose,

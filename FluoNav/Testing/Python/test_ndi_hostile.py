@@ -68,3 +68,36 @@ def test_cli_track_seconds_must_be_a_finite_duration(value, capsys):
 
     assert main(["track", "--sim", "--seconds", value, "--json"]) == 2
     assert "--seconds" in capsys.readouterr().err
+
+
+class StreamingDevice(NDISimulator):
+    """Answers TX with megabytes that never end in a CR (a device in a loop)."""
+
+    def _handle(self, line):
+        if line.strip().upper().startswith("TX"):
+            return b"0" * (8 * 2**20)
+        return super()._handle(line)
+
+
+def test_a_reply_without_end_is_bounded_in_time_and_memory():
+    import resource
+    import time
+
+    from FluoNavLib.devices.ndi_client import MAX_REPLY_BYTES
+
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.monotonic()
+    with StreamingDevice() as dev:
+        with NDIClient(dev.port) as client:
+            client.initialize([b"rom" * 30])
+            client.start()
+            # replies cut at the size limit or the time-out: counted, then one
+            # protocol error once the device does not recover
+            with pytest.raises(NDIProtocolError):
+                client.track(30.0)
+            assert client.stats.frames == 0
+            assert client.stats.malformed + client.stats.timeouts >= client.max_failures
+    took = time.monotonic() - t0
+    grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert took < 20.0 and grew_mb < 100
+    assert MAX_REPLY_BYTES <= 2**20

@@ -216,6 +216,7 @@ class DiffusionOperator:
 
     def __init__(self, mesh, mua_per_mm, musp_per_mm, n, solver="auto", name="operator",
                  robin_facets=None, boundary=None):
+        mesh.check_topology()
         mua = _nodal(mesh, mua_per_mm, f"{name}.mua_per_mm")
         musp = _nodal(mesh, musp_per_mm, f"{name}.musp_per_mm")
         check_properties(mua, musp, n, where=name)

@@ -71,6 +71,11 @@ def _facet_codes(el, n):
     return codes
 
 
+def _shared_facet_error(name):
+    raise FluoInputError("a facet is shared by more than two elements (an element listed twice, "
+                         "or overlapping elements)", field=f"{name}.elements")
+
+
 @dataclass(eq=False)
 class Mesh:
     """Linear simplex mesh.
@@ -154,6 +159,26 @@ class Mesh:
                 field=f"{self.name}.elements[{int(degenerate[0])}]", value=float(m[degenerate[0]]))
         return self
 
+    def check_topology(self):
+        """Raise FluoInputError on nodes in no element or elements listed twice.
+
+        Both break the FEM silently: an unused node gives an empty matrix row, a
+        duplicate element counts its stiffness and absorption twice (a wrong
+        fluence with no warning). Checked once per mesh object; returns self.
+        """
+        if getattr(self, "_topology_ok", None) is self.elements:
+            return self
+        used = np.bincount(self.elements.ravel(), minlength=self.n_nodes) > 0
+        if not used.all():
+            k = int(np.count_nonzero(~used))
+            raise FluoInputError(f"{k} node(s) belong to no element",
+                                 field=f"{self.name}.nodes_mm[{int(np.flatnonzero(~used)[0])}]")
+        # an element listed twice shares each facet with its twin: the boundary
+        # extraction refuses facets held by more than two elements
+        self._boundary  # noqa: B018 (cached; the FEM needs it anyway)
+        self._topology_ok = self.elements
+        return self
+
     def oriented(self) -> "Mesh":
         """Copy with every element positively oriented (swap two nodes where negative)."""
         el = self.elements.copy()
@@ -201,12 +226,16 @@ class Mesh:
             sc = code[order]
             single = np.ones(len(sc), bool)
             same = sc[1:] == sc[:-1]
+            if np.any(same[1:] & same[:-1]):
+                _shared_facet_error(self.name)
             single[1:] &= ~same
             single[:-1] &= ~same
             hit = np.sort(order[single])
         else:
             keys = np.sort(np.concatenate([np.delete(el, k, axis=1) for k in range(d + 1)]), axis=1)
             _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+            if np.any(counts > 2):
+                _shared_facet_error(self.name)
             hit = np.flatnonzero(counts[inverse.ravel()] == 1)
         # facet number f = k * M + e: element e without its local node k, and
         # that node (opposite the facet) orients the normal outward

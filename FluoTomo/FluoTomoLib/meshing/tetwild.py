@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, check_number
 from fluoguide.progress import check_cancel, report
 
 from FluoTomoLib.meshing.mesh import Mesh
@@ -470,6 +470,9 @@ def mesh_labelmap_quality(labels_kji, spacing_mm, origin_mm, size_mm, roi=None, 
     labels, spacing, origin, d = _check_geometry(labels_kji, spacing_mm, origin_mm, direction)
     if not (np.isfinite(size_mm) and size_mm > 0):
         raise FluoInputError("element size must be > 0", field="size_mm", value=size_mm)
+    if threads is not None:
+        # fTetWild spins forever on a negative thread count
+        check_number("threads", threads, 1, 1024, integer=True)
     if roi is not None:
         labels, origin = _crop_to_roi(labels, spacing, origin, d, roi)
     else:

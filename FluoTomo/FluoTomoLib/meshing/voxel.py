@@ -381,6 +381,9 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
         raise FluoInputError("label map must be 3D", field="labels", value=labels.shape)
     if not np.any(labels > 0):
         raise FluoInputError("label map is empty (no non-zero label)", field="labels")
+    if labels.min() < 0:
+        raise FluoInputError("label values must be >= 0 (0 = outside)", field="labels",
+                             value=int(labels.min()))
     spacing = np.asarray(spacing_mm, float)
     origin = np.asarray(origin_mm, float)
     if spacing.shape != (3,) or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
@@ -416,6 +419,11 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     if np.any(roi[1::2] <= roi[0::2]):
         raise FluoInputError("region of interest does not overlap the label map", field="roi",
                              value=roi.tolist())
+    across = float(np.max(roi[1::2] - roi[0::2]))
+    if size_mm > across:
+        # one cell would hold everything: a mesh, but of nothing the label map says
+        raise FluoInputError(f"element size is larger than the label map ({across:.3g} mm "
+                             "across)", field="size_mm", value=size_mm)
     n_est = np.prod((roi[1::2] - roi[0::2]) / size_mm)
     if n_est > 3e6:           # before building edges that would not fit either
         raise FluoInputError(f"about {n_est:.3g} cells: choose a larger element size or a "

@@ -79,25 +79,23 @@ def from_vtk(grid, name="mesh", source=None):
 
 
 def write_vtu(mesh, path, point_data=None):
-    """Write ``path`` (.vtu, binary, compressed) atomically."""
+    """Write ``path`` (.vtu, binary, compressed) atomically: a kill leaves the old
+    file or the new one (and at most a hidden ``.NAME.tmp-*`` file)."""
     import vtk
+
+    from fluoguide import atomic
 
     path = Path(path)
     if path.suffix != ".vtu":
         raise FluoInputError("mesh file must end in .vtu", file=path)
-    tmp = path.with_name(path.name + ".tmp.vtu")
-    w = vtk.vtkXMLUnstructuredGridWriter()
-    w.SetFileName(str(tmp))
-    w.SetInputData(to_vtk(mesh, point_data))
-    w.SetDataModeToBinary()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        ok = w.Write()
-    except OSError as exc:
-        raise FluoInputError(f"cannot write ({exc.strerror})", file=path) from None
-    if not ok or not tmp.exists():
-        raise FluoInputError("cannot write mesh file", file=path)
-    tmp.replace(path)
+    grid = to_vtk(mesh, point_data)
+    with atomic.atomic_path(path) as tmp:
+        w = vtk.vtkXMLUnstructuredGridWriter()
+        w.SetFileName(str(tmp))
+        w.SetInputData(grid)
+        w.SetDataModeToBinary()
+        if not w.Write() or not tmp.exists():
+            raise FluoInputError("cannot write mesh file", file=path)
     return path
 
 

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, seeded_rng
 from fluoguide.progress import check_cancel, report
 
 from FluoTomoLib.pipelines.steps import (
@@ -78,7 +78,7 @@ def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=1.5, n_sources
     the meshes and fields for figures and the scene.
     """
     t_all = time.perf_counter()
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     if phantom.name != "oral-cavity":
         raise FluoInputError("this case needs the oral-cavity phantom", field="phantom",
                              value=phantom.name)

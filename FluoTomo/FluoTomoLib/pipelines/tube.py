@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, seeded_rng
 from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
@@ -79,7 +79,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     from FluoTomoLib.tomography.simulate import simulation_mesh
 
     t_all = time.perf_counter()
-    rng = np.random.default_rng(seed)
+    rng = seeded_rng(seed)
     truth = phantom.truth()
     if phantom.name != "cylinder-tube":
         raise FluoInputError("this study needs the cylinder-tube phantom", field="phantom",

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fluoguide import atomic
+
 
 def plot_case(out_dir, index, title, fields):
     """PNG of every reconstruction of one case next to the truth (same colour scale),
@@ -18,7 +20,6 @@ def plot_case(out_dir, index, title, fields):
     import matplotlib.tri as mtri
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     vmax = max(float(np.max(v)) for _, v in fields.values())
     n = len(fields)
     cols = 2 if n <= 4 else 4
@@ -60,7 +61,7 @@ def plot_case(out_dir, index, title, fields):
     fig.colorbar(im, ax=axes, shrink=0.8, label="fluorescence yield [1e-3 / mm]")
     fig.suptitle(f"{title}  (cyan: the true target)", fontsize=12)
     path = out / f"case_{index:02d}.png"
-    fig.savefig(path, dpi=100)
+    atomic.save_figure(fig, path, dpi=100)
     plt.close(fig)
     return str(path)
 

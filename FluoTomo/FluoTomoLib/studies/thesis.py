@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoInputError, seeded_rng
 from fluoguide.progress import check_cancel, report
 
 from FluoTomoLib.fem.forward import FluorescenceModel

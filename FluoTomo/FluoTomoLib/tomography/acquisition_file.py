@@ -365,32 +365,22 @@ def _to_fluence_per_watt(data, units, doc, S, file, optics=None):
 
 
 def _atomic_folder_write(folder, files):
-    """Write {name: bytes or str} into ``folder`` as one transaction."""
+    """Write {name: bytes or str} into ``folder`` as one transaction: a new
+    folder appears whole with one rename, an existing one gets the new files as
+    a journaled commit, ``acquisition.json`` last (fluoguide.atomic)."""
     from fluoguide import atomic
 
     out = Path(folder)
-    if out.exists() and not out.is_dir():
-        raise FluoInputError("output exists and is not a folder", file=out)
     try:
-        stage = atomic.staging_folder(out)
+        with atomic.staged_folder(out, last=("acquisition.json",)) as stage:
+            for name, content in files.items():
+                target = stage / name
+                if isinstance(content, bytes):
+                    target.write_bytes(content)
+                else:
+                    target.write_text(content, encoding="utf-8")
     except OSError as exc:
-        raise FluoInputError(f"cannot write here ({exc.strerror})", file=out) from None
-    try:
-        for name, content in files.items():
-            target = stage / name
-            if isinstance(content, bytes):
-                target.write_bytes(content)
-            else:
-                target.write_text(content, encoding="utf-8")
-        names = sorted(n for n in files if n != "acquisition.json") + (
-            ["acquisition.json"] if "acquisition.json" in files else [])
-        atomic.commit_files(stage, out, names)
-    except OSError as exc:
-        raise FluoInputError(f"cannot write ({exc.strerror})", file=out) from None
-    finally:
-        import shutil
-
-        shutil.rmtree(stage, ignore_errors=True)
+        raise atomic.output_error(exc, out) from None
     return out
 
 

@@ -312,7 +312,6 @@ def write_reconstruction(out_dir, lm, result):
     origin, spacing and direction; float32, 1/mm) and ``reconstruction.json``
     (the summary), written as one transaction: a reader sees the old folder or
     the new one, never half of it.  Returns the summary with ``output``."""
-    import shutil
     from pathlib import Path
 
     from fluoguide import atomic
@@ -320,21 +319,13 @@ def write_reconstruction(out_dir, lm, result):
     from fluoguide.labelmap_io import write_volume_nrrd
 
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise FluoInputError("output exists and is not a folder", file=out)
-    try:
-        stage = atomic.staging_folder(out)
-    except OSError as exc:
-        raise FluoInputError(f"cannot write here ({exc.strerror})", file=out) from None
     summary = dict(result["summary"])
     summary["output"] = str((out / "yield.nrrd").resolve())
     try:
-        write_volume_nrrd(stage / "yield.nrrd", result["yield_kji"], lm.spacing_mm, lm.origin_mm,
-                          lm.direction)
-        (stage / "reconstruction.json").write_text(dumps(summary), encoding="utf-8")
-        atomic.commit_files(stage, out, ["yield.nrrd", "reconstruction.json"])
+        with atomic.staged_folder(out, last=("reconstruction.json",)) as stage:
+            write_volume_nrrd(stage / "yield.nrrd", result["yield_kji"], lm.spacing_mm,
+                              lm.origin_mm, lm.direction)
+            (stage / "reconstruction.json").write_text(dumps(summary), encoding="utf-8")
     except OSError as exc:
-        raise FluoInputError(f"cannot write ({exc.strerror})", file=out) from None
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        raise atomic.output_error(exc, out) from None
     return summary

@@ -153,3 +153,29 @@ def test_a_region_too_small_for_the_cells_is_warned():
     with pytest.warns(MeshFidelityWarning, match="region 2"):
         m = mesh_labelmap_structured(lab, (0.5, 0.5, 0.5), (0, 0, 0), 2.0)
     assert m.meta["warnings"] and abs(m.meta["volume_error_pct"][2]) > 2
+
+
+def test_a_large_label_value_costs_no_memory_per_value():
+    """Issue #21: a label 65535 in a 4,800-voxel map took 3.95 GB (one count column
+    per possible label value in every cell); the labels present are what count."""
+    import tracemalloc
+
+    from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
+
+    lab = np.zeros((12, 20, 20), np.uint16)
+    lab[2:10, 4:16, 4:16] = 1
+    lab[5:7, 8:12, 8:12] = 65535
+    tracemalloc.start()
+    try:
+        mesh = mesh_labelmap_structured(lab, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), 1.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 50 * 2**20, peak
+    vols = {int(r): float(mesh.measures[mesh.element_region == r].sum())
+            for r in np.unique(mesh.element_region)}
+    assert vols == {1: 8 * 12 * 12 - 2 * 4 * 4, 65535: 2 * 4 * 4}
+    with pytest.raises(FluoInputError, match=">= 0"):
+        neg = lab.astype(np.int32)
+        neg[5, 5, 5] = -3
+        mesh_labelmap_structured(neg, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), 1.0)

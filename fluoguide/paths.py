@@ -1,0 +1,56 @@
+"""Paths named inside data files and typed by users, confined to a folder.
+
+A manifest (``stack.json``, ``illumination.json``, an MRML scene) names its
+data files relative to its own folder; a hostile one could name
+``../../etc/passwd`` or an absolute path and make a loader read it. The web
+app confines every path its users type to a workspace folder. Both go through
+:func:`inside`, which resolves symbolic links before it decides.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fluoguide.errors import FluoInputError
+
+__all__ = ["inside", "is_inside"]
+
+
+def is_inside(path, root):
+    """True when ``path`` (resolved, links followed) is ``root`` or below it."""
+    path, root = Path(path).resolve(), Path(root).resolve()
+    return path == root or root in path.parents
+
+
+def inside(root, name, file=None, field=None, what="file", root_name="its folder"):
+    """``root / name`` resolved, refused unless it stays inside ``root``.
+
+    Parameters
+    ----------
+    root : path
+        The folder the name is relative to.
+    name : str or path
+        A relative name (an absolute one must still lie inside ``root``).
+    file : path, optional
+        The manifest the name came from, for the message.
+    field : str, optional
+        The field or UI input the name came from.
+    what : str
+        "file" or "folder", for the message.
+    root_name : str
+        What ``root`` is, for the message ("its folder", "the workspace").
+
+    Returns
+    -------
+    Path
+        The resolved path (not checked for existence).
+    """
+    if not isinstance(name, (str, Path)) or not str(name).strip() or "\x00" in str(name):
+        raise FluoInputError(f"expected a {what} name", file=file, field=field, value=name)
+    root = Path(root).resolve()
+    path = (root / str(name).strip()).resolve()
+    if not (path == root or root in path.parents):
+        # the value as given, never the resolved server path
+        raise FluoInputError(f"{what} must be inside {root_name}", file=file, field=field,
+                             value=str(name))
+    return path
