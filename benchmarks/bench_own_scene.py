@@ -25,19 +25,13 @@ import time
 for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
-OPTICS = {"n": 1.37,
-          "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
-                         "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
-          "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
-                       "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}},
-          "fluorophore": "ICG"}
 TRUE_YIELD = 2.6e-3
 
 
 def main(argv=None):
     import numpy as np
 
-    from fluoguide.phantoms import ellipsoid_inclusion_labelmap
+    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
     from FluoTomoLib.tomography import (LabelMap, optics_from_dict, reconstruct_labelmap,
                                         simulate_acquisition)
 
@@ -53,7 +47,7 @@ def main(argv=None):
 
     sc = ellipsoid_inclusion_labelmap()
     lm = LabelMap(sc["labels_kji"], sc["spacing_mm"], sc["origin_mm"], sc["direction"])
-    optics = optics_from_dict(OPTICS)
+    optics = optics_from_dict(ellipsoid_inclusion_optics())
     t0 = time.perf_counter()
     acq, info = simulate_acquisition(lm, optics, {3: args.background_yield, 7: TRUE_YIELD},
                                      noise_pct=1.0, seed=1, accuracy="fine",

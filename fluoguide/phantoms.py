@@ -305,6 +305,18 @@ def write_phantom(phantom, out_dir):
     return out_dir / "scene.mrml"
 
 
+def ellipsoid_inclusion_optics():
+    """optics.json of :func:`ellipsoid_inclusion_labelmap`'s labels (a new dict):
+    body 3 and inclusion 7 at n 1.37, with ICG's absorption per unit yield
+    (docs/tomography-own-scene.md)."""
+    return {"n": 1.37,
+            "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
+                           "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
+            "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
+                         "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}},
+            "fluorophore": "ICG"}
+
+
 def ellipsoid_inclusion_labelmap(spacing_mm=(0.5, 0.6, 0.7), direction=((-1, 0, 0), (0, -1, 0),
                                                                        (0, 0, 1)),
                                  origin_mm=(120.0, -80.0, 340.0), semi_axes_mm=(28.0, 22.0, 14.0),

@@ -239,7 +239,7 @@ def _own_scene(f, fx):
     an acquisition simulated from it (the default scan, 'fast')."""
     sys.path[:0] = [p for p in PYTHONPATH.split(os.pathsep) if p not in sys.path]
     from fluoguide.labelmap_io import write_volume_nrrd
-    from fluoguide.phantoms import ellipsoid_inclusion_labelmap
+    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
 
     d = f / "own"
     d.mkdir(exist_ok=True)
@@ -248,11 +248,7 @@ def _own_scene(f, fx):
                                       inclusion_offset_mm=(0.0, 0.0))
     write_volume_nrrd(d / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"], sc["origin_mm"],
                       sc["direction"])
-    optics = {"n": 1.37, "fluorophore": "ICG",
-              "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
-                             "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
-              "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
-                           "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}}}
+    optics = ellipsoid_inclusion_optics()
     (d / "optics.json").write_text(json.dumps(optics))
     _fluo(["tomo", "simulate", "--labels", str(d / "labels.nrrd"), "--optics",
            str(d / "optics.json"), "--yield", "7:0.0026", "--accuracy", "fast", "--out",

@@ -12,14 +12,9 @@ import numpy as np
 import pytest
 
 from fluoguide.labelmap_io import read_volume_nrrd, write_volume_nrrd
-from fluoguide.phantoms import ellipsoid_inclusion_labelmap
+from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
 
-OPTICS = {"n": 1.37,
-          "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
-                         "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
-          "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
-                       "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}},
-          "fluorophore": "ICG"}
+OPTICS = ellipsoid_inclusion_optics()
 TRUE_YIELD = 2.6e-3          # 2 ug/mL ICG (its absorption is in the simulation)
 
 

@@ -245,7 +245,7 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, tm
     import sys
 
     from fluoguide.labelmap_io import write_volume_nrrd
-    from fluoguide.phantoms import ellipsoid_inclusion_labelmap
+    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
 
     sc = ellipsoid_inclusion_labelmap(semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0),
                                       inclusion_gap_mm=2.5, inclusion_offset_mm=(1.0, -1.0))
@@ -254,11 +254,7 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, tm
     tmp_path.mkdir(exist_ok=True)
     write_volume_nrrd(tmp_path / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"],
                       sc["origin_mm"], sc["direction"])
-    optics = {"n": 1.37, "fluorophore": "ICG",
-              "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
-                             "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
-              "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
-                           "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}}}
+    optics = ellipsoid_inclusion_optics()
     (tmp_path / "optics.json").write_text(json.dumps(optics))
     r = subprocess.run([sys.executable, "-m", "fluoapp", "tomo", "simulate", "--labels",
                         str(tmp_path / "labels.nrrd"), "--optics", str(tmp_path / "optics.json"),

@@ -184,18 +184,14 @@ def test_own_label_map_from_files_in_the_browser(page, tmp_path_factory):
     30 %, the half-maximum centroid within 1 mm of the inclusion's centre and
     the peak inside it, in RAS."""
     from fluoguide.labelmap_io import write_volume_nrrd
-    from fluoguide.phantoms import ellipsoid_inclusion_labelmap
+    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
 
     d = WORKSPACE["root"] / "own"
     d.mkdir(exist_ok=True)
     sc = ellipsoid_inclusion_labelmap()
     write_volume_nrrd(d / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"], sc["origin_mm"],
                       sc["direction"])
-    optics = {"n": 1.37, "fluorophore": "ICG",
-              "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
-                             "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
-              "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
-                           "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}}}
+    optics = ellipsoid_inclusion_optics()
     (d / "optics.json").write_text(json.dumps(optics))
     r = subprocess.run([sys.executable, "-m", "fluoapp", "tomo", "simulate", "--labels",
                         str(d / "labels.nrrd"), "--optics", str(d / "optics.json"), "--yield",

@@ -8,16 +8,11 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from fluoguide.phantoms import ellipsoid_inclusion_labelmap
+from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
 from FluoTomoLib.tomography import (Acquisition, LabelMap, optics_from_dict, place_on_surface,
                                     read_acquisition, read_optics, write_acquisition)
 
-OPTICS = {"n": 1.37,
-          "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
-                         "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
-          "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
-                       "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}},
-          "fluorophore": "ICG"}
+OPTICS = ellipsoid_inclusion_optics()
 
 OBLIQUE = (np.array([[np.cos(0.5), -np.sin(0.5), 0], [np.sin(0.5), np.cos(0.5), 0], [0, 0, 1.0]])
            @ np.array([[1.0, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]]))
