@@ -213,8 +213,9 @@ def test_own_label_map_from_files_in_the_browser(page, tmp_path_factory):
     report = {}
     for method, tol in (("HP", 0.15), ("SP", 0.30)):
         if method != "HP":
-            pg.click("#tomo-method")
-            pg.get_by_role("option", name=method).click()
+            # Vuetify's select: its field (not the hidden input) opens the menu
+            pg.locator(".v-field:has(#tomo-method)").click()
+            pg.get_by_role("option", name=method, exact=True).click()
         pg.click("#tomo-recon")
         _wait_text(pg, "#tomo-own-result", f"{method} (FluoTomoYield{method}", 900000)
         pg.wait_for_timeout(2000)
