@@ -268,6 +268,9 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
     if not (np.isfinite(transport) and 0 < transport <= 10):
         raise FluoInputError("must be a finite number in (0, 10]", field="transport",
                              value=transport)
+    if surface_triangles is not None:
+        check_number("surface_triangles", surface_triangles, 0, 10_000_000, integer=True,
+                     what="must be 0 (keep all) .. 10,000,000")
     report(progress, 0.0, "the CBCT surface")
     phantom = make_phantom("oral-cavity", seed=seed)
     ijk = np.diag([*phantom.spacing_mm, 1.0])
