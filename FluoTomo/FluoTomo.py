@@ -82,6 +82,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         if scene is None:
             raise ValueError("FluoTomoLogic needs an MRML scene")
         self.scene = scene
+        self._meshes = {}       # model node ID -> what buildMesh made (local-frame mesh)
 
     def loadPhantom(self, name, withLabels=True, **params):
         """Add a digital phantom's ``CBCT`` (and ``CBCTLabels`` unless ``withLabels``
@@ -135,10 +136,11 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         return {k: (name, float((labels == k).sum() * vox)) for k, name in info.items()}
 
     def prepareTubeReconstruction(self, methods=("NP", "SP", "HP"), lam=10.0, seed=0,
-                                  labelNodeName="CBCTLabels"):
+                                  labelNodeName="CBCTLabels", accuracy="fast"):
         """A job ``job(progress, cancel) -> run`` that simulates the tracked
         acquisition of the cylinder-tube phantom in the scene (its truth is on
-        ``CBCT``) and reconstructs on a mesh of the scene's label map.
+        ``CBCT``) and reconstructs on a mesh of the scene's label map (through
+        the public label-map path, ``accuracy`` "fast" by default in the app).
 
         Everything is read from the scene here, on the caller's thread, so the
         job itself touches no MRML node and can run on a worker thread; hand its
@@ -170,7 +172,9 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
             phantom = make_phantom("cylinder-tube", **params)
             return simulate_and_reconstruct(
                 phantom, methods=methods, lam=lam, seed=seed, progress=progress, cancel=cancel,
-                recon_labels=(labels, np.asarray(geo["spacing"]), np.asarray(geo["origin"])))
+                accuracy=accuracy,
+                recon_labels=(labels, np.asarray(geo["spacing"]), np.asarray(geo["origin"]),
+                              np.asarray(geo["direction"])))
 
         job.grid = (mrml_io.volume_array(cbct).shape, mrml_io.volume_geometry(cbct))
         return job
@@ -181,22 +185,7 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
 
         shape, geo = grid
         return store_reconstructions(self.scene, run["coarse"], run["results"], shape,
-                                     geo["spacing"], geo["origin"])
-
-    def buildMesh(self, sizeMm=1.0, roi=None, labelNodeName="CBCTLabels"):
-        """Tetrahedral mesh of a label map (structured, fast path); shows its surface
-        as ``FluoTomoMeshSurface`` and returns the Mesh."""
-        from fluoguide import mrml_io
-        from FluoTomoLib.scene import store_mesh_surface
-        from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
-
-        node = mrml_io.get_node(self.scene, labelNodeName, "vtkMRMLLabelMapVolumeNode")
-        geo = mrml_io.volume_geometry(node)
-        mesh = mesh_labelmap_structured(mrml_io.volume_array(node), geo["spacing"], geo["origin"],
-                                        sizeMm, roi=roi, direction=geo["direction"])
-        store_mesh_surface(self.scene, mesh)
-        self.mesh = mesh
-        return mesh
+                                     geo["spacing"], geo["origin"], geo.get("direction"))
 
     def prepareMesh(self, sizeMm=1.0, roi=None, labelNodeName="CBCTLabels", quality=False):
         """A job ``job(progress, cancel) -> Mesh`` of the label map (read now, meshed
@@ -264,6 +253,329 @@ class FluoTomoLogic(ScriptedLoadableModuleLogic):
         vox = float(np.prod(mrml_io.volume_geometry(node)["spacing"]))
         labels, counts = np.unique(arr, return_counts=True)
         return {int(k): float(c * vox) for k, c in zip(labels, counts) if k != 0}
+
+    # ------------------------------------------------------------ any label map
+    # The general path (docs/tomography-own-scene.md): MRML node objects in,
+    # caller-chosen output nodes out (a second run never overwrites the first).
+
+    def labelMap(self, labelNode):
+        """The label map of a volume node with its geometry (FluoTomoLib LabelMap)."""
+        from FluoTomoLib.tomography import LabelMap
+
+        return LabelMap.from_node(labelNode)
+
+    def loadLabelMap(self, path, name=None):
+        """Read a label map file (.nrrd, .nii(.gz), .seg.nrrd: segment n -> label
+        n + 1) into a new label-map node (its direction, spacing and origin
+        kept); returns the node."""
+        from pathlib import Path
+
+        import numpy as np
+
+        from fluoguide import mrml_io
+        from FluoTomoLib.scene import unique_name
+        from FluoTomoLib.tomography import LabelMap
+
+        lm = LabelMap.from_file(path)
+        stem = Path(path).name.split(".")[0] or "Labels"
+        node = mrml_io.add_volume(self.scene, unique_name(self.scene, name or stem),
+                                  lm.labels_kji.astype(np.int16 if lm.labels_kji.max() > 255
+                                                       else np.uint8),
+                                  lm.spacing_mm, lm.origin_mm, direction=lm.direction,
+                                  labelmap=True)
+        node.SetAttribute("FluoTomo.SourceFile", str(path))
+        return node
+
+    @staticmethod
+    def readOptics(optics):
+        """An Optics object from ``optics.json`` (a path), a dict, or as is."""
+        from FluoTomoLib.tomography import Optics, optics_from_dict, read_optics
+
+        if isinstance(optics, Optics):
+            return optics
+        if isinstance(optics, dict):
+            return optics_from_dict(optics)
+        return read_optics(optics)
+
+    def readAcquisition(self, acquisition, labelNode, optics):
+        """An Acquisition from a folder (a path) or as is."""
+        from FluoTomoLib.tomography import Acquisition, read_acquisition
+
+        if isinstance(acquisition, Acquisition):
+            return acquisition
+        return read_acquisition(acquisition, labelmap=self.labelMap(labelNode),
+                                optics=self.readOptics(optics))
+
+    def buildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
+                  optics=None, accuracy="balanced", quality=False, outputModelNode=None,
+                  grading=False, progress=None, cancel=None):
+        """Tetrahedral mesh of a label map as a model node (a volume mesh: cell
+        array ``region`` = label, RAS mm) -> the node.
+
+        ``sizeMm``: the element size (near the optodes when an acquisition is
+        given; default: the ``accuracy`` level's).  The structured mesh is the
+        reconstruction mesh :meth:`reconstruct` uses when given this node
+        (``meshNode``): anchored at and refined across
+        the ``target`` label (default: the smallest region that is not the
+        largest), its tissue-air nodes on the smooth surface; with an
+        ``acquisition`` (and ``optics``) its region of interest is the one
+        chosen from the light's decay length, else ``roi`` (RAS box) or the
+        tissue's box.  ``quality`` builds the fTetWild mesh instead: a preview
+        (smooth interfaces), which reconstructions do not use.
+        """
+        job = self.prepareBuildMesh(labelNode, sizeMm, roi, target, acquisition, optics,
+                                    accuracy, quality, grading)
+        return self.storeBuiltMesh(job(progress, cancel), outputModelNode)
+
+    def prepareBuildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
+                         optics=None, accuracy="balanced", quality=False, grading=False):
+        """:meth:`buildMesh` split for a worker thread: read the scene now,
+        return ``job(progress, cancel) -> built``; hand ``built`` to
+        :meth:`storeBuiltMesh` on the scene's thread."""
+        import numpy as np
+
+        from fluoguide.errors import FluoInputError
+        from fluoguide.progress import check_cancel, report
+
+        lm = self.labelMap(labelNode)
+        acq = None
+        if acquisition is not None:
+            if optics is None:
+                raise FluoInputError("an acquisition's region of interest needs the optics",
+                                     field="optics")
+            optics = self.readOptics(optics)
+            acq = self.readAcquisition(acquisition, labelNode, optics)
+        elif optics is not None:
+            optics = self.readOptics(optics)
+        size = None if sizeMm is None else float(sizeMm)
+        if size is not None and not (np.isfinite(size) and 0.2 <= size <= 10.0):
+            raise FluoInputError("element size must be within 0.2..10 mm", field="sizeMm",
+                                 value=sizeMm)
+
+        def job(progress=None, cancel=None):
+            from FluoTomoLib.tomography.accuracy import accuracy_settings
+            from FluoTomoLib.tomography.labelmap import place_on_surface
+            from FluoTomoLib.tomography.model import reconstruction_mesh
+            from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
+
+            from FluoTomoLib.tomography.accuracy import cap_at_burial
+
+            report(progress, 0.05, "meshing the label map")
+            settings = accuracy_settings(accuracy, recon_mm=size)
+            h = settings["recon_mm"]
+            if optics is not None:
+                h, _ = cap_at_burial(h, optics, lm.labels)
+            if quality:
+                from FluoTomoLib.meshing.tetwild import mesh_labelmap_quality
+
+                mesh = mesh_labelmap_quality(lm.labels_kji, lm.spacing_mm, lm.origin_mm, h,
+                                             roi=roi, direction=lm.direction, progress=progress,
+                                             cancel=cancel)
+                mesh.meta["preview"] = True
+                return {"mesh_ras": mesh, "mesh_local": None, "labelmap": lm,
+                        "preview": True, "roi_info": None}
+            tgt = lm.default_target() if target is None else int(target)
+            roi_info = None
+            if acq is not None:
+                src, _ = place_on_surface(lm, acq.sources_ras_mm, "sources")
+                det, _ = place_on_surface(lm, acq.detectors_ras_mm, "detectors")
+                anchor = lm.region_centroid_local(tgt) if tgt is not None else None
+                box, roi_info = choose_roi(lm, optics, src, det, acq.mask, tgt,
+                                           settings["truncation_pct"], anchor=anchor,
+                                           progress=progress, cancel=cancel)
+            elif roi is not None:
+                box = roi_from_ras(lm, roi)
+            else:
+                box = None
+            check_cancel(cancel)
+            optodes = None if acq is None else np.vstack([src, det])
+            mfp = cap_at_burial(h, optics, lm.labels)[1] if optics is not None else None
+            mesh = reconstruction_mesh(
+                lm.labels_kji, lm.spacing_mm, h, box, tgt, settings["refine_factor"],
+                surface=lm.surface(), optodes=optodes,
+                coarse_mm=settings["recon_coarse_mm"] if grading else None,
+                optode_normals=None if optodes is None else lm.surface().closest(optodes)[1],
+                burial_mm=mfp, cancel=cancel)
+            report(progress, 1.0, "mesh done")
+            return {"mesh_ras": lm.mesh_to_ras(mesh), "mesh_local": mesh, "labelmap": lm,
+                    "preview": False, "roi_info": roi_info, "accuracy": settings}
+
+        return job
+
+    def storeBuiltMesh(self, built, outputModelNode=None):
+        """The built mesh into ``outputModelNode`` or a new ``FluoTomoMesh*``
+        node (and ``FluoTomoMeshSurface`` for display); returns the node."""
+        from fluoguide import mrml_io
+        from FluoTomoLib.scene import store_mesh_model, store_mesh_surface
+
+        mesh = built["mesh_ras"]
+        node = store_mesh_model(self.scene, mesh, outputModelNode)
+        self._meshes[node.GetID()] = built
+        mrml_io.set_json_attribute(node, "FluoTomo.Mesh", {
+            "preview": bool(built["preview"]), "nodes": mesh.n_nodes, "elements": mesh.n_elements,
+            "size_mm": mesh.meta.get("size_mm"),
+            "region_volumes_mm3": {str(k): v for k, v in mesh.region_measures().items()},
+            "labelmap_volumes_mm3": {str(k): v for k, v in
+                                     mesh.meta.get("labelmap_volumes_mm3", {}).items()},
+            "volume_error_pct": {str(k): v for k, v in
+                                 mesh.meta.get("volume_error_pct", {}).items()},
+            "warnings": list(mesh.meta.get("warnings", [])),
+            "region_of_interest": built.get("roi_info")})
+        store_mesh_surface(self.scene, mesh)
+        self.mesh = mesh
+        return node
+
+    def meshRegionVolumes(self, meshNode):
+        """{label: (mesh volume, label-map volume, error %)} of a built mesh."""
+        from fluoguide import mrml_io
+
+        info = mrml_io.get_json_attribute(meshNode, "FluoTomo.Mesh") or {}
+        mesh = info.get("region_volumes_mm3", {})
+        ref = info.get("labelmap_volumes_mm3", {})
+        err = info.get("volume_error_pct", {})
+        return {int(k): (v, ref.get(k), err.get(k)) for k, v in mesh.items()}
+
+    def forward(self, labelOrMesh, optics, sources, detectors, yieldVolumeNode=None,
+                sizeMm=None, accuracy="balanced"):
+        """Excitation and fluorescence boundary data of a label map (meshed
+        whole, as a simulation is) or of a mesh node built by :meth:`buildMesh`.
+
+        ``sources``, ``detectors``: (S, 3), (D, 3) RAS mm on the tissue surface.
+        ``yieldVolumeNode``: the yield [1/mm] as a volume (any grid; sampled at
+        the mesh nodes); without it only the excitation is computed.
+        Returns {"excitation": (S, D), "fluorescence": (S, D) or None} per watt
+        [1/mm^2]."""
+        import numpy as np
+
+        from fluoguide import mrml_io
+        from FluoTomoLib.fem.forward import FluorescenceModel
+        from FluoTomoLib.tomography.accuracy import accuracy_settings
+        from FluoTomoLib.tomography.labelmap import place_on_surface
+        from FluoTomoLib.tomography.model import membership
+        from FluoTomoLib.tomography.simulate import simulation_mesh
+
+        optics = self.readOptics(optics)
+        if labelOrMesh is not None and labelOrMesh.IsA("vtkMRMLModelNode"):
+            built = self._built(labelOrMesh)
+            lm, mesh = built["labelmap"], built["mesh_local"]
+        else:
+            lm = self.labelMap(labelOrMesh)
+            mesh = None
+        optics.check_labels(lm.labels)
+        src, _ = place_on_surface(lm, np.atleast_2d(np.asarray(sources, float)), "sources")
+        det, _ = place_on_surface(lm, np.atleast_2d(np.asarray(detectors, float)), "detectors")
+        if mesh is None:
+            s = accuracy_settings(accuracy, simulate_mm=sizeMm)
+            mesh = simulation_mesh(lm, np.vstack([src, det]), lm.default_target(),
+                                   s["simulate_mm"], s["simulate_coarse_mm"], 4.0)
+        labs, F = membership(mesh, lm.labels_kji, lm.spacing_mm)
+        y = None
+        if yieldVolumeNode is not None:
+            from scipy import ndimage
+
+            geo = mrml_io.volume_geometry(yieldVolumeNode)
+            arr = mrml_io.volume_array(yieldVolumeNode).astype(float)
+            ras = lm.to_ras(mesh.nodes_mm)
+            ijk = (ras - geo["origin"]) @ geo["direction"] / geo["spacing"]
+            y = ndimage.map_coordinates(arr, ijk[:, ::-1].T, order=1, mode="nearest")
+        px, pm = optics.nodal(labs, F, yield_nodes=y)
+        fm = FluorescenceModel(mesh, px, pm, src, det,
+                               source_normals=lm.surface().closest(src)[1])
+        return {"excitation": fm.excitation_data(),
+                "fluorescence": None if y is None else fm.emission_data(y),
+                "mesh_nodes": mesh.n_nodes}
+
+    def simulateAcquisition(self, labelNode, optics, yieldByLabel, scan=None, noise=1.0, seed=0,
+                            sources=None, detectors=None, accuracy="balanced", engine="fem",
+                            outputFolder=None, progress=None, cancel=None):
+        """A simulated acquisition of a label map (its own mesh of the whole map,
+        finer than a reconstruction's) -> Acquisition; written to
+        ``outputFolder`` when given.  ``scan``: DEFAULT_SCAN keys for the default
+        grid over the target, or ``sources``/``detectors`` (RAS mm)."""
+        from FluoTomoLib.tomography import simulate_acquisition, write_acquisition
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        acq, info = simulate_acquisition(lm, optics, {int(k): float(v) for k, v in
+                                                      dict(yieldByLabel).items()},
+                                         sources, detectors, scan=scan, noise_pct=noise,
+                                         seed=seed, engine=engine, accuracy=accuracy,
+                                         progress=progress, cancel=cancel)
+        if outputFolder is not None:
+            write_acquisition(outputFolder, acq, simulation=info)
+        return acq
+
+    def reconstruct(self, labelNode, optics, acquisition, method="HP", lam=None, target=None,
+                    outputVolumeNode=None, meshNode=None, accuracy="balanced", progress=None,
+                    cancel=None, **options):
+        """Yield of a label map from an acquisition -> (summary dict, volume node).
+
+        ``optics``: optics.json path, dict or Optics; ``acquisition``: folder or
+        Acquisition.  The yield volume lies on the label map's grid (same
+        origin, spacing and direction) in ``outputVolumeNode`` or a new
+        ``FluoTomoYield<method>`` node (``_1``, ``_2``... on later runs), with
+        the summary as its ``FluoTomo.Reconstruction`` attribute.  ``meshNode``:
+        a mesh built by :meth:`buildMesh` for this label map, used as the
+        reconstruction mesh.  ``options``: size_mm, roi_ras, truncation_pct,
+        data_model, self_absorption (reconstruct_labelmap)."""
+        job = self.prepareReconstruction(labelNode, optics, acquisition, method, lam, target,
+                                         meshNode, accuracy, **options)
+        result = job(progress, cancel)
+        node = self.storeReconstructionResult(result, outputVolumeNode)
+        return result["summary"], node
+
+    def prepareReconstruction(self, labelNode, optics, acquisition, method="HP", lam=None,
+                              target=None, meshNode=None, accuracy="balanced", **options):
+        """:meth:`reconstruct` split for a worker thread: reads the scene now,
+        returns ``job(progress, cancel) -> result`` (no MRML inside); hand the
+        result to :meth:`storeReconstructionResult` on the scene's thread."""
+        from fluoguide.errors import FluoInputError
+        from FluoTomoLib.tomography import reconstruct_labelmap
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        acq = self.readAcquisition(acquisition, labelNode, optics)
+        mesh = None
+        if meshNode is not None:
+            built = self._built(meshNode)
+            if built["preview"]:
+                raise FluoInputError("this mesh is a preview (fTetWild): reconstructions use "
+                                     "the structured mesh", field=meshNode.GetName())
+            if built["labelmap"] is not None and built["labelmap"].labels_kji.shape != \
+                    lm.labels_kji.shape:
+                raise FluoInputError("the mesh was built from another label map",
+                                     field=meshNode.GetName())
+            mesh = built["mesh_local"]
+
+        def job(progress=None, cancel=None):
+            result = reconstruct_labelmap(lm, optics, acq, method=method, lam=lam,
+                                          target=target, accuracy=accuracy, mesh=mesh,
+                                          progress=progress, cancel=cancel, **options)
+            result["labelmap"] = lm
+            return result
+
+        return job
+
+    def storeReconstructionResult(self, result, outputVolumeNode=None):
+        """The yield volume of a reconstruction into the scene; returns the node."""
+        from FluoTomoLib.scene import store_yield_volume
+
+        lm = result["labelmap"]
+        s = result["summary"]
+        return store_yield_volume(self.scene, result["yield_kji"], lm.spacing_mm, lm.origin_mm,
+                                  lm.direction, s, outputVolumeNode,
+                                  base_name=f"FluoTomoYield{s['method']}")
+
+    def _built(self, meshNode):
+        """What :meth:`buildMesh` made for a model node (or the mesh read back from
+        it, in the label map's frame, when the scene was saved and loaded)."""
+        from fluoguide.errors import FluoInputError
+
+        built = self._meshes.get(meshNode.GetID())
+        if built is None:
+            raise FluoInputError("this model node was not built by FluoTomoLogic.buildMesh in "
+                                 "this session: build the mesh again", field=meshNode.GetName())
+        return built
 
 
 def _segment_array(scene, segmentationNode, segmentId, referenceVolume):

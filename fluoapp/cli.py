@@ -36,6 +36,7 @@ CLI_MODULES = [
     "fluoapp.commands.study",
     "fluoapp.commands.validate",
     "fluoapp.commands.mesh",
+    "fluoapp.commands.tomo",
     "fluoapp.commands.calib_geometry",
     "fluoapp.commands.calib_light",
     "fluoapp.commands.devices",

@@ -611,9 +611,10 @@ def load_scene(path):
             raise FluoInputError("data file of the scene is missing", file=full, field=node.GetName())
         if node.IsA("vtkMRMLVolumeNode") and node.GetImageData() is None:
             raise FluoInputError("corrupt volume file", file=full, field=node.GetName())
-        if node.IsA("vtkMRMLModelNode") and (node.GetPolyData() is None
-                                            or node.GetPolyData().GetNumberOfPoints() == 0
-                                            or node.GetPolyData().GetNumberOfCells() == 0):
+        # a model holds a surface (polydata) or a volume mesh (unstructured grid)
+        if node.IsA("vtkMRMLModelNode") and (node.GetMesh() is None
+                                            or node.GetMesh().GetNumberOfPoints() == 0
+                                            or node.GetMesh().GetNumberOfCells() == 0):
             raise FluoInputError("corrupt model file", file=full, field=node.GetName())
     if not imported:
         raise FluoInputError("corrupt MRML scene", file=path)

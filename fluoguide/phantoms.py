@@ -303,3 +303,64 @@ def write_phantom(phantom, out_dir):
         mrml_io.save_scene(scene, tmp / "scene.mrml")
         (tmp / "truth.json").write_text(json.dumps(phantom.truth(), indent=2, allow_nan=False))
     return out_dir / "scene.mrml"
+
+
+def ellipsoid_inclusion_optics():
+    """optics.json of :func:`ellipsoid_inclusion_labelmap`'s labels (a new dict):
+    body 3 and inclusion 7 at n 1.37, with ICG's absorption per unit yield
+    (docs/tomography-own-scene.md)."""
+    return {"n": 1.37,
+            "excitation": {"3": {"mua_per_mm": 0.01, "musp_per_mm": 1.0},
+                           "7": {"mua_per_mm": 0.012, "musp_per_mm": 1.1}},
+            "emission": {"3": {"mua_per_mm": 0.008, "musp_per_mm": 0.9},
+                         "7": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}},
+            "fluorophore": "ICG"}
+
+
+def ellipsoid_inclusion_labelmap(spacing_mm=(0.5, 0.6, 0.7), direction=((-1, 0, 0), (0, -1, 0),
+                                                                       (0, 0, 1)),
+                                 origin_mm=(120.0, -80.0, 340.0), semi_axes_mm=(28.0, 22.0, 14.0),
+                                 inclusion_diameter_mm=6.0, inclusion_gap_mm=4.0,
+                                 inclusion_offset_mm=(3.0, -2.0), body_label=3,
+                                 inclusion_label=7):
+    """A label map unlike the cylinder tube: an ellipsoidal body with a spherical
+    inclusion ``inclusion_gap_mm`` below its curved top surface, on an
+    anisotropic grid with any IJK-to-RAS direction and origin.
+
+    Geometry in the label map's own frame (x along I, y along J, z along K, the
+    body centred in the volume, +z up): the inclusion sits under the surface
+    point above (``inclusion_offset_mm`` in x, y from the body's centre), its
+    top ``inclusion_gap_mm`` below that point.  Labels: 0 air,
+    ``body_label``, ``inclusion_label`` (not 1 and 2: any labels work).
+    Voxels are labelled by their centre.
+
+    Returns a dict: ``labels_kji``, ``spacing_mm``, ``origin_mm``,
+    ``direction``, ``inclusion_centre_ras_mm``, ``inclusion_radius_mm``,
+    ``surface_point_ras_mm`` (the surface above the inclusion), labels.
+    """
+    sp = np.asarray(spacing_mm, float)
+    d = np.asarray(direction, float)
+    o = np.asarray(origin_mm, float)
+    a = np.asarray(semi_axes_mm, float)
+    margin = 2.0
+    shape_ijk = np.ceil((2 * a + 2 * margin) / sp).astype(int) + 1
+    centre = 0.5 * (shape_ijk - 1) * sp
+    k, j, i = np.indices(shape_ijk[::-1])
+    p = np.stack([i * sp[0], j * sp[1], k * sp[2]], axis=-1) - centre
+    body = np.einsum("...k,...k->...", p / a, p / a) <= 1.0
+    ox, oy = inclusion_offset_mm
+    top = a[2] * np.sqrt(max(0.0, 1.0 - (ox / a[0]) ** 2 - (oy / a[1]) ** 2))
+    r = 0.5 * float(inclusion_diameter_mm)
+    c_inc = np.array([ox, oy, top - inclusion_gap_mm - r])
+    inc = body & (np.linalg.norm(p - c_inc, axis=-1) <= r)
+    labels = np.zeros(shape_ijk[::-1], np.uint8)
+    labels[body] = body_label
+    labels[inc] = inclusion_label
+
+    def to_ras(q_local):
+        return o + d @ (np.asarray(q_local, float) + centre)
+
+    return {"labels_kji": labels, "spacing_mm": sp, "origin_mm": o, "direction": d,
+            "inclusion_centre_ras_mm": to_ras(c_inc), "inclusion_radius_mm": r,
+            "surface_point_ras_mm": to_ras([ox, oy, top]), "body_label": body_label,
+            "inclusion_label": inclusion_label}

@@ -16,12 +16,64 @@ def store_mesh_surface(scene, mesh):
                              color=(0.6, 0.8, 1.0))
 
 
-def resample_to_grid(mesh, nodal_values, shape_kji, spacing_mm, origin_mm):
-    """P1 values of a mesh field at the voxel centres of an axis-aligned grid
-    (zero outside the mesh), as float32 (K, J, I)."""
+def unique_name(scene, base):
+    """``base``, or ``base_1``, ``base_2``... when a node of that name exists: a
+    second run never replaces the first's node."""
+    if mrml_io.get_node(scene, base, required=False) is None:
+        return base
+    k = 1
+    while mrml_io.get_node(scene, f"{base}_{k}", required=False) is not None:
+        k += 1
+    return f"{base}_{k}"
+
+
+def store_mesh_model(scene, mesh_ras, output_node=None, base_name="FluoTomoMesh"):
+    """A tetrahedral mesh (RAS mm) as a model node holding the volume mesh
+    (vtkUnstructuredGrid, cell array ``region`` = label): into ``output_node``,
+    or a new node ``FluoTomoMesh`` / ``FluoTomoMesh_1``..."""
+    import slicer
+
+    from FluoTomoLib.meshing.vtu_io import to_vtk
+
+    node = output_node
+    if node is None:
+        node = slicer.vtkMRMLModelNode()
+        node.SetName(unique_name(scene, base_name))
+        scene.AddNode(node)
+    node.SetAndObserveMesh(to_vtk(mesh_ras))
+    if node.GetDisplayNode() is None:
+        node.CreateDefaultDisplayNodes()
+    node.GetDisplayNode().SetColor(0.6, 0.8, 1.0)
+    node.GetDisplayNode().SetOpacity(0.3)
+    return node
+
+
+def store_yield_volume(scene, array_kji, spacing_mm, origin_mm, direction, summary,
+                       output_node=None, base_name="FluoTomoYield"):
+    """A yield volume [1/mm] with its reconstruction summary (attribute
+    ``FluoTomo.Reconstruction``): into ``output_node`` (a scalar volume node the
+    caller chose) or a new node ``base_name`` / ``base_name_1``..."""
+    name = output_node.GetName() if output_node is not None else unique_name(scene, base_name)
+    if output_node is not None and output_node.GetScene() is not scene:
+        scene.AddNode(output_node)
+    if output_node is not None and not output_node.IsA("vtkMRMLScalarVolumeNode"):
+        from fluoguide.errors import FluoInputError
+
+        raise FluoInputError("the output must be a scalar volume node", field="outputVolumeNode",
+                             value=output_node.GetClassName())
+    node = mrml_io.add_volume(scene, name, np.asarray(array_kji, np.float32), spacing_mm,
+                              origin_mm, direction=direction)
+    mrml_io.set_json_attribute(node, "FluoTomo.Reconstruction", summary)
+    return node
+
+
+def resample_to_grid(mesh, nodal_values, shape_kji, spacing_mm, origin_mm, direction=None):
+    """P1 values of a mesh field (RAS) at the voxel centres of a volume grid
+    (any IJK-to-RAS direction; zero outside the mesh), as float32 (K, J, I)."""
     k, j, i = np.meshgrid(*(np.arange(n) for n in shape_kji), indexing="ij")
-    pts = np.asarray(origin_mm) + np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * np.asarray(
-        spacing_mm)
+    d = np.eye(3) if direction is None else np.asarray(direction, float)
+    ijk = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * np.asarray(spacing_mm, float)
+    pts = np.asarray(origin_mm, float) + ijk @ d.T
     lo, hi = mesh.bounds()
     inside = np.all((pts >= lo) & (pts <= hi), axis=1)
     out = np.zeros(len(pts), dtype=np.float32)
@@ -30,13 +82,16 @@ def resample_to_grid(mesh, nodal_values, shape_kji, spacing_mm, origin_mm):
     return out.reshape(shape_kji)
 
 
-def store_reconstructions(scene, mesh, results, shape_kji, spacing_mm, origin_mm):
-    """``FluoTomoYield<method>`` volumes on the CBCT grid, with the reconstruction
-    summary as the ``FluoTomo.Reconstruction`` attribute, plus the mesh surface."""
+def store_reconstructions(scene, mesh, results, shape_kji, spacing_mm, origin_mm,
+                          direction=None):
+    """``FluoTomoYield<method>`` volumes on the CBCT grid (its direction
+    honoured), with the reconstruction summary as the ``FluoTomo.Reconstruction``
+    attribute, plus the mesh surface."""
     nodes = []
     for method, res in results.items():
-        vol = resample_to_grid(mesh, res["yield"], shape_kji, spacing_mm, origin_mm)
-        node = mrml_io.add_volume(scene, f"FluoTomoYield{method}", vol, spacing_mm, origin_mm)
+        vol = resample_to_grid(mesh, res["yield"], shape_kji, spacing_mm, origin_mm, direction)
+        node = mrml_io.add_volume(scene, f"FluoTomoYield{method}", vol, spacing_mm, origin_mm,
+                                  direction=direction)
         mrml_io.set_json_attribute(node, "FluoTomo.Reconstruction",
                                    {k: v for k, v in res.items() if k != "yield"})
         nodes.append(node)

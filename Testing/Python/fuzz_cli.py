@@ -227,9 +227,33 @@ def build_fixtures(folder):
     _fluo(["record", "--out", str(f / "rec"), "--seconds", "0.6", "--fps", "5", "--width", "64",
            "--height", "48"], f)
     fx["recording"] = f / "rec"
+    _own_scene(f, fx)
     _hostile_files(f, fx)
     fx["root"] = f
     return fx
+
+
+def _own_scene(f, fx):
+    """fluo tomo's inputs: a small label map unlike the tube (labels 3 and 7, an
+    inclusion under a curved top, direction diag(-1, -1, 1)), its optics.json and
+    an acquisition simulated from it (the default scan, 'fast')."""
+    sys.path[:0] = [p for p in PYTHONPATH.split(os.pathsep) if p not in sys.path]
+    from fluoguide.labelmap_io import write_volume_nrrd
+    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
+
+    d = f / "own"
+    d.mkdir(exist_ok=True)
+    sc = ellipsoid_inclusion_labelmap(semi_axes_mm=(12.0, 10.0, 7.0), spacing_mm=(1.0, 1.0, 1.0),
+                                      inclusion_diameter_mm=4.0, inclusion_gap_mm=2.0,
+                                      inclusion_offset_mm=(0.0, 0.0))
+    write_volume_nrrd(d / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"], sc["origin_mm"],
+                      sc["direction"])
+    optics = ellipsoid_inclusion_optics()
+    (d / "optics.json").write_text(json.dumps(optics))
+    _fluo(["tomo", "simulate", "--labels", str(d / "labels.nrrd"), "--optics",
+           str(d / "optics.json"), "--yield", "7:0.0026", "--accuracy", "fast", "--out",
+           str(d / "acq")], f)
+    fx.update(own_labels=d / "labels.nrrd", own_optics=d / "optics.json", own_acq=d / "acq")
 
 
 # ----------------------------------------------------------------- declarations
@@ -267,6 +291,11 @@ BASES = {
     ("nav", "correct"): "nav correct --scene {nav_scene} --frame 0 --out {out}",
     ("bench", "mapping"): "bench mapping --repeats 1 --binning 16",
     # the stored Monte Carlo sets (no Monte Carlo run: seconds, not minutes)
+    # a small label map (own scene fixture): simulate meshes it whole at 'fast'
+    ("tomo", "simulate"): "tomo simulate --labels {own_labels} --optics {own_optics} "
+                          "--yield 7:0.0026 --accuracy fast --seed 1 --out {out}",
+    ("tomo", "reconstruct"): "tomo reconstruct --labels {own_labels} --optics {own_optics} "
+                             "--acquisition {own_acq} --accuracy fast --method HP --out {out}",
     ("validate", "mc"): "validate mc --mc-in {mc_halfspace} --mesh-level test --boundary fresnel "
                         "--out {out}",
     ("validate", "mc-fluorescence"): "validate mc-fluorescence --mc-in {mc_fluorescence} "
@@ -282,7 +311,9 @@ KINDS = {"--board": "str", "--roi": "str", "--refine": "str", "--rho": "str", "-
          "--igtl": "str", "--serial": "str", "--host": "str", "--method": "str",
          "--store-method": "str", "--only": "str", "--solver": "str", "--motion": "str",
          "--allow-origin": "str", "--workspace": "outdir", "--frames": "indir",
-         "name": "str", "study": "str", "--sweep": "str", "--scheme": "str", "--hp-basis": "str"}
+         "name": "str", "study": "str", "--sweep": "str", "--scheme": "str", "--hp-basis": "str",
+         "--labels": "inpath", "--optics": "inpath", "--acquisition": "indir",
+         "--yield": "str", "--engine": "str", "--accuracy": "str", "--data-model": "str"}
 
 HOSTILE = {
     "float": ["nan", "inf", "-inf", "-1", "0", "1e300"],

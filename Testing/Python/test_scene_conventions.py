@@ -84,7 +84,7 @@ def _scenario_fluotomo(scene):
 
     logic = FluoTomoLogic(scene)
     logic.labelVolumes()
-    logic.buildMesh(sizeMm=6.0)
+    logic.buildMesh(mrml_io.get_node(scene, "CBCTLabels"), sizeMm=6.0)
 
 
 @pytest.mark.parametrize("module", ["FluoGuide", "FluoCalib", "FluoNav", "FluoTomo"])

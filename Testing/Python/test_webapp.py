@@ -235,6 +235,72 @@ def test_quality_mesher_from_the_panel(app):
     app.state.tomo_mesh_roi = ""
 
 
+def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, tmp_path):
+    """The user's own scene in the panel: a label map file (not the tube, any
+    direction), optics.json and an acquisition folder; the mesh built in step
+    3 is the reconstruction's (its node count is the result's), region volumes
+    are shown, and the yield overlay peaks in the inclusion."""
+    import json
+    import subprocess
+    import sys
+
+    from fluoguide.labelmap_io import write_volume_nrrd
+    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
+
+    sc = ellipsoid_inclusion_labelmap(semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0),
+                                      inclusion_gap_mm=2.5, inclusion_offset_mm=(1.0, -1.0))
+    # the UI takes paths inside its workspace (issue #21)
+    tmp_path = app.workspace.root / "own"
+    tmp_path.mkdir(exist_ok=True)
+    write_volume_nrrd(tmp_path / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"],
+                      sc["origin_mm"], sc["direction"])
+    optics = ellipsoid_inclusion_optics()
+    (tmp_path / "optics.json").write_text(json.dumps(optics))
+    r = subprocess.run([sys.executable, "-m", "fluoapp", "tomo", "simulate", "--labels",
+                        str(tmp_path / "labels.nrrd"), "--optics", str(tmp_path / "optics.json"),
+                        "--yield", "7:0.0026", "--accuracy", "fast", "--out",
+                        str(tmp_path / "acq")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    s = app.state
+    s.tomo_own_labels = "own/missing.nrrd"
+    s.tomo_own_optics = "own/optics.json"
+    s.tomo_own_acquisition = "own/acq"
+    app.ctrl.tomo_load_own()
+    assert "missing.nrrd" in s.fluo_message and s.fluo_message_color == "error"
+    s.tomo_own_labels = str(tmp_path.parent.parent / "labels.nrrd")      # outside: refused
+    app.ctrl.tomo_load_own()
+    assert "inside the workspace" in s.fluo_message and s.fluo_message_color == "error"
+    s.tomo_own_labels = "own/labels.nrrd"
+    app.ctrl.tomo_load_own()
+    assert s.tomo_own and "labels [3, 7]" in s.tomo_own_info, s.fluo_message
+    s.tomo_mesh_size_mm = 1.5
+    s.tomo_mesh_method = "fast (structured)"
+    app.ctrl.tomo_build_mesh()
+    _wait(app.jobs, 300)
+    app.poll()
+    assert "reconstruction uses this mesh" in s.tomo_mesh_info, s.tomo_mesh_info
+    assert "region 7:" in s.tomo_mesh_info and "% of the label map's" in s.tomo_mesh_info
+    nodes = int(s.tomo_mesh_info.split()[0])
+    s.tomo_method = "HP"
+    s.tomo_lambda = 10.0
+    app.ctrl.tomo_reconstruct()
+    _wait(app.jobs, 600)
+    app.poll()
+    res = s.tomo_own_result
+    assert res is not None, s.fluo_message
+    assert res["nodes"] == nodes and res["peak_label"] == 7
+    assert abs(float(res["yield"]) - 2.6e-3) / 2.6e-3 < 0.25, res
+    node = mrml_io.get_node(app.scene, res["node"])
+    g = mrml_io.volume_geometry(node)
+    assert np.allclose(g["direction"], sc["direction"]) and np.allclose(g["origin"],
+                                                                        sc["origin_mm"])
+    views = app.slicer_app.view_manager.get_slice_views()
+    assert views and all(v.get_foreground_volume_id() == node.GetID() for v in views)
+    # back to the phantom route: its mesh step says plainly that it is a preview
+    app.ctrl.tomo_load()
+    assert not s.tomo_own
+
+
 def test_ui_paths_stay_in_the_workspace_and_messages_show_no_server_path(app, tmp_path):
     """Issue #21: a scripted client made the server write scene.mrml anywhere, list
     /etc through the image glob's message and read files outside a stack folder."""

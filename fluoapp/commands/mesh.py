@@ -12,70 +12,10 @@ from fluoguide.errors import FluoInputError
 
 
 def _read_labelmap(path):
-    """(labels_kji, spacing, origin, direction) from a NRRD/NIfTI file or an MRML
-    scene's ``CBCTLabels`` node; RAS coordinates."""
-    import numpy as np
+    """(labels_kji, spacing, origin, direction) in RAS (fluoguide.labelmap_io)."""
+    from fluoguide.labelmap_io import read_labelmap
 
-    p = Path(path)
-    if not p.is_file():
-        raise FluoInputError("label map file not found", file=p)
-    if p.suffix == ".mrml":
-        from fluoguide import mrml_io
-
-        node = mrml_io.get_node(mrml_io.load_scene(p), "CBCTLabels", "vtkMRMLLabelMapVolumeNode")
-        geo = mrml_io.volume_geometry(node)
-        return mrml_io.volume_array(node), geo["spacing"], geo["origin"], geo["direction"]
-    import SimpleITK as sitk
-
-    try:
-        img = sitk.ReadImage(str(p))
-    except RuntimeError as exc:
-        raise FluoInputError(f"cannot read label map ({str(exc).splitlines()[0][:120]})",
-                             file=p) from None
-    arr = sitk.GetArrayFromImage(img)
-    if "Segment0_ID" in img.GetMetaDataKeys():
-        arr = _segments_to_labels(img, arr, p)
-    if arr.ndim != 3 or not np.issubdtype(arr.dtype, np.integer):
-        raise FluoInputError("label map must be a 3D integer image", file=p,
-                             value=(arr.shape, str(arr.dtype)))
-    # ITK is LPS; MRML/FluoGuide are RAS: flip x and y of origin and directions
-    lps_to_ras = np.diag([-1.0, -1.0, 1.0])
-    direction = lps_to_ras @ np.array(img.GetDirection()).reshape(3, 3)
-    origin = lps_to_ras @ np.array(img.GetOrigin())
-    return arr, np.array(img.GetSpacing()), origin, direction
-
-
-def _segments_to_labels(img, arr, path):
-    """Label map from a 3D Slicer segmentation (.seg.nrrd): segment n -> label n+1.
-
-    Slicer stores segments as label values in one or more layers (a 3D image,
-    or a 4D one read as a multi-component image: one component per layer);
-    ``Segment<n>_LabelValue`` and ``Segment<n>_Layer`` say where segment n
-    lives.  Where segments of different layers overlap, the later one wins.
-    """
-    import numpy as np
-
-    keys = set(img.GetMetaDataKeys())
-    layers = arr if arr.ndim == 4 else arr[..., None]
-    if arr.ndim not in (3, 4) or not np.issubdtype(arr.dtype, np.integer):
-        raise FluoInputError("segmentation must be a 3D or 4D integer image", file=path,
-                             value=(arr.shape, str(arr.dtype)))
-    out = np.zeros(layers.shape[:3], dtype=np.int32)
-    n = 0
-    while f"Segment{n}_ID" in keys:
-        try:
-            value = int(img.GetMetaData(f"Segment{n}_LabelValue")) if \
-                f"Segment{n}_LabelValue" in keys else 1
-            layer = int(img.GetMetaData(f"Segment{n}_Layer")) if f"Segment{n}_Layer" in keys else 0
-        except ValueError:
-            raise FluoInputError("non-integer label value or layer", file=path,
-                                 field=f"Segment{n}") from None
-        if not 0 <= layer < layers.shape[3]:
-            raise FluoInputError(f"layer does not exist ({layers.shape[3]} layers)", file=path,
-                                 field=f"Segment{n}_Layer", value=layer)
-        out[layers[..., layer] == value] = n + 1
-        n += 1
-    return out
+    return read_labelmap(path)
 
 
 def _parse_floats(text, flag, count):
@@ -99,7 +39,7 @@ def _parse_refine(text):
 
 def _handler(args):
     from FluoTomoLib.meshing.report import quality_report
-    from FluoTomoLib.meshing.voxel import labelmap_region_volumes, mesh_labelmap_structured
+    from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
     from FluoTomoLib.meshing.vtu_io import write_vtu
 
     t0 = time.perf_counter()
@@ -115,15 +55,19 @@ def _handler(args):
     if args.threads is not None:
         raise FluoInputError("--threads applies to the quality mesher (drop --fast)",
                              field="--threads", value=args.threads)
+    import warnings
+
+    from FluoTomoLib.meshing.voxel import MeshFidelityWarning
+
     edges = _optode_edges(args, labels, spacing, origin, direction) if args.optodes else None
-    mesh = mesh_labelmap_structured(labels, spacing, origin, args.size, roi=roi,
-                                    direction=direction, edges_mm=edges)
-    if roi is None:
-        lo, hi = mesh.bounds()
-        roi = [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]
-    ref = labelmap_region_volumes(labels, spacing, roi, origin) if np.allclose(
-        np.abs(direction), np.eye(3)) and np.all(np.diag(direction) > 0) else None
-    report = quality_report(mesh, ref)
+    with warnings.catch_warnings():      # said in the JSON's "warnings" instead
+        warnings.simplefilter("ignore", MeshFidelityWarning)
+        mesh = mesh_labelmap_structured(labels, spacing, origin, args.size, roi=roi,
+                                        direction=direction, edges_mm=edges)
+    # the label map's own volume of each region inside the roi (exact voxel
+    # overlaps, in the label map's frame: any direction)
+    report = quality_report(mesh, mesh.meta["labelmap_volumes_mm3"])
+    report["warnings"] = list(mesh.meta["warnings"])
     write_vtu(mesh, args.out)
     report["file"] = str(Path(args.out).resolve())
     report["method"] = "structured (Kuhn, 6 tets per cell)"

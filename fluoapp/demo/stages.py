@@ -216,14 +216,16 @@ def stage_tomography(ctx):
     """Tracked non-contact acquisition and NP/SP/HP reconstruction at each tube depth."""
     from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
 
-    # quick: a smaller region around the tube, same resolution (a coarser mesh
-    # cannot hold a 2.4 mm tube and would only show meshing error)
-    roi_half = (9.0, 21.0) if ctx.quick else (15.0, 25.0)
+    # The public label-map path (fluo tomo reconstruct's): the simulation meshes
+    # the whole phantom, the region of interest is chosen from the decay length
+    # and its truncation error is reported (it was graded by itself before:
+    # 30 x 50 mm, 7.9 % median / 29 % max change of the data).  Quick: the
+    # "fast" accuracy level, same tube resolution.
     runs = {}
     cases = sorted(ctx.state["tube_phantoms"].items())
     for k, (d, ph) in enumerate(cases):
         runs[d] = simulate_and_reconstruct(
-            ph, roi_half_mm=roi_half, seed=ctx.seed,
+            ph, seed=ctx.seed, accuracy="fast" if ctx.quick else "balanced",
             progress=scaled(ctx.progress, k / len(cases), (k + 1) / len(cases),
                             f"case {k + 1} of {len(cases)}, tube at {d:.1f} mm"))
     ctx.state["tomo_runs"] = runs
@@ -247,6 +249,10 @@ def stage_tomography(ctx):
         "mean source position error from tracking [mm]": float(
             np.mean([runs[d]["source_error_mm"] for d in depths])),
         "solver": r0["solver"],
+        "region of interest: estimated truncation max % (per case)": [
+            runs[d]["region_of_interest"].get("truncation_max_pct") for d in depths],
+        "region of interest: margin around the optodes and tube [mm]": float(
+            runs[depths[0]]["region_of_interest"].get("margin_mm", float("nan"))),
         "camera pose error from tracking [mm] (mean)": float(
             np.mean([runs[d]["camera_pose_error_mm"] for d in depths])),
         "pixels per detector ROI (median)": float(

@@ -209,6 +209,16 @@ class FluoGuideApp:
         self.state.is_volume_loaded = True
         return vol
 
+    def show_volume(self, volume_node, reset=True):
+        """Any volume (a user's label map) as the slices' background."""
+        self.slicer_app.display_manager.show_volume(volume_node, do_reset_views=reset)
+        vr = self.slicer_app.volume_rendering.get_vr_display_node(volume_node)
+        if vr is not None:
+            vr.SetVisibility(False)
+        self.segment_logic.on_volume_changed(volume_node)
+        self.state.is_volume_loaded = True
+        return volume_node
+
     def show_in_3d(self, node):
         self.slicer_app.display_manager.set_node_visible_in_group(node)
 

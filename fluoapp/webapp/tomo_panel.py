@@ -53,6 +53,15 @@ class TomoPanel:
         s.tomo_colorbar = {"min": 0.0, "max": 1.0, "gradient": ""}
         s.tomo_loaded = False
         s.tomo_has_labels = False
+        # the user's own scene: a label map file, optics.json, an acquisition folder
+        s.tomo_own_labels = ""
+        s.tomo_own_optics = ""
+        s.tomo_own_acquisition = ""
+        s.tomo_own = False             # the own-scene route is active
+        s.tomo_own_info = ""
+        s.tomo_own_result = None
+        self._own = None               # {"label": node id, "optics": Optics, "acquisition": ...}
+        self._mesh_node_id = None
         c = app.ctrl
         g = app.guarded
         c.tomo_load = g(self.load_phantom)
@@ -60,6 +69,7 @@ class TomoPanel:
         c.tomo_use_segmentation = g(self.use_segmentation)
         c.tomo_build_mesh = g(self.build_mesh)
         c.tomo_reconstruct = g(self.reconstruct)
+        c.tomo_load_own = g(self.load_own)
         s.change("tomo_threshold")(g(self._on_threshold))
         self._yield_node_name = None
 
@@ -74,6 +84,10 @@ class TomoPanel:
             self.app.scene.RemoveNode(n)
         truth = self.logic.loadPhantom(s.tomo_phantom, withLabels=False, **params)
         self.app.show_cbct()
+        self._own = None
+        self._mesh_node_id = None
+        s.tomo_own = False
+        s.tomo_own_result = None
         s.tomo_loaded = True
         s.tomo_has_labels = False
         s.tomo_segments = []
@@ -82,6 +96,52 @@ class TomoPanel:
         self.app.notify(f"Loaded the {truth['phantom']} phantom CBCT "
                         f"({' x '.join(map(str, truth['shape_kji'][::-1]))} voxels). "
                         "Next: segment it by threshold.", "success")
+
+    def load_own(self):
+        """Load the user's label map file, optics.json and acquisition folder
+        (paths relative to the workspace, as every path the UI takes);
+        everything is checked now, one message if not."""
+        s = self.app.state
+        entries = {"label map": (s.tomo_own_labels, "file"), "optics": (s.tomo_own_optics, "file"),
+                   "acquisition": (s.tomo_own_acquisition, "folder")}
+        paths = {}
+        for what, (text, kind) in entries.items():
+            if not str(text or "").strip():
+                raise FluoInputError(f"give the {what} path (relative to the workspace)",
+                                     field=what)
+            paths[what] = str(self.app.workspace.path(text, what, what=kind, must_exist=True))
+        node = self.logic.loadLabelMap(paths["label map"])
+        try:
+            optics = self.logic.readOptics(paths["optics"])
+            lm = self.logic.labelMap(node)
+            optics.check_labels(lm.labels)
+            acq = self.logic.readAcquisition(paths["acquisition"], node, optics)
+        except Exception:
+            self.app.scene.RemoveNode(node)
+            raise
+        self._own = {"label": node.GetID(), "optics": optics, "acquisition": acq}
+        self._mesh_node_id = None
+        s.tomo_own = True
+        s.tomo_has_labels = True
+        s.tomo_loaded = True
+        s.tomo_result = None
+        s.tomo_own_result = None
+        vols = lm.region_volumes()
+        s.tomo_regions = [{"label": k, "name": optics.names.get(k, f"label {k}"),
+                           "volume_mm3": round(v, 1)} for k, v in vols.items()]
+        s.tomo_own_info = (f"{node.GetName()}: {' x '.join(map(str, lm.labels_kji.shape[::-1]))} "
+                           f"voxels, labels {lm.labels}; {acq.n_measurements} measurements "
+                           f"({len(acq.sources_ras_mm)} sources x "
+                           f"{len(acq.detectors_ras_mm)} detectors)")
+        self.app.show_volume(node)
+        self.app.notify("Loaded your scene: " + s.tomo_own_info + ". Next: build the mesh.",
+                        "success")
+
+    def _own_label_node(self):
+        node = self.app.scene.GetNodeByID(self._own["label"]) if self._own else None
+        if node is None:
+            raise FluoInputError("load a label map first", field="label map")
+        return node
 
     def _editor(self):
         return self.app.slicer_app.segmentation_editor
@@ -140,18 +200,53 @@ class TomoPanel:
         if not 0.3 <= size <= 5.0:
             raise FluoInputError("mesh size must be within 0.3..5 mm", field="mesh size", value=size)
         quality = str(s.tomo_mesh_method).startswith("quality")
+        if s.tomo_own:
+            # the reconstruction mesh itself (its region of interest from the optodes)
+            job = self.logic.prepareBuildMesh(self._own_label_node(), sizeMm=size,
+                                              acquisition=self._own["acquisition"],
+                                              optics=self._own["optics"], quality=quality)
+
+            def done_own(built):
+                node = self.logic.storeBuiltMesh(built)
+                self._mesh_node_id = node.GetID()
+                self._show_mesh(built["mesh_ras"], size, quality, used=not quality)
+
+            self.app.start_job("mesh", job, on_done=done_own)
+            return
         job = self.logic.prepareMesh(sizeMm=size, roi=self._roi(), quality=quality)
 
         def done(mesh):
             self.logic.storeMesh(mesh)
-            node = mrml_io.get_node(self.app.scene, "FluoTomoMeshSurface")
-            node.GetDisplayNode().SetOpacity(0.35)
-            self.app.show_in_3d(node)
-            s.tomo_mesh_info = (f"{mesh.n_nodes} nodes, {mesh.n_elements} tetrahedra "
-                                f"at {size:g} mm ({'fTetWild' if quality else 'structured'})")
-            self.app.render_all(reset_3d=True)
+            self._show_mesh(mesh, size, quality, used=False)
 
         self.app.start_job("mesh", job, on_done=done)
+
+    def _show_mesh(self, mesh, size, quality, used):
+        """Mesh surface in 3D and its counts and region volumes in the panel; says
+        whether the reconstruction uses this mesh or it is a preview."""
+        s = self.app.state
+        node = mrml_io.get_node(self.app.scene, "FluoTomoMeshSurface")
+        node.GetDisplayNode().SetOpacity(0.35)
+        self.app.show_in_3d(node)
+        ref = mesh.meta.get("labelmap_volumes_mm3") or {}
+        err = mesh.meta.get("volume_error_pct") or {}
+        parts = []
+        for label, r in sorted(ref.items()):
+            parts.append(f"region {label}: {r:.0f} mm³ in the label map" + (
+                f", mesh {err[label]:+.1f} % of the label map's" if label in err else ""))
+        fit = mesh.meta.get("surface_fit_mm")
+        if fit:
+            parts.append(f"tissue-air nodes moved onto the smooth surface by up to "
+                         f"{fit['max']:.2f} mm")
+        role = ("the reconstruction uses this mesh" if used else
+                "preview: the reconstruction meshes the scene itself (anchored and refined "
+                "on the target; the mesh it used is shown after it runs)")
+        s.tomo_mesh_info = (f"{mesh.n_nodes} nodes, {mesh.n_elements} tetrahedra at {size:g} mm "
+                            f"({'fTetWild' if quality else 'structured'}); "
+                            + "; ".join(parts) + f". {role}.")
+        for w in mesh.meta.get("warnings", []):
+            self.app.notify(w, "warning")
+        self.app.render_all(reset_3d=True)
 
     def _roi(self):
         """The ROI typed by the user, else that of the cylinder-tube reconstruction."""
@@ -182,6 +277,9 @@ class TomoPanel:
         if not (np.isfinite(lam) and lam > 0):
             raise FluoInputError("lambda must be a positive number", field="lambda", value=lam)
         method = str(s.tomo_method)
+        if s.tomo_own:
+            self._reconstruct_own(method, lam)
+            return
         job = self.logic.prepareTubeReconstruction(methods=(method,), lam=lam)
 
         def done(run):
@@ -209,6 +307,43 @@ class TomoPanel:
                     f"{res['true_centroid_mm']:.2f}) in {run['timings']['total']:.1f} s")
             self.app.notify(text + "".join(f"; warning: {w}" for w in warnings),
                             "warning" if warnings else "success")
+
+        self.app.start_job(f"reconstruction {method}", job, on_done=done)
+
+    def _reconstruct_own(self, method, lam):
+        s = self.app.state
+        mesh_node = (self.app.scene.GetNodeByID(self._mesh_node_id)
+                     if self._mesh_node_id else None)
+        job = self.logic.prepareReconstruction(self._own_label_node(), self._own["optics"],
+                                               self._own["acquisition"], method=method, lam=lam,
+                                               meshNode=mesh_node)
+
+        def done(result):
+            from fluoapp.webapp.scene_display import glyph_points_model
+
+            node = self.logic.storeReconstructionResult(result)
+            self._yield_node_name = node.GetName()
+            sm = result["summary"]
+            tgt = sm["target"]
+            reg = sm["regions"].get(str(tgt), {}) if tgt is not None else {}
+            s.tomo_own_result = {
+                "method": method, "node": node.GetName(), "target": tgt,
+                "yield": f"{reg.get('yield_per_mm', float('nan')):.4g}",
+                "sd": f"{reg.get('sd_per_mm') or 0:.2g}",
+                "peak": f"{sm['peak_yield_per_mm']:.4g}",
+                "peak_ras": ", ".join(f"{v:.1f}" for v in sm["peak_ras_mm"]),
+                "peak_label": sm["peak_label"],
+                "centroid_ras": ", ".join(f"{v:.2f}" for v in (sm["target_centroid_ras_mm"] or [])),
+                "nodes": sm["mesh"]["nodes"], "seconds": round(sm["seconds"], 1),
+                "warnings": "; ".join(sm["warnings"]) or "none",
+            }
+            glyph_points_model(self.app.scene, "FluoTomoSources", result["sources_ras_mm"],
+                               color=(1.0, 0.25, 0.2))
+            glyph_points_model(self.app.scene, "FluoTomoDetectors", result["detectors_ras_mm"],
+                               radius_mm=0.35, color=(0.2, 0.9, 0.3))
+            self._show_yield()
+            self.app.notify(f"{method}: label {tgt} yield {s.tomo_own_result['yield']} /mm, peak "
+                            f"in label {sm['peak_label']}, {sm['seconds']:.1f} s", "success")
 
         self.app.start_job(f"reconstruction {method}", job, on_done=done)
 
@@ -275,6 +410,21 @@ class TomoPanel:
         v.VBtn("Load phantom", click=self.app.ctrl.tomo_load, block=True, classes="mt-2",
                color="primary", disabled=(busy,), id="tomo-load")
 
+        html.Div("1b. Or your own scene (files on this computer)", classes="text-subtitle-2 mt-4")
+        v.VTextField(v_model=("tomo_own_labels",),
+                     label="Label map in the workspace (.nrrd, .seg.nrrd)",
+                     density="compact", hide_details=True, id="tomo-own-labels")
+        v.VTextField(v_model=("tomo_own_optics",), label="optics.json in the workspace",
+                     density="compact",
+                     hide_details=True, classes="mt-1", id="tomo-own-optics")
+        v.VTextField(v_model=("tomo_own_acquisition",),
+                     label="Acquisition folder in the workspace",
+                     density="compact", hide_details=True, classes="mt-1",
+                     id="tomo-own-acquisition")
+        v.VBtn("Load my scene", click=self.app.ctrl.tomo_load_own, block=True, classes="mt-2",
+               disabled=(busy,), id="tomo-own-load")
+        html.Div("{{ tomo_own_info }}", classes="text-caption", id="tomo-own-info")
+
         html.Div("2. Segment the CBCT", classes="text-subtitle-2 mt-4")
         with v.VRow(dense=True):
             with v.VCol(cols=4):
@@ -311,7 +461,8 @@ class TomoPanel:
                      id="tomo-mesh-roi")
         html.Div("{{ tomo_mesh_info }}", classes="text-caption", id="tomo-mesh-info")
 
-        html.Div("4. Reconstruct (simulated tracked laser scan)", classes="text-subtitle-2 mt-4")
+        html.Div("4. Reconstruct (phantom: simulated tracked laser scan; your scene: its "
+                 "acquisition)", classes="text-subtitle-2 mt-4")
         with v.VRow(dense=True):
             with v.VCol(cols=6):
                 v.VSelect(v_model=("tomo_method",), items=(["NP", "SP", "HP"],), label="Priors",
@@ -337,6 +488,14 @@ class TomoPanel:
                      "{{ tomo_result.true_centroid_mm }}), {{ tomo_result.seconds }} s")
             html.Div("warning: {{ w }}", v_for="w in tomo_result.warnings",
                      classes="text-warning")
+        with html.Div(v_if="tomo_own_result", classes="text-caption mt-1", id="tomo-own-result"):
+            html.Div("{{ tomo_own_result.method }} ({{ tomo_own_result.node }}): label "
+                     "{{ tomo_own_result.target }} yield {{ tomo_own_result.yield }} /mm "
+                     "(SD {{ tomo_own_result.sd }}), peak {{ tomo_own_result.peak }} /mm at "
+                     "RAS {{ tomo_own_result.peak_ras }} (label {{ tomo_own_result.peak_label }})")
+            html.Div("half-maximum centroid RAS {{ tomo_own_result.centroid_ras }}; "
+                     "{{ tomo_own_result.nodes }} nodes, {{ tomo_own_result.seconds }} s; "
+                     "warnings: {{ tomo_own_result.warnings }}")
 
         html.Div("5. Display", classes="text-subtitle-2 mt-4")
         v.VSlider(v_model=("tomo_threshold",), min=0.0, max=0.95, step=0.05,

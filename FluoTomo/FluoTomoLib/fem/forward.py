@@ -80,10 +80,12 @@ class FluorescenceModel:
     sources_mm, detectors_mm : (S, d), (D, d) surface points; sources are
         buried one MFP' below the nearest surface point
     solver : see DiffusionOperator
+    source_normals : (S, d) outward unit normals of the true surface at the
+        sources, to bury them along (default: the nearest facet's normal)
     """
 
     def __init__(self, mesh, props_x, props_m, sources_mm, detectors_mm, solver="auto",
-                 max_snap_mm=5.0):
+                 max_snap_mm=5.0, source_normals=None):
         t0 = time.perf_counter()
         mua_x, musp_x, n_x = _props(mesh, props_x, "props_x")
         mua_m, musp_m, n_m = _props(mesh, props_m, "props_m")
@@ -103,7 +105,8 @@ class FluorescenceModel:
         # what the model cannot do well here, in words (accuracy() adds more)
         self.notes = []
         self.sources_mm = source_positions(mesh, self.sources_surface_mm, self.op_x.musp,
-                                           self.op_x.mua, max_snap_mm, notes=self.notes)
+                                           self.op_x.mua, max_snap_mm, notes=self.notes,
+                                           normals=source_normals)
         self.max_snap_mm = max_snap_mm
         self.q = point_source_rhs(mesh, self.sources_mm)
         self.P = detector_operator(mesh, self.detectors_mm, max_snap_mm)

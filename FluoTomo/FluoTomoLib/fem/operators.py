@@ -381,7 +381,7 @@ def _inward_directions(mesh, q, facet, bary, tol=1e-9):
 
 
 def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_mm=5.0,
-                     notes=None):
+                     notes=None, normals=None):
     """Buried isotropic sources: one transport MFP (1/mut') inside the tissue
     below the nearest surface point (docs/physics.md section 2.2).
 
@@ -392,17 +392,26 @@ def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_
     that deep (the tissue is thinner than 1/mut' there) is refused; one
     that ends closer than 1/mut' to another surface (thin tissue, near an
     edge) is kept and, when ``notes`` is a list, described there.
+
+    ``normals``: (S, d) outward unit normals of the true surface to bury
+    along instead of the facets' (a voxel mesh's facet normals are axis
+    directions on a curved surface, and its edges are staircase steps, not
+    corners of the tissue: no bisector search there).
     """
     q, facet, bary = snap_to_surface(mesh, surface_points_mm, max_snap_mm, "source")
     mua = _nodal(mesh, mua_per_mm, "mua_per_mm")
     musp = _nodal(mesh, musp_per_mm, "musp_per_mm")
     fnodes = mesh.boundary_facets[facet]
     depth = 1.0 / np.einsum("ij,ij->i", bary, (mua + musp)[fnodes])
-    inward = _inward_directions(mesh, q, facet, bary)
+    if normals is None:
+        inward = _inward_directions(mesh, q, facet, bary)
+        wedge = np.any(bary <= 1e-9, axis=1)      # on an edge or a vertex
+    else:
+        inward = -np.atleast_2d(np.asarray(normals, float))
+        wedge = np.zeros(len(q), bool)
     bl = boundary_locator(mesh)
     t = depth.copy()
     pos = q + inward * t[:, None]
-    wedge = np.any(bary <= 1e-9, axis=1)          # on an edge or a vertex
     for _ in range(4 if np.any(wedge) else 0):
         d = bl.closest(pos)[3]
         short = wedge & (d < depth * (1 - 1e-6))

@@ -39,45 +39,35 @@ def nodal_optics(node_region, optics):
     return out
 
 
-def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_centre_mm,
-            tracking, rng, detector_factor=2, exclude_mm=3.0, laser_power_w=0.01,
-            camera_gain=None, camera_offset_adu=100.0, camera_read_noise_adu=2.0,
-            camera_binning=4, camera_distance_mm=150.0, project_detectors=False, timings=None,
-            progress=None, cancel=None):
-    """Simulated acquisition of one laser scan with the tracked camera.
+def render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_centre_mm,
+                  tracking, rng, exclude_mm=3.0, laser_power_w=0.01, camera_gain=None,
+                  camera_offset_adu=100.0, camera_read_noise_adu=2.0, camera_binning=4,
+                  camera_distance_mm=150.0, detectors_mm=None, timings=None, progress=None,
+                  cancel=None):
+    """What the tracked camera records during a laser scan (the simulation side):
+    the FEM emission fields of the true tissue (``fine`` mesh, true source
+    positions) rendered into one frame per source from the *true* camera pose,
+    with shot/read noise and 14 bits; the camera's *reported* pose carries the
+    tracking error.  ``camera_gain`` None: exposure such that the brightest
+    pixel farther than ``exclude_mm`` from the active source sits at ~60 % of
+    14 bits.
 
-    The FEM emission fields of the true tissue (fine mesh, true source
-    positions) are rendered into one frame per source from the *true* camera
-    pose; the software maps pixels to the surface with the *reported* pose
-    and averages ~1 mm^2 ROIs at the virtual detectors (the reported sources
-    plus points between them), excluding those within ``exclude_mm`` of the
-    active source.  ``camera_gain`` None: exposure such that the brightest
-    pixel outside the excluded discs sits at ~60 % of 14 bits.
-    ``project_detectors``: the points interpolated between sources are moved
-    onto the surface (straight down, along the beams); needed where the
-    surface is curved, a no-op on a plane.
-
-    Returns a dict: ``detectors_mm``, ``mask`` (S, D), ``y`` (S, D) boundary
-    fluence per watt [1/mm^2] (0 where masked out), ``counts``, ``roi_pixels``,
-    ``frames`` (S, H, W), ``camera_gain``, ``camera_true`` / ``camera_reported``
-    (CameraToWorld).
+    Returns a dict: ``frames`` (S, H, W) [ADU], ``saturated``, ``camera``
+    (CameraModel), ``camera_true`` / ``camera_reported`` (CameraToWorld),
+    ``camera_gain``, ``fields`` (N, S) emission fluence per watt.
     """
     timings = {} if timings is None else timings
-    det_rep = virtual_detectors(src_rep, factor=detector_factor)
-    if project_detectors:
-        det_rep = onto_surface_from_above(det_rep, fine.nodes_mm, fine.boundary_facets[facet_mask])
-    mask = detector_mask(src_rep, det_rep, exclude_mm)
     report(progress, 0.2, "forward simulation (true tissue)")
     t0 = time.perf_counter()
+    det = src_true if detectors_mm is None else detectors_mm
     sim = FluorescenceModel(fine, {"mua_per_mm": true_props["mua_x_per_mm"],
                                    "musp_per_mm": true_props["musp_x_per_mm"], "n": n},
                             {"mua_per_mm": true_props["mua_m_per_mm"],
                              "musp_per_mm": true_props["musp_m_per_mm"], "n": n},
-                            src_true, det_rep)
+                            src_true, det)
     fields = sim.emission_fields(true_props["yield_per_mm"])     # (N, S) per W
     timings["forward_simulation"] = time.perf_counter() - t0
     check_cancel(cancel)
-
     report(progress, 0.27, "camera frames")
     t0 = time.perf_counter()
     camera = tomography_camera(camera_binning)
@@ -85,7 +75,6 @@ def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_
     cam_rep = cam_true @ tracking.perturb(np.eye(4), rng)
     caster, facets = surface_caster(fine, facet_mask)
     hits_true = cast(caster, camera, cam_true)
-    hits_rep = cast(caster, camera, cam_rep)
     radiance = frame_radiance(hits_true, facets, fine.nodes_mm, fields, robin_A, laser_power_w)
     if camera_gain is None:
         pts = hits_true.point_mm
@@ -97,18 +86,58 @@ def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_
         camera_gain = 0.6 * 16383 / peak
     frames, saturated = expose(radiance, camera_gain, camera_offset_adu, camera_read_noise_adu,
                                rng)
-    counts, roi_pixels = detector_counts(frames, saturated, hits_rep, det_rep)
+    timings["camera_frames"] = time.perf_counter() - t0
+    return {"frames": frames, "saturated": saturated, "camera": camera, "camera_true": cam_true,
+            "camera_reported": cam_rep, "camera_gain": float(camera_gain), "fields": fields,
+            "model": sim}
+
+
+def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_centre_mm,
+            tracking, rng, detector_factor=2, exclude_mm=3.0, laser_power_w=0.01,
+            camera_gain=None, camera_offset_adu=100.0, camera_read_noise_adu=2.0,
+            camera_binning=4, camera_distance_mm=150.0, project_detectors=False, timings=None,
+            progress=None, cancel=None):
+    """Simulated acquisition of one laser scan with the tracked camera, mapped
+    to the surface of the simulation mesh (the oral-cavity case; the
+    cylinder-tube case maps its frames onto the label map's surface with
+    FluoTomoLib.tomography.acquisition_from_tracked_frames).
+
+    The frames (:func:`render_frames`) are mapped to the surface with the
+    *reported* pose, ~1 mm^2 ROIs averaged at the virtual detectors (the
+    reported sources plus points between them), excluding those within
+    ``exclude_mm`` of the active source.  ``project_detectors``: the points
+    interpolated between sources are moved onto the surface (straight down,
+    along the beams); needed where the surface is curved, a no-op on a plane.
+
+    Returns a dict: ``detectors_mm``, ``mask`` (S, D), ``y`` (S, D) boundary
+    fluence per watt [1/mm^2] (0 where masked out), ``counts``, ``roi_pixels``,
+    ``frames`` (S, H, W), ``camera_gain``, ``camera_true`` / ``camera_reported``
+    (CameraToWorld).
+    """
+    timings = {} if timings is None else timings
+    det_rep = virtual_detectors(src_rep, factor=detector_factor)
+    if project_detectors:
+        det_rep = onto_surface_from_above(det_rep, fine.nodes_mm, fine.boundary_facets[facet_mask])
+    mask = detector_mask(src_rep, det_rep, exclude_mm)
+    r = render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_centre_mm,
+                      tracking, rng, exclude_mm, laser_power_w, camera_gain, camera_offset_adu,
+                      camera_read_noise_adu, camera_binning, camera_distance_mm, det_rep,
+                      timings, progress, cancel)
+    t0 = time.perf_counter()
+    caster, _ = surface_caster(fine, facet_mask)
+    hits_rep = cast(caster, r["camera"], r["camera_reported"])
+    counts, roi_pixels = detector_counts(r["frames"], r["saturated"], hits_rep, det_rep)
     lost = mask & ~np.isfinite(counts)
     if np.any(lost):
         raise FluoInputError(f"{int(lost.sum())} detector ROIs have too few unsaturated pixels "
                              "(saturated, or not seen by the camera)", field="camera_gain",
-                             value=camera_gain)
+                             value=r["camera_gain"])
     y = np.where(mask, counts_to_boundary_fluence(np.nan_to_num(counts), camera_offset_adu,
-                                                  camera_gain, robin_A, laser_power_w), 0.0)
-    timings["camera_frames"] = time.perf_counter() - t0
+                                                  r["camera_gain"], robin_A, laser_power_w), 0.0)
+    timings["camera_frames"] += time.perf_counter() - t0
     return {"detectors_mm": det_rep, "mask": mask, "y": y, "counts": counts,
-            "roi_pixels": roi_pixels, "frames": frames, "camera_gain": float(camera_gain),
-            "camera_true": cam_true, "camera_reported": cam_rep}
+            "roi_pixels": roi_pixels, "frames": r["frames"], "camera_gain": r["camera_gain"],
+            "camera_true": r["camera_true"], "camera_reported": r["camera_reported"]}
 
 
 def onto_surface_from_above(points_mm, vertices_mm, triangles, height_mm=50.0):

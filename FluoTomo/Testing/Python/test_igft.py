@@ -10,7 +10,7 @@ from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
 @pytest.mark.slow
 def test_tube_case_priors_beat_no_priors():
     ph = make_phantom("cylinder-tube", depth_mm=4.7)
-    out = simulate_and_reconstruct(ph, fine_mm=1.0, coarse_mm=1.5, roi_half_mm=(9.0, 21.0))
+    out = simulate_and_reconstruct(ph, fine_mm=1.0, accuracy="fast", roi_half_mm=(9.0, 21.0))
     r = out["results"]
     for m in ("SP", "HP"):
         assert abs(r[m]["centroid_error_pct"]) < 10
@@ -27,7 +27,7 @@ def test_self_absorption_feedback_corrects_the_hard_prior_yield():
     that underestimates its yield (about -20 % here); feeding the reconstructed
     dye's absorption back brings HP close to the truth."""
     ph = make_phantom("cylinder-tube", depth_mm=3.7)
-    kw = dict(fine_mm=1.0, coarse_mm=1.0, roi_half_mm=(9.0, 21.0), methods=("HP",))
+    kw = dict(fine_mm=1.0, accuracy="fast", roi_half_mm=(9.0, 21.0), methods=("HP",))
     blind = simulate_and_reconstruct(ph, self_absorption=(), **kw)["results"]["HP"]
     fed = simulate_and_reconstruct(ph, **kw)["results"]["HP"]
     assert blind["peak_error_pct"] < -10, blind["peak_error_pct"]

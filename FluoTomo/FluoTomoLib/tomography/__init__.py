@@ -1,0 +1,33 @@
+"""Tomography on any label map (the user's own scene): file formats, geometry in
+the label map's frame, the region of interest, the reconstruction model, the
+simulated acquisition and the reconstruction.
+
+Modules
+-------
+- ``labelmap``: A label map with its geometry, and the frame the tomography works in.
+- ``optics_file``: ``optics.json``: the optical properties of every label, written by hand.
+- ``acquisition_file``: An acquisition folder a person can write by hand, and the tracked-frames route.
+- ``accuracy``: The accuracy knob of the label-map pipelines.
+- ``roi``: The region of interest of a reconstruction, chosen from the decay length and graded against a larger domain.
+- ``model``: The reconstruction mesh and model of a label map, with the tube study's accuracy machinery for any target label.
+- ``simulate``: Simulated acquisitions of a label map: the scan, the engines, the noise.
+- ``reconstruct``: Reconstruction of fluorescence yield on a user's label map.
+"""
+
+from fluoguide.lazy import attach
+
+__getattr__, __dir__, __all__ = attach(__name__, {
+    "labelmap": ["LabelMap", "SurfaceInfo", "place_on_surface", "MAX_OFFSET_MM"],
+    "optics_file": ["Optics", "optics_from_dict", "read_optics", "homogeneous_optics",
+                    "optics_from_phantom"],
+    "acquisition_file": ["Acquisition", "read_acquisition", "write_acquisition",
+                         "acquisition_from_tracked_frames", "write_tracked_frames"],
+    "accuracy": ["LEVELS", "accuracy_settings"],
+    "roi": ["choose_roi", "roi_from_ras"],
+    "model": ["reconstruction_mesh", "membership", "check_prior_volumes", "TissueModel"],
+    "simulate": ["ENGINES", "DEFAULT_SCAN", "MC_PHOTONS", "default_scan", "add_noise",
+                 "simulation_mesh", "simulate_mc",
+                 "simulate_fem", "simulate_acquisition"],
+    "reconstruct": ["reconstruct_labelmap", "reconstruct_labelmap_methods", "nodal_to_grid",
+                    "write_reconstruction"],
+})

@@ -1,0 +1,331 @@
+"""Reconstruction of fluorescence yield on a user's label map: any labels, any
+IJK-to-RAS direction, sources, detectors and data from an acquisition.
+
+``reconstruct_labelmap`` is what ``fluo tomo reconstruct``,
+``FluoTomoLogic.reconstruct`` and the example script call:
+
+1. optodes onto the tissue surface (moved, with the distance reported, or
+   refused beyond MAX_OFFSET_MM);
+2. the region of interest from the decay length, its truncation error
+   estimated against the whole tissue (roi.py);
+3. the reconstruction mesh, anchored at and refined across the target, and
+   the model: partial-volume membership, tissue optics per node, Jacobian,
+   priors (model.py);
+4. NP / SP / HP, HP with the fluorophore's absorption fed back;
+5. the yield volume on the label map's own grid (same origin, spacing and
+   direction; zero in air) and a summary: region yields with their SD, the
+   peak and its RAS position, the target's centroid, warnings, seconds.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+from fluoguide.progress import check_cancel, report
+
+from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
+
+#: Jacobian-sized arrays the solver holds at once (J and R^-1 J^T for NP / SP)
+_JACOBIAN_COPIES = 2
+#: largest Jacobian memory [bytes] a reconstruction may take
+MAX_JACOBIAN_BYTES = 4e9
+#: largest regularisation lambda (docs/reconstruction.md's trade table ends at 1e3,
+#: the web app's over-regularised case is 1e6)
+MAX_LAMBDA = 1e9
+
+
+def nodal_to_grid(mesh, values, lm):
+    """P1 values of a mesh field (local frame) at the label map's voxel centres,
+    zero outside the mesh and in air (label 0); float32 (K, J, I)."""
+    from FluoTomoLib.fem.locate import locator
+
+    pts = lm.voxel_centres_local()
+    lo, hi = mesh.bounds()
+    tissue = lm.labels_kji.ravel() > 0
+    inside = tissue & np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
+    out = np.zeros(len(pts), np.float32)
+    P = locator(mesh).interpolation_matrix(pts[inside], outside="zero")
+    out[inside] = P @ np.asarray(values, float)
+    return out.reshape(lm.labels_kji.shape)
+
+
+def _half_max_centroid(vol, lm):
+    """Centroid [local mm] of the voxels at or above half the peak, in the
+    connected blob that holds the peak (yield-weighted)."""
+    from scipy import ndimage
+
+    peak = float(vol.max())
+    if not peak > 0:
+        return None
+    blobs, _ = ndimage.label(vol >= 0.5 * peak)
+    k, j, i = np.unravel_index(int(np.argmax(vol)), vol.shape)
+    sel = blobs == blobs[k, j, i]
+    kk, jj, ii = np.nonzero(sel)
+    w = vol[sel].astype(float)
+    ijk = np.stack([ii, jj, kk], axis=1) @ np.diag(lm.spacing_mm)
+    return (w[:, None] * ijk).sum(axis=0) / w.sum()
+
+
+def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=None,
+                         accuracy="balanced", size_mm=None, refine_factor=None, roi_ras=None,
+                         truncation_pct=None, data_model="linear", self_absorption=("HP", "SP"),
+                         mesh=None, max_offset_mm=MAX_OFFSET_MM, grading=False, progress=None,
+                         cancel=None):
+    """Reconstruct the yield of a label map from an acquisition.
+
+    Parameters
+    ----------
+    lm : LabelMap
+    optics : Optics (every label of the map listed)
+    acquisition : Acquisition (sources, detectors RAS mm; data per watt)
+    method : "NP", "SP" or "HP"
+    lam : regularisation lambda (None: 10, the reference's)
+    target : label graded and meshed finely (None: the smallest region that
+        is not the largest)
+    accuracy : "fast", "balanced" or "fine" (accuracy.LEVELS); ``size_mm``,
+        ``refine_factor``, ``truncation_pct`` override its values
+    roi_ras : (x0, x1, y0, y1, z0, z1) RAS mm instead of the automatic region
+    data_model : "linear" (fit y) or "log" (fit ln y; needs positive data)
+    self_absorption : methods that feed the fluorophore's absorption back (when
+        optics.json names one): HP to convergence, SP one pass.  On the
+        ellipsoid scene (a 6 mm sphere of 2 ug/mL ICG) SP went from -36 %
+        blind to -11 % fed; the cylinder-tube study keeps SP blind (its thin
+        tube: 10.5 % blind, 13.7 % fed)
+    mesh : a reconstruction mesh already built for this scene (local frame,
+        :func:`FluoTomoLib.tomography.model.reconstruction_mesh`), e.g. the one
+        the app showed; None builds it
+    max_offset_mm : optodes farther from the tissue surface are refused
+    grading : optode-aware grading: ``recon_coarse_mm`` cells away from the box of
+        the optodes and the target (about half the nodes; the data moved by up
+        to 11 % on the issue's scene, docs)
+
+    Returns
+    -------
+    dict: ``summary`` (JSON-able: method, regions, peak, centroid, warnings,
+    seconds, ...), ``yield_kji`` (float32 on the label map's grid), ``mesh``
+    (local frame), ``yield_nodes``, ``sources_ras_mm``, ``detectors_ras_mm``.
+    """
+    return reconstruct_labelmap_methods(
+        lm, optics, acquisition, (method,), lam, target, accuracy, size_mm, refine_factor,
+        roi_ras, truncation_pct, data_model, self_absorption, mesh, max_offset_mm, grading,
+        progress, cancel)[str(method).upper()]
+
+
+def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "HP"), lam=None,
+                                 target=None, accuracy="balanced", size_mm=None,
+                                 refine_factor=None, roi_ras=None, truncation_pct=None,
+                                 data_model="linear", self_absorption=("HP", "SP"), mesh=None,
+                                 max_offset_mm=MAX_OFFSET_MM, grading=False, progress=None,
+                                 cancel=None):
+    """:func:`reconstruct_labelmap` for several methods on one model (one mesh,
+    one Jacobian).  Returns {method: result}."""
+    from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
+    from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
+                                              reconstruction_mesh)
+    from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
+
+    t_all = time.perf_counter()
+    timings = {}
+    methods = [str(m).upper() for m in methods]
+    for m in methods:
+        if m not in ("NP", "SP", "HP"):
+            raise FluoInputError("method must be NP, SP or HP", field="method", value=m)
+    lam = 10.0 if lam is None else float(lam)
+    if not (np.isfinite(lam) and 0 < lam <= MAX_LAMBDA):
+        raise FluoInputError(f"lambda must be a number in (0, {MAX_LAMBDA:g}] (beyond it the "
+                             "prior alone decides the result)", field="lambda", value=lam)
+    if data_model not in ("linear", "log"):
+        raise FluoInputError("data model must be linear or log", field="data_model",
+                             value=data_model)
+    settings = accuracy_settings(accuracy, recon_mm=size_mm, refine_factor=refine_factor,
+                                 truncation_pct=truncation_pct)
+    optics.check_labels(lm.labels)
+    if target is None:
+        target = lm.default_target()
+    elif int(target) not in lm.labels:
+        raise FluoInputError("target label is not in the label map", file=lm.source,
+                             field="target", value=int(target))
+    if data_model == "log":
+        acquisition.check_for_log()
+    notes = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        report(progress, 0.01, "optodes onto the tissue surface")
+        src, d_src = place_on_surface(lm, acquisition.sources_ras_mm, "sources", max_offset_mm,
+                                      acquisition.source)
+        det, d_det = place_on_surface(lm, acquisition.detectors_ras_mm, "detectors",
+                                      max_offset_mm, acquisition.source)
+        moved = float(max(d_src.max(), d_det.max()))
+        if moved > 0.5:
+            notes.append(f"optodes were moved up to {moved:.2f} mm onto the tissue surface")
+        check_cancel(cancel)
+        h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
+        if h < settings["recon_mm"]:
+            notes.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
+                         f"(asked for {settings['recon_mm']:g} mm)")
+        if mesh is None:
+            t0 = time.perf_counter()
+            if roi_ras is not None:
+                roi = roi_from_ras(lm, roi_ras)
+                roi_info = {"chosen": "given", "truncation_max_pct": None}
+                notes.append("the region of interest was given: its truncation error is not "
+                             "estimated")
+            else:
+                anchor = lm.region_centroid_local(target) if target is not None else None
+                roi, roi_info = choose_roi(lm, optics, src, det, acquisition.mask, target,
+                                           settings["truncation_pct"], anchor=anchor,
+                                           progress=progress, cancel=cancel)
+                roi_info["chosen"] = "from the decay length"
+                if (roi_info.get("truncation_max_pct") or 0) > settings["truncation_pct"]:
+                    notes.append(f"the region of interest changes the data by up to "
+                                 f"{roi_info['truncation_max_pct']:.1f} % (tolerance "
+                                 f"{settings['truncation_pct']:g} %)")
+            timings["roi"] = time.perf_counter() - t0
+            report(progress, 0.15, "reconstruction mesh")
+            t0 = time.perf_counter()
+            mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, roi, target,
+                                       settings["refine_factor"], surface=lm.surface(),
+                                       optodes=np.vstack([src, det]),
+                                       coarse_mm=settings["recon_coarse_mm"] if grading
+                                       else None,
+                                       optode_normals=lm.surface().closest(
+                                           np.vstack([src, det]))[1],
+                                       burial_mm=mfp, cancel=cancel)
+            timings["meshing"] = time.perf_counter() - t0
+        else:
+            roi_info = {"chosen": "the mesh given", "truncation_max_pct": None}
+            if mesh.meta.get("frame") not in (None, "local"):
+                raise FluoInputError("the mesh is not in the label map's frame", field="mesh")
+        notes.extend(mesh.meta.get("warnings", []))
+        n_bytes = acquisition.n_measurements * mesh.n_nodes * 8.0 * _JACOBIAN_COPIES
+        if n_bytes > MAX_JACOBIAN_BYTES:
+            raise FluoInputError(f"{acquisition.n_measurements} measurements x {mesh.n_nodes} "
+                                 f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
+                                 "larger element size or fewer pairs", field="size_mm",
+                                 value=h)
+        check_cancel(cancel)
+        report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
+                              f"{acquisition.n_measurements} measurements)")
+        tm = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det,
+                         acquisition.mask, source_normals=lm.surface().closest(src)[1],
+                         timings=timings)
+        _, prior_notes = check_prior_volumes(tm.prior, mesh,
+                                             mesh.meta.get("labelmap_volumes_mm3", {}))
+        notes.extend(prior_notes)
+        y = acquisition.y()
+        solved = {}
+        for i, method in enumerate(methods):
+            check_cancel(cancel)
+            report(progress, 0.6 + 0.3 * i / len(methods), f"reconstruction {method}")
+            solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
+                                      cancel)
+    for w in caught:
+        text = str(w.message)
+        if text not in notes:
+            notes.append(text)
+    t_common = time.perf_counter() - t_all - sum(r.seconds for r, _ in solved.values())
+    out = {}
+    for method, (res, passes) in solved.items():
+        out[method] = _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam,
+                              target, data_model, settings, h, roi_info, list(notes),
+                              dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
+                              t_common + res.seconds)
+    report(progress, 1.0, "done")
+    return out
+
+
+def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target, data_model,
+            settings, h, roi_info, notes, timings, src, det, d_src, d_det, seconds):
+    """The summary and volumes of one method's solution."""
+    from FluoTomoLib.tomography.model import nodal_volumes
+
+    vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
+    if "diverged" in res.stop_reason:
+        notes.append(res.stop_reason)
+    # the solver's own diagnostics (under-determination, fit, damping): a
+    # result it warns about may be far from the truth, for the reasons given
+    for w in res.warnings:
+        if w not in notes:
+            notes.append(w)
+    # region yields: nodes wholly inside each region (partial volume >= 0.99; a
+    # rim node carries its neighbours' share whatever the method)
+    v = nodal_volumes(mesh)
+    F = tm.fractions
+    regions = {}
+    conf = res.region_confidence
+    for r, lab in enumerate(tm.region_labels):
+        sel = F[:, r] >= 0.99
+        if not np.any(sel):
+            sel = F[:, r] >= F[:, r].max() - 1e-9
+        mean = float(np.sum(res.yield_per_mm[sel] * v[sel]) / np.sum(v[sel]))
+        vox = lm.labels_kji == lab
+        c = conf.get(int(lab), {})
+        regions[str(int(lab))] = {
+            "yield_per_mm": mean,
+            "sd_per_mm": c.get("sd_yield_per_mm"),
+            "voxel_mean_per_mm": float(vol[vox].mean()) if vox.any() else None,
+            "name": optics.names.get(int(lab)),
+        }
+    k, j, i = np.unravel_index(int(np.argmax(vol)), vol.shape)
+    peak_local = np.array([i, j, k], float) * lm.spacing_mm
+    cen = _half_max_centroid(vol, lm)
+    summary = {
+        "method": method, "lambda": lam, "data_model": data_model,
+        "target": target,
+        "regions": regions,
+        "peak_yield_per_mm": float(vol.max()),
+        "peak_ras_mm": lm.to_ras(peak_local)[0].tolist(),
+        "peak_label": int(lm.labels_kji[k, j, i]),
+        "target_centroid_ras_mm": None if cen is None else lm.to_ras(cen)[0].tolist(),
+        "target_label_centroid_ras_mm": None if target is None else
+        lm.to_ras(lm.region_centroid_local(target))[0].tolist(),
+        "warnings": notes,
+        "measurements": acquisition.n_measurements,
+        "sources": len(src), "detectors": len(det),
+        "moved_to_surface_mm": {"sources_max": float(d_src.max()),
+                                "detectors_max": float(d_det.max())},
+        "accuracy": dict(settings, grading=bool(mesh.meta.get("coarse_mm", h) > h + 1e-9)),
+        "region_of_interest": roi_info,
+        "mesh": {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "element_mm": h,
+                 "coarse_element_mm": mesh.meta.get("coarse_mm"),
+                 "volume_error_pct": mesh.meta.get("volume_error_pct", {}),
+                 "surface_fit_mm": mesh.meta.get("surface_fit_mm")},
+        "solver": {"iterations": res.iterations, "stop_reason": res.stop_reason,
+                   "clipped_fraction": res.clipped_fraction,
+                   "self_absorption_peaks": passes,
+                   "residual_ss": res.residual, "initial_residual_ss": res.residual_history[0],
+                   "diagnostics": dict(res.diagnostics)},
+        "timings": timings,
+        "seconds": seconds,
+    }
+    return {"summary": summary, "yield_kji": vol, "mesh": mesh, "yield_nodes": res.yield_per_mm,
+            "sources_ras_mm": lm.to_ras(src), "detectors_ras_mm": lm.to_ras(det),
+            "result": res, "model": tm}
+
+
+def write_reconstruction(out_dir, lm, result):
+    """``out_dir/yield.nrrd`` (the yield volume on the label map's grid: same
+    origin, spacing and direction; float32, 1/mm) and ``reconstruction.json``
+    (the summary), written as one transaction: a reader sees the old folder or
+    the new one, never half of it.  Returns the summary with ``output``."""
+    from pathlib import Path
+
+    from fluoguide import atomic
+    from fluoguide.jsonable import dumps
+    from fluoguide.labelmap_io import write_volume_nrrd
+
+    out = Path(out_dir)
+    summary = dict(result["summary"])
+    summary["output"] = str((out / "yield.nrrd").resolve())
+    try:
+        with atomic.staged_folder(out, last=("reconstruction.json",)) as stage:
+            write_volume_nrrd(stage / "yield.nrrd", result["yield_kji"], lm.spacing_mm,
+                              lm.origin_mm, lm.direction)
+            (stage / "reconstruction.json").write_text(dumps(summary), encoding="utf-8")
+    except OSError as exc:
+        raise atomic.output_error(exc, out) from None
+    return summary

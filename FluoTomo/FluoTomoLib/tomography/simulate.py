@@ -1,0 +1,354 @@
+"""Simulated acquisitions of a label map: the scan, the engines, the noise.
+
+``simulate_acquisition`` is what ``fluo tomo simulate`` and
+``FluoTomoLogic.simulateAcquisition`` call.  The physics sits behind one seam,
+an *engine*: a function
+
+    engine(labelmap, optics, sources_ras_mm, detectors_ras_mm, yield_by_label,
+           noise_pct, seed, settings, progress=None, cancel=None)
+        -> {"data": (S, D) measured boundary fluence per watt [1/mm^2],
+            "clean": (S, D) its noise-free value (or None),
+            "info": dict (engine, domain, timings; "_mesh"/"_yield_nodes" optional)}
+
+registered in :data:`ENGINES`: ``"fem"`` (below) and ``"mc"`` (Monte Carlo on
+the label map's voxels, :func:`simulate_mc`, with its own photon noise).  The scan,
+the checks of the input, the near-source exclusion and the file are the same
+for every engine.
+
+The FEM engine never shares a mesh with a reconstruction: it meshes the whole
+label map (graded: ``simulate_mm`` around the optodes and the target,
+``simulate_coarse_mm`` elsewhere), with the true properties of each label, the
+fluorophore's absorption added where it is, and the yield as each node's
+partial-volume share of the labels' yields.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+from fluoguide.progress import check_cancel, report
+
+from FluoTomoLib.tomography.acquisition_file import Acquisition
+
+#: default scan: sources on an n x n grid (pitch mm), detectors on a finer grid
+DEFAULT_SCAN = {"sources_per_side": 4, "source_pitch_mm": 3.0, "detectors_per_side": 7,
+                "detector_pitch_mm": 1.5, "exclude_mm": 3.0}
+
+
+def _tangent_basis(n):
+    n = np.asarray(n, float) / np.linalg.norm(n)
+    e = np.eye(3)[int(np.argmin(np.abs(n)))]
+    u = np.cross(n, e)
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
+                 detectors_per_side=None, detector_pitch_mm=None):
+    """Sources and detectors (RAS mm) on square grids in the tangent plane of the
+    surface point nearest the target's centre (the tissue's centre without a
+    target), dropped onto the surface along its normal."""
+    cfg = dict(DEFAULT_SCAN)
+    for k, v in (("sources_per_side", sources_per_side), ("source_pitch_mm", source_pitch_mm),
+                 ("detectors_per_side", detectors_per_side),
+                 ("detector_pitch_mm", detector_pitch_mm)):
+        if v is not None:
+            cfg[k] = v
+    for k in ("sources_per_side", "detectors_per_side"):
+        if int(cfg[k]) != cfg[k] or not 1 <= cfg[k] <= 32:
+            raise FluoInputError("must be an integer 1..32", field=k, value=cfg[k])
+    for k in ("source_pitch_mm", "detector_pitch_mm"):
+        if not (np.isfinite(cfg[k]) and cfg[k] > 0):
+            raise FluoInputError("must be a positive number", field=k, value=cfg[k])
+    surf = lm.surface()
+    if target is not None:
+        c = lm.region_centroid_local(target)
+    else:
+        k, j, i = np.nonzero(lm.labels_kji > 0)
+        c = np.array([i.mean(), j.mean(), k.mean()]) * lm.spacing_mm
+    p, nrm, _ = surf.closest(c)
+    p, nrm = p[0], nrm[0]
+    u, v = _tangent_basis(nrm)
+
+    def grid(n, pitch):
+        t = (np.arange(int(n)) - 0.5 * (int(n) - 1)) * pitch
+        a, b = np.meshgrid(t, t, indexing="ij")
+        pts = p + a.ravel()[:, None] * u + b.ravel()[:, None] * v
+        hit, face = surf.cast(pts + 30.0 * nrm, np.tile(-nrm, (len(pts), 1)))
+        if np.any(face < 0):
+            raise FluoInputError("the scan runs off the tissue surface: use fewer or closer "
+                                 "positions", field="scan", value=float(pitch))
+        return hit
+
+    src = grid(cfg["sources_per_side"], cfg["source_pitch_mm"])
+    det = grid(cfg["detectors_per_side"], cfg["detector_pitch_mm"])
+    return lm.to_ras(src), lm.to_ras(det), cfg
+
+
+def add_noise(y, noise_pct, rng):
+    """Relative Gaussian noise of ``noise_pct`` % per measurement (shot noise of
+    well-exposed ROIs is proportional to sqrt(signal); a fixed percentage is
+    the stated, conservative model here)."""
+    if not (np.isfinite(noise_pct) and 0 <= noise_pct < 100):
+        raise FluoInputError("noise must be within 0..100 %", field="noise_pct", value=noise_pct)
+    return y * (1.0 + 0.01 * noise_pct * rng.standard_normal(np.shape(y)))
+
+
+def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, burial_mm=None,
+                    cancel=None):
+    """Graded structured mesh of the whole tissue: ``size_mm`` cells in the box
+    of the points and the target grown by ``margin_mm``, ``coarse_mm`` elsewhere;
+    its tissue-air nodes moved onto the smooth surface (model.fit_to_surface)."""
+    from FluoTomoLib.meshing.voxel import MeshFidelityWarning, mesh_labelmap_structured
+
+    t_lo, t_hi = lm.tissue_bounds_local()
+    lo, hi = points_local.min(axis=0), points_local.max(axis=0)
+    roi = np.array([t_lo[0], t_hi[0], t_lo[1], t_hi[1], t_lo[2], t_hi[2]])
+    if target is not None:          # where the target is compact (not a tube's length)
+        b_lo, b_hi = lm.region_bounds_local(target)
+        thin = (b_hi - b_lo) < 0.5 * (t_hi - t_lo)
+        lo = np.where(thin, np.minimum(lo, b_lo), lo)
+        hi = np.where(thin, np.maximum(hi, b_hi), hi)
+    lo, hi = np.maximum(lo - margin_mm, t_lo), np.minimum(hi + margin_mm, t_hi)
+    refine = [[(lo[a], hi[a], size_mm)] if coarse_mm > size_mm else [] for a in range(3)]
+    if burial_mm is not None:
+        from FluoTomoLib.tomography.model import surface_band
+
+        band = surface_band(points_local, lm.surface().closest(points_local)[1], burial_mm,
+                            size_mm)
+        if band is not None and band[1][2] < size_mm:
+            refine[band[0]].append(band[1])
+    from FluoTomoLib.tomography.model import cap_grading
+
+    coarse_mm = cap_grading(coarse_mm, refine, size_mm)
+    refine = [None if not r else (r[0] if len(r) == 1 else r) for r in refine]
+    if all(r is None for r in refine):
+        refine = None
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MeshFidelityWarning)
+        mesh = mesh_labelmap_structured(lm.labels_kji, lm.spacing_mm, np.zeros(3),
+                                        max(coarse_mm, size_mm), roi=roi, refine=refine,
+                                        name="simulation", cancel=cancel)
+    from FluoTomoLib.tomography.model import fit_to_surface
+
+    return fit_to_surface(mesh, lm.surface(), roi)
+
+
+def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pct, seed,
+                 settings, progress=None, cancel=None):
+    """The FEM engine: emission boundary fluence per watt on a mesh of the whole
+    label map, with relative Gaussian noise (:func:`add_noise`)."""
+    from FluoTomoLib.fem.forward import FluorescenceModel
+    from FluoTomoLib.tomography.model import membership
+
+    t0 = time.perf_counter()
+    src = lm.to_local(sources_ras)
+    det = lm.to_local(detectors_ras)
+    target = settings.get("target")
+    decay = 1.0 / max(optics.min_mueff(lm.labels), 1e-6)
+    margin = max(4.0, 0.5 * decay)
+    report(progress, 0.05, "simulation mesh (whole label map)")
+    from FluoTomoLib.tomography.accuracy import cap_at_burial
+
+    h, mfp = cap_at_burial(settings["simulate_mm"], optics, lm.labels)
+    mesh = simulation_mesh(lm, np.vstack([src, det]), target, h,
+                           max(settings["simulate_coarse_mm"], h), margin, mfp, cancel)
+    check_cancel(cancel)
+    labs, F = membership(mesh, lm.labels_kji, lm.spacing_mm)
+    y_nodes = F @ np.array([float(yield_by_label.get(int(v), 0.0)) for v in labs])
+    px, pm = optics.nodal(labs, F, yield_nodes=y_nodes)
+    report(progress, 0.3, f"forward model ({mesh.n_nodes} nodes)")
+    fm = FluorescenceModel(mesh, px, pm, src, det, source_normals=lm.surface().closest(src)[1])
+    data = fm.emission_data(y_nodes)
+    check_cancel(cancel)
+    info = {"engine": "fem", "mesh_nodes": mesh.n_nodes, "mesh_elements": mesh.n_elements,
+            "element_mm": h, "coarse_element_mm":
+            settings["simulate_coarse_mm"], "fine_band_margin_mm": margin,
+            "domain": "whole label map", "solver": fm.solver_name,
+            "mesh_warnings": list(mesh.meta.get("warnings", [])),
+            "seconds": time.perf_counter() - t0, "_mesh": mesh, "_yield_nodes": y_nodes}
+    noisy = add_noise(data, noise_pct, np.random.default_rng(seed))
+    return {"data": noisy, "clean": data, "info": info}
+
+
+#: photons per Monte Carlo run (per source and per detector, each repeated twice)
+MC_PHOTONS = 100_000
+
+
+def simulate_mc(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pct, seed,
+                settings, progress=None, cancel=None):
+    """The Monte Carlo engine (FluoTomoLib.montecarlo, MCX-CL / MCX): photon
+    transport on the label map's own voxels, emission by reciprocity, turned
+    into the boundary fluence per watt the diffusion model predicts (the
+    Monte Carlo's exitance J times 2A, A the Robin constant of optics.json's
+    ``boundary``), then the relative Gaussian noise of ``noise_pct`` on top of
+    its photon noise.  Needs cubic voxels (MCX has one voxel size) and labels
+    up to 255; ``settings["photons"]`` photons per run, two runs each (their
+    spread is the photon noise, reported)."""
+    from FluoTomoLib.montecarlo.acquisition import simulate_acquisition as mc_acquisition
+    from FluoTomoLib.optics import robin_A
+
+    t0 = time.perf_counter()
+    labels = [int(v) for v in lm.labels]
+    if max(labels) > 255:
+        raise FluoInputError("the Monte Carlo engine takes labels up to 255", field="labels",
+                             value=max(labels))
+    # MCX's media are 1..L: the label map's labels in order
+    remap = np.zeros(max(labels) + 1, np.uint8)
+    remap[labels] = np.arange(1, len(labels) + 1)
+    mx, sx, mm, sm = optics.per_label_arrays(labels)
+    ys = np.array([float(yield_by_label.get(v, 0.0)) for v in labels])
+    ox = {k + 1: (mx[k] + optics.mua_per_yield[0] * ys[k], sx[k], optics.n)
+          for k in range(len(labels))}
+    om = {k + 1: (mm[k] + optics.mua_per_yield[1] * ys[k], sm[k], optics.n)
+          for k in range(len(labels))}
+    photons = int(settings.get("photons") or MC_PHOTONS)
+    # MCX launches each beam at the first tissue voxel along the normal: on a
+    # staircase voxel surface that can be a step above the smooth surface the
+    # FEM and the reconstruction use (1 mm voxels, curved top: a source 0.9 mm
+    # up a step got 0.43x the FEM's data)
+    from FluoTomoLib.montecarlo.acquisition import LabelMapGeometry
+
+    geo = LabelMapGeometry(remap[lm.labels_kji], lm.ijk_to_ras)
+    surf = lm.surface()
+    step = []
+    for what, pts in (("source", sources_ras), ("detector", detectors_ras)):
+        for i, p in enumerate(np.atleast_2d(pts)):
+            g, _ = geo.launch(p, f"{what}s[{i}]")
+            d = float(surf.closest(lm.to_local(geo.to_ras(g[None])))[2][0])
+            if d > 0.25 * geo.h:
+                step.append((what, i, d))
+    mc = mc_acquisition(remap[lm.labels_kji], lm.ijk_to_ras, ox, om, sources_ras, detectors_ras,
+                        {k + 1: ys[k] for k in range(len(labels))}, photons=photons,
+                        seed=int(seed) + 1, runs=2, engine="auto", progress=progress,
+                        cancel=cancel)
+    A = float(robin_A(optics.n, optics.boundary))
+    clean = 2.0 * A * mc["emission"]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel_se = np.where(mc["emission"] > 0, mc["emission_se"] / mc["emission"], np.inf)
+    notes = list(mc["warnings"])
+    if step:
+        what, i, d = max(step, key=lambda t: t[2])
+        notes.append(f"{len(step)} optode(s) enter the Monte Carlo's voxel surface more than a "
+                     f"quarter voxel from the smooth tissue surface (worst: {what} {i}, "
+                     f"{d:.2f} mm, a staircase step): their data can be off by a factor of "
+                     "2; finer voxels make the steps smaller")
+    if np.any(mc["emission"] <= 0):
+        notes.append(f"{int(np.sum(mc['emission'] <= 0))} pair(s) received no emitted photon: "
+                     "more photons are needed for them")
+    info = {"engine": "mc", "mc_engine": mc["engine"], "device": mc["device"],
+            "photons_per_run": photons, "runs": mc["runs"], "seeds": mc["seeds"],
+            "robin_A": A, "domain": "the label map's voxels",
+            "photon_noise_pct": {"median": float(100 * np.median(rel_se)),
+                                 "max": float(100 * np.max(rel_se))},
+            "mesh_warnings": notes, "seconds": time.perf_counter() - t0}
+    noisy = add_noise(clean, noise_pct, np.random.default_rng(seed))
+    return {"data": noisy, "clean": clean, "info": info}
+
+
+ENGINES = {"fem": simulate_fem, "mc": simulate_mc}
+
+
+def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors_ras=None,
+                         scan=None, noise_pct=1.0, seed=0, engine="fem", exclude_mm=None,
+                         accuracy="balanced", simulate_mm=None, target=None, photons=None,
+                         progress=None, cancel=None):
+    """A simulated acquisition of a label map.
+
+    Parameters
+    ----------
+    lm : LabelMap
+    optics : Optics (every label of the map must be listed)
+    yield_by_label : {label: yield [1/mm]} (labels not listed: 0)
+    sources_ras, detectors_ras : (S, 3), (D, 3) RAS mm, or None for the
+        default scan (``scan``: DEFAULT_SCAN keys) over the target
+    noise_pct : relative Gaussian noise per measurement [%]
+    seed : random seed of the noise
+    engine : "fem" or "mc" (see ENGINES)
+    exclude_mm : pairs closer than this to their source are marked unused
+        (default DEFAULT_SCAN's 3 mm)
+    accuracy, simulate_mm : the simulation mesh (accuracy.LEVELS)
+    photons : photons per Monte Carlo run (engine "mc"; default MC_PHOTONS)
+
+    Returns
+    -------
+    (Acquisition, info dict: engine, mesh, timings, truth)
+    """
+    import warnings
+
+    from FluoTomoLib.tomography.accuracy import accuracy_settings
+    from FluoTomoLib.tomography.labelmap import place_on_surface
+
+    t0 = time.perf_counter()
+    if engine not in ENGINES:
+        raise FluoInputError(f"engine must be one of {', '.join(ENGINES)}", field="engine",
+                             value=engine)
+    optics.check_labels(lm.labels)
+    for lab, v in yield_by_label.items():
+        if int(lab) not in lm.labels:
+            raise FluoInputError("label is not in the label map", field="yield",
+                                 value=int(lab))
+        if not (np.isfinite(v) and v >= 0):
+            raise FluoInputError("yield must be a finite number >= 0 [1/mm]",
+                                 field=f"yield {int(lab)}", value=v)
+    if not any(v > 0 for v in yield_by_label.values()):
+        raise FluoInputError("no label fluoresces: give a yield > 0 to at least one",
+                             field="yield")
+    if target is None:
+        target = lm.default_target()
+    settings = accuracy_settings(accuracy, simulate_mm=simulate_mm)
+    settings["target"] = target
+    if photons is not None:
+        from FluoTomoLib.montecarlo.engine import check_photons
+
+        settings["photons"] = check_photons(photons)
+    scan_cfg = None
+    if sources_ras is None or detectors_ras is None:
+        sources_ras, detectors_ras, scan_cfg = default_scan(lm, target, **(scan or {}))
+    sources_ras = np.atleast_2d(np.asarray(sources_ras, float))
+    detectors_ras = np.atleast_2d(np.asarray(detectors_ras, float))
+    src_l, d_src = place_on_surface(lm, sources_ras, "sources")
+    det_l, d_det = place_on_surface(lm, detectors_ras, "detectors")
+    sources_ras, detectors_ras = lm.to_ras(src_l), lm.to_ras(det_l)
+    if not (np.isfinite(noise_pct) and 0 <= noise_pct < 100):
+        raise FluoInputError("noise must be within 0..100 %", field="noise_pct", value=noise_pct)
+    if not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2 ** 32:
+        raise FluoInputError("seed must be an integer within 0..2**32-1", field="seed",
+                             value=seed)
+    ex = float(DEFAULT_SCAN["exclude_mm"] if exclude_mm is None else exclude_mm)
+    if not (np.isfinite(ex) and 0 <= ex <= 100):
+        raise FluoInputError("must be a distance within 0..100 mm", field="exclude_mm", value=ex)
+    dist = np.linalg.norm(sources_ras[:, None] - detectors_ras[None], axis=2)
+    mask = dist > ex
+    if not mask.any():
+        raise FluoInputError("every pair is closer than this to its source: no measurement "
+                             "left", field="exclude_mm", value=ex)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = ENGINES[engine](lm, optics, sources_ras, detectors_ras, yield_by_label,
+                              float(noise_pct), int(seed), settings, progress, cancel)
+    info = out["info"]
+    mesh, y_nodes = info.pop("_mesh", None), info.pop("_yield_nodes", None)
+    info["warnings"] = sorted({str(w.message) for w in caught}) + info.pop("mesh_warnings", [])
+    noisy = np.asarray(out["data"], float)
+    clean = noisy if out.get("clean") is None else np.asarray(out["clean"], float)
+    if noisy.shape != (len(sources_ras), len(detectors_ras)) or not np.all(np.isfinite(noisy)):
+        raise FluoInputError("the engine returned data of the wrong shape or not finite",
+                             field="engine", value=engine)
+    info.update({"noise_pct": float(noise_pct), "seed": int(seed), "exclude_mm": ex,
+                 "yield_by_label": {str(int(k)): float(v) for k, v in yield_by_label.items()},
+                 "accuracy": settings["level"], "target": target, "scan": scan_cfg,
+                 "moved_to_surface_mm": {"sources_max": float(d_src.max()),
+                                         "detectors_max": float(d_det.max())},
+                 "seconds": time.perf_counter() - t0})
+    acq = Acquisition(sources_ras, detectors_ras, np.where(mask, noisy, 0.0), mask, "1/mm^2",
+                      {"simulation": info})
+    acq.clean = np.where(mask, clean, 0.0)
+    acq.simulation_mesh = mesh
+    acq.simulation_yield_nodes = y_nodes
+    return acq, info

@@ -1,0 +1,256 @@
+"""``fluo tomo simulate`` and ``fluo tomo reconstruct``: fluorescence tomography
+of any label map from the shell (docs/tomography-own-scene.md)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from fluoapp.cli import add_json_flag, cli_group
+from fluoguide.errors import FluoInputError
+from fluoguide.progress import TqdmProgress
+
+def _accuracy_help(pct="%%", lead="accuracy level (default %(default)s): "):
+    """The levels' sizes and their measured error and time (accuracy.MEASURED);
+    ``pct``: "%%" in an option's help (%-formatted), "%" in a description."""
+    from FluoTomoLib.tomography.accuracy import LEVELS, MEASURED
+
+    parts = []
+    for name, lv in LEVELS.items():
+        m = MEASURED.get(name)
+        text = (f"{name} = {lv['recon_mm']:g} mm reconstruction elements, region-of-interest "
+                f"tolerance {lv['truncation_pct']:g} {pct}")
+        if m:
+            text += (f" (measured: HP {m['HP_pct']:+.1f} {pct}, SP {m['SP_pct']:+.1f} {pct}, "
+                     f"HP {m['seconds']:.0f} s on a shared 2-core machine)")
+        parts.append(text)
+    return (lead + "; ".join(parts) + "; each refined to "
+            "half across the target, capped at the sources' burial depth. Measured on the "
+            "issue's ellipsoid scene, docs/tomography-own-scene.md")
+
+
+ACCURACY_HELP = _accuracy_help()
+
+
+def _simulate_accuracy_help():
+    from FluoTomoLib.tomography.accuracy import LEVELS
+
+    sizes = ", ".join(f"{k} {v['simulate_mm']:g} / {v['simulate_coarse_mm']:g}"
+                      for k, v in LEVELS.items())
+    return ("simulation mesh (default %(default)s), element size near the optodes and target "
+            f"/ elsewhere [mm]: {sizes}")
+
+
+def _parse_yields(text):
+    """``LABEL:VALUE[,LABEL:VALUE...]`` -> {label: yield per mm}."""
+    out = {}
+    for part in str(text).split(","):
+        if not part.strip():
+            continue
+        lab, sep, val = part.partition(":")
+        try:
+            label, value = int(lab), float(val)
+        except ValueError:
+            raise FluoInputError("expected LABEL:VALUE[,LABEL:VALUE...] (yield in 1/mm)",
+                                 field="--yield", value=text) from None
+        if not sep or label <= 0:
+            raise FluoInputError("expected LABEL:VALUE with a label >= 1", field="--yield",
+                                 value=part)
+        if not (np.isfinite(value) and value >= 0):
+            raise FluoInputError("yield must be a finite number >= 0 [1/mm]",
+                                 field=f"--yield {label}", value=val)
+        if label in out:
+            raise FluoInputError("label given twice", field="--yield", value=label)
+        out[label] = value
+    if not out:
+        raise FluoInputError("expected LABEL:VALUE[,LABEL:VALUE...]", field="--yield", value=text)
+    return out
+
+
+def _points(path, field):
+    from FluoTomoLib.tomography.acquisition_file import _points as check, _read_csv_rows
+
+    rows, _ = _read_csv_rows(path, field)
+    return check(rows, path, field)
+
+
+def _load(args):
+    from FluoTomoLib.tomography import LabelMap, read_optics
+
+    lm = LabelMap.from_file(args.labels)
+    optics = read_optics(args.optics)
+    optics.check_labels(lm.labels)
+    return lm, optics
+
+
+def _simulate(args):
+    from FluoTomoLib.tomography import simulate_acquisition, write_acquisition
+
+    from fluoguide import atomic
+
+    t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)      # before any work
+    yields = _parse_yields(args.yield_spec)
+    if args.photons is not None and args.engine != "mc":
+        raise FluoInputError("photons are for the Monte Carlo engine (--engine mc)",
+                             field="--photons", value=args.photons)
+    if (args.sources is None) != (args.detectors is None):
+        raise FluoInputError("give both --sources and --detectors, or neither (default scan)",
+                             field="--sources" if args.sources is None else "--detectors")
+    lm, optics = _load(args)
+    src = _points(args.sources, "--sources") if args.sources else None
+    det = _points(args.detectors, "--detectors") if args.detectors else None
+    for label in yields:        # checked before any progress is drawn
+        if label not in lm.labels:
+            raise FluoInputError("label is not in the label map", file=args.labels,
+                                 field="--yield", value=label)
+    if src is not None:
+        from FluoTomoLib.tomography import place_on_surface
+
+        place_on_surface(lm, src, "sources", file=args.sources)
+        place_on_surface(lm, det, "detectors", file=args.detectors)
+    # a bar only on a terminal: a pipe gets the JSON or one error line
+    with TqdmProgress("simulate") as bar:
+        acq, info = simulate_acquisition(
+            lm, optics, yields, src, det, noise_pct=args.noise_pct, seed=args.seed,
+            engine=args.engine, exclude_mm=args.exclude_mm, accuracy=args.accuracy,
+            simulate_mm=args.element_mm, target=args.target, photons=args.photons,
+            progress=bar)
+    write_acquisition(args.out, acq, simulation=info)
+    return {"output": str(args.out), "sources": len(acq.sources_ras_mm),
+            "detectors": len(acq.detectors_ras_mm), "measurements": acq.n_measurements,
+            "engine": info["engine"], "simulation_mesh_nodes": info.get("mesh_nodes"),
+            "photon_noise_pct": info.get("photon_noise_pct"),
+            "noise_pct": info["noise_pct"], "seed": info["seed"], "target": info["target"],
+            "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
+
+
+def _reconstruct(args):
+    from FluoTomoLib.tomography import read_acquisition, reconstruct_labelmap
+    from FluoTomoLib.tomography.reconstruct import write_reconstruction
+
+    from fluoguide import atomic
+
+    t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)      # before any work
+    lm, optics = _load(args)
+    acq = read_acquisition(args.acquisition, labelmap=lm, optics=optics)
+    roi = None
+    if args.roi:
+        try:
+            roi = [float(v) for v in args.roi.split(",")]
+        except ValueError:
+            raise FluoInputError("expected x0,x1,y0,y1,z0,z1 (RAS mm)", field="--roi",
+                                 value=args.roi) from None
+    from FluoTomoLib.tomography import place_on_surface
+
+    # the usual bad input, refused before any progress is drawn
+    if args.target is not None and args.target not in lm.labels:
+        raise FluoInputError("target label is not in the label map", file=args.labels,
+                             field="--target", value=args.target)
+    if args.data_model == "log":
+        acq.check_for_log()
+    place_on_surface(lm, acq.sources_ras_mm, "sources", file=acq.source)
+    place_on_surface(lm, acq.detectors_ras_mm, "detectors", file=acq.source)
+    with TqdmProgress(f"reconstruct {args.method}") as bar:
+        result = reconstruct_labelmap(
+            lm, optics, acq, method=args.method, lam=args.lam, target=args.target,
+            accuracy=args.accuracy, size_mm=args.element_mm, roi_ras=roi,
+            truncation_pct=args.truncation_pct, data_model=args.data_model,
+            self_absorption=("HP", "SP") if args.self_absorption else (),
+            grading=args.grading, progress=bar)
+    summary = write_reconstruction(args.out, lm, result)
+    summary["seconds"] = time.perf_counter() - t0
+    return summary
+
+
+def register(subparsers):
+    tomo = cli_group(subparsers, "tomo", "fluorescence tomography of any label map: simulate "
+                     "an acquisition, reconstruct the yield")
+    p = tomo.add_parser(
+        "simulate", help="simulate an acquisition of a label map (whole-map FEM mesh)",
+        description="Simulate what a tracked laser scan and camera would measure on a label "
+        "map: a mesh of the whole label map (finer than any reconstruction's), the optical "
+        "properties of optics.json per label (plus the fluorophore's absorption), the yields "
+        "of --yield, relative Gaussian noise. Writes an acquisition folder "
+        "(docs/tomography-own-scene.md).")
+    p.add_argument("--labels", required=True, help="label map: .nrrd, .nii(.gz), .seg.nrrd "
+                   "(segment n -> label n+1) or .mrml (its CBCTLabels); any direction, spacing "
+                   "and origin")
+    p.add_argument("--optics", required=True, help="optics.json: n, excitation and emission "
+                   "mua_per_mm / musp_per_mm per label, optional fluorophore")
+    p.add_argument("--yield", dest="yield_spec", required=True, metavar="LABEL:VALUE[,...]",
+                   help="fluorescence yield eta*mua_f [1/mm] per label, e.g. 7:0.0026 "
+                   "(labels not named: 0)")
+    p.add_argument("--noise-pct", type=float, default=1.0,
+                   help="relative Gaussian noise per measurement [%%] (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--sources", default=None, help="CSV of source points x,y,z (RAS mm) on the "
+                   "tissue surface (default: a 4 x 4 grid, 3 mm pitch, over the target)")
+    p.add_argument("--detectors", default=None, help="CSV of detector points x,y,z (RAS mm) "
+                   "(default: a 7 x 7 grid, 1.5 mm pitch, over the target)")
+    p.add_argument("--target", type=int, default=None, help="label the default scan is centred "
+                   "over and meshed finely around (default: the smallest region that is not "
+                   "the largest)")
+    p.add_argument("--exclude-mm", type=float, default=None, help="pairs closer than this to "
+                   "their source are marked unused (default 3)")
+    p.add_argument("--engine", choices=["fem", "mc"], default="fem",
+                   help="the light-transport engine (default fem: diffusion FEM on a mesh of "
+                   "the whole label map; mc: Monte Carlo photon transport on the label map's "
+                   "voxels with MCX-CL/MCX, the 'mc' extra; needs cubic voxels)")
+    p.add_argument("--photons", type=int, default=None,
+                   help="--engine mc: photons per run, each source and detector run twice "
+                   "(default 100000; the time grows in proportion, the photon noise, reported "
+                   "in the output, falls as 1/sqrt(photons))")
+    p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default="balanced",
+                   help=_simulate_accuracy_help())
+    p.add_argument("--element-mm", type=float, default=None, help="simulation element size "
+                   "near the optodes and target [mm] (default: from --accuracy)")
+    p.add_argument("--out", required=True, help="acquisition folder to write "
+                   "(acquisition.json, sources.csv, detectors.csv, data.csv)")
+    add_json_flag(p)
+    p.set_defaults(func=_simulate)
+
+    p = tomo.add_parser(
+        "reconstruct", help="reconstruct the fluorescence yield of a label map",
+        description="NP / SP / HP reconstruction of the yield on a label map from an "
+        "acquisition folder; the region of interest is chosen from the light's decay length "
+        "and its truncation error estimated; writes OUT/yield.nrrd on the label map's grid "
+        "(same origin, spacing and direction) and OUT/reconstruction.json. "
+        + _accuracy_help("%", "Accuracy levels: "))
+    p.add_argument("--labels", required=True, help="label map (.nrrd, .nii(.gz), .seg.nrrd, "
+                   ".mrml); its labels are the priors' regions")
+    p.add_argument("--optics", required=True, help="optics.json (every label of the map)")
+    p.add_argument("--acquisition", required=True, help="acquisition folder (acquisition.json: "
+                   "sources, detectors, data; or tracked camera frames)")
+    p.add_argument("--method", choices=["NP", "SP", "HP"], default="HP",
+                   help="no, soft or hard priors from the labels (default HP)")
+    p.add_argument("--lambda", dest="lam", type=float, default=None,
+                   help="regularisation lambda (default 10)")
+    p.add_argument("--target", type=int, default=None, help="label graded and refined across "
+                   "(default: the smallest region that is not the largest)")
+    p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default="balanced",
+                   help=ACCURACY_HELP)
+    p.add_argument("--element-mm", type=float, default=None,
+                   help="reconstruction element size [mm] (default: from --accuracy)")
+    p.add_argument("--truncation-pct", type=float, default=None, help="largest change of the "
+                   "data by the region-of-interest cut [%%] (default: from --accuracy, "
+                   "1 for balanced)")
+    p.add_argument("--roi", default=None, help="x0,x1,y0,y1,z0,z1 (RAS mm) instead of the "
+                   "automatic region of interest (default: chosen; write --roi=-10,... when "
+                   "the first value is negative)")
+    p.add_argument("--data-model", choices=["linear", "log"], default="linear",
+                   help="fit the data (linear, default) or their logarithm (log: every used "
+                   "measurement must be > 0)")
+    p.add_argument("--grading", action="store_true",
+                   help="optode-aware grading: cells twice as large away from the optodes and "
+                   "the target (about half the nodes, default off: it moved the data of the "
+                   "issue's scene by up to 11 %%)")
+    p.add_argument("--no-self-absorption", dest="self_absorption", action="store_false",
+                   help="do not feed the fluorophore's absorption back (default: fed back for "
+                   "HP and SP when optics.json names a fluorophore)")
+    p.add_argument("--out", required=True, help="output folder (yield.nrrd, "
+                   "reconstruction.json)")
+    add_json_flag(p)
+    p.set_defaults(func=_reconstruct)

@@ -1,0 +1,136 @@
+"""Label-map files: NRRD / NIfTI volumes, 3D Slicer segmentations (``.seg.nrrd``)
+and an MRML scene's ``CBCTLabels``, read into RAS geometry; NRRD written.
+
+A label map is ``(labels_kji, spacing_mm, origin_mm, direction)``: the array
+indexed [k, j, i] as Slicer's ``arrayFromVolume``, voxel size (I, J, K), the
+RAS position of voxel (0, 0, 0) and the IJK-to-RAS direction cosines (columns
+= I, J, K axes).  ITK files are LPS; their origin and directions are flipped
+in x and y on the way in and out.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+
+_LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
+
+
+def read_labelmap(path, node_name="CBCTLabels"):
+    """(labels_kji, spacing_mm, origin_mm, direction) of a label-map file.
+
+    ``path``: ``.nrrd`` / ``.nii`` / ``.nii.gz`` (integer voxels), ``.seg.nrrd``
+    (segment n -> label n + 1) or ``.mrml`` (the node ``node_name``).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FluoInputError("label map file not found", file=p)
+    if p.suffix == ".mrml":
+        from fluoguide import mrml_io
+
+        node = mrml_io.get_node(mrml_io.load_scene(p), node_name, "vtkMRMLLabelMapVolumeNode")
+        geo = mrml_io.volume_geometry(node)
+        return mrml_io.volume_array(node).copy(), geo["spacing"], geo["origin"], geo["direction"]
+    import SimpleITK as sitk
+
+    try:
+        img = sitk.ReadImage(str(p))
+    except RuntimeError as exc:
+        raise FluoInputError(f"cannot read label map ({str(exc).splitlines()[0][:120]})",
+                             file=p) from None
+    arr = sitk.GetArrayFromImage(img)
+    if "Segment0_ID" in img.GetMetaDataKeys():
+        arr = _segments_to_labels(img, arr, p)
+    if arr.ndim != 3 or not np.issubdtype(arr.dtype, np.integer):
+        raise FluoInputError("label map must be a 3D integer image", file=p,
+                             value=(arr.shape, str(arr.dtype)))
+    direction = _LPS_TO_RAS @ np.array(img.GetDirection()).reshape(3, 3)
+    origin = _LPS_TO_RAS @ np.array(img.GetOrigin())
+    spacing = np.array(img.GetSpacing(), float)
+    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise FluoInputError("voxel spacing must be positive", file=p, field="spacing",
+                             value=spacing.tolist())
+    if not (np.all(np.isfinite(origin)) and np.all(np.isfinite(direction))):
+        raise FluoInputError("origin and direction must be finite", file=p, field="origin")
+    return arr, spacing, origin, direction
+
+
+def read_volume_nrrd(path):
+    """(array_kji, spacing_mm, origin_mm, direction) of any 3D volume file that
+    ITK reads (NRRD, NIfTI), in RAS: e.g. a ``yield.nrrd`` written by
+    :func:`write_volume_nrrd`."""
+    import SimpleITK as sitk
+
+    p = Path(path)
+    if not p.is_file():
+        raise FluoInputError("volume file not found", file=p)
+    try:
+        img = sitk.ReadImage(str(p))
+    except RuntimeError as exc:
+        raise FluoInputError(f"cannot read volume ({str(exc).splitlines()[0][:120]})",
+                             file=p) from None
+    arr = sitk.GetArrayFromImage(img)
+    if arr.ndim != 3:
+        raise FluoInputError("volume must be 3D", file=p, value=arr.shape)
+    return (arr, np.array(img.GetSpacing(), float), _LPS_TO_RAS @ np.array(img.GetOrigin()),
+            _LPS_TO_RAS @ np.array(img.GetDirection()).reshape(3, 3))
+
+
+def _segments_to_labels(img, arr, path):
+    """Label map from a 3D Slicer segmentation (.seg.nrrd): segment n -> label n+1.
+
+    Slicer stores segments as label values in one or more layers (a 3D image,
+    or a 4D one read as a multi-component image: one component per layer);
+    ``Segment<n>_LabelValue`` and ``Segment<n>_Layer`` say where segment n
+    lives.  Where segments of different layers overlap, the later one wins.
+    """
+    keys = set(img.GetMetaDataKeys())
+    layers = arr if arr.ndim == 4 else arr[..., None]
+    if arr.ndim not in (3, 4) or not np.issubdtype(arr.dtype, np.integer):
+        raise FluoInputError("segmentation must be a 3D or 4D integer image", file=path,
+                             value=(arr.shape, str(arr.dtype)))
+    out = np.zeros(layers.shape[:3], dtype=np.int32)
+    n = 0
+    while f"Segment{n}_ID" in keys:
+        try:
+            value = int(img.GetMetaData(f"Segment{n}_LabelValue")) if \
+                f"Segment{n}_LabelValue" in keys else 1
+            layer = int(img.GetMetaData(f"Segment{n}_Layer")) if f"Segment{n}_Layer" in keys else 0
+        except ValueError:
+            raise FluoInputError("non-integer label value or layer", file=path,
+                                 field=f"Segment{n}") from None
+        if not 0 <= layer < layers.shape[3]:
+            raise FluoInputError(f"layer does not exist ({layers.shape[3]} layers)", file=path,
+                                 field=f"Segment{n}_Layer", value=layer)
+        out[layers[..., layer] == value] = n + 1
+        n += 1
+    return out
+
+
+def write_volume_nrrd(path, array_kji, spacing_mm, origin_mm, direction=None):
+    """Write a 3D volume as NRRD (gzip) with its RAS geometry, atomically (a
+    temporary name, then one rename)."""
+    import SimpleITK as sitk
+
+    p = Path(path)
+    arr = np.ascontiguousarray(array_kji)
+    if arr.ndim != 3:
+        raise FluoInputError("volume must be 3D (K, J, I)", file=p, value=arr.shape)
+    d = np.eye(3) if direction is None else np.asarray(direction, float)
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing([float(v) for v in spacing_mm])
+    img.SetOrigin((_LPS_TO_RAS @ np.asarray(origin_mm, float)).tolist())
+    img.SetDirection((_LPS_TO_RAS @ d).ravel().tolist())
+    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}.nrrd")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        sitk.WriteImage(img, str(tmp), True)
+        os.replace(tmp, p)
+    except (OSError, RuntimeError) as exc:
+        tmp.unlink(missing_ok=True)
+        raise FluoInputError(f"cannot write ({str(exc).splitlines()[0][:120]})", file=p) from None
+    return p
