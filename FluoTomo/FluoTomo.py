@@ -211,7 +211,9 @@ class FluoTomoWidget(FluoModuleWidget):
             node.SetParameter("OpticsFile", str(path))
             node.SetParameter("YieldByLabel", yields)
             node.EndModify(was)
-            lines.append(f"  its optical properties: {path}; true yields {yields or 'none'} /mm")
+            lines.append(f"  its optical properties: {path}; " + (
+                f"its true yields {yields} /mm" if yields else
+                "no region fluoresces (give a yield per label to simulate)"))
         self.say(lines)
 
     # -- mesh ------------------------------------------------------------------------
