@@ -145,9 +145,10 @@ def test_panel_bad_input_is_shown_and_changes_nothing(panel, tmp_path):
     assert logic.scene.GetNodesByClass("vtkMRMLModelNode").GetNumberOfItems() == 0
 
 
-def test_load_phantom_fills_in_the_panel(tmp_path, monkeypatch):
+def test_load_phantom_and_segmentation_to_label_map(tmp_path, monkeypatch):
     """"Load phantom" selects CBCTLabels and CBCT and writes the phantom's own
-    optical properties and yields as a user would give them."""
+    optical properties and yields as a user would give them; "Segmentation to
+    label map" turns a segmentation back into the same label map."""
     import tempfile
 
     from fluoguide.phantoms import make_phantom
@@ -174,3 +175,24 @@ def test_load_phantom_fills_in_the_panel(tmp_path, monkeypatch):
          if r["optics"]["yield_per_mm"] > 0})
     # the dye's absorption is the optics file's ICG slope, not in the background mua
     assert optics.fluorophore == "ICG"
+
+    # a segmentation of the same regions (as the Segment Editor would hold it) back to
+    # a label map on the CBCT's grid: the same voxels, the segments' names and volumes
+    import slicer
+
+    scene = logic.scene
+    original = mrml_io.get_node(scene, "CBCTLabels")
+    before = mrml_io.volume_array(original).copy()
+    seg = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Regions")
+    seg_logic = slicer.vtkSlicerSegmentationsModuleLogic()
+    seg_logic.SetMRMLScene(scene)
+    assert seg_logic.ImportLabelmapToSegmentationNode(original, seg)
+    scene.RemoveNode(original)
+    pnode.SetNodeReferenceID("Segmentation", seg.GetID())
+    widget.onSegmentationToLabels()
+    assert widget.errors == []
+    made = pnode.GetNodeReference("LabelMap")
+    assert made.GetName() == "CBCTLabels" and made.GetAttribute("FluoTomo.SourceSegmentation")
+    np.testing.assert_array_equal(mrml_io.volume_array(made), before)
+    for k, r in truth.items():
+        assert f"label {k} = Label_{k}: {r['labelmap_volume_mm3']:.1f} mm^3" in widget.results[-1]
