@@ -22,7 +22,8 @@ import math
 
 from fluoguide.errors import FluoInputError
 
-__all__ = ["parameter_node", "set_defaults", "get", "set_value", "PARAMETER_CLASS"]
+__all__ = ["parameter_node", "set_defaults", "get", "set_value", "parse_yields",
+           "PARAMETER_CLASS"]
 
 PARAMETER_CLASS = "vtkMRMLScriptedModuleNode"
 
@@ -106,3 +107,34 @@ def get(node, key, default):
             raise FluoInputError("parameter must be finite", field=field, value=text)
         return value
     return text
+
+
+def parse_yields(text, field="yield"):
+    """``LABEL:VALUE[,LABEL:VALUE...]`` (a yield per label, as a panel's text
+    field or ``fluo tomo simulate --yield`` takes it) -> {label: yield [1/mm]}.
+
+    Labels are integers >= 1, each given once; values finite and >= 0.
+    Anything else raises FluoInputError naming ``field`` and the bad part.
+    """
+    out = {}
+    for part in str(text).split(","):
+        if not part.strip():
+            continue
+        lab, sep, val = part.partition(":")
+        try:
+            label, value = int(lab), float(val)
+        except ValueError:
+            raise FluoInputError("expected LABEL:VALUE[,LABEL:VALUE...] (yield in 1/mm)",
+                                 field=field, value=text) from None
+        if not sep or label <= 0:
+            raise FluoInputError("expected LABEL:VALUE with a label >= 1", field=field,
+                                 value=part)
+        if not (math.isfinite(value) and value >= 0):
+            raise FluoInputError("yield must be a finite number >= 0 [1/mm]",
+                                 field=f"{field} {label}", value=val)
+        if label in out:
+            raise FluoInputError("label given twice", field=field, value=label)
+        out[label] = value
+    if not out:
+        raise FluoInputError("expected LABEL:VALUE[,LABEL:VALUE...]", field=field, value=text)
+    return out

@@ -15,6 +15,10 @@ desktop widget built from a Qt Designer file.
 
 Outside the Slicer application (``slicer_compat``) there is no Qt: ``setup``
 returns before touching a widget, and everything else here is plain Python.
+:meth:`FluoModuleWidget.setupHeadless` gives such a widget its logic and
+parameter node without any widget, so its handlers run on the parameter node
+(tests, scripts): long work runs without a dialog and errors are kept in
+``errors`` (and logged) instead of shown.
 Testing/Python/test_slicer_ui.py checks each ``.ui`` against the names the
 module code uses.
 """
@@ -83,6 +87,7 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         self._parameterObserver = None
         self._sceneObservers = []
         self._updatingGUI = False
+        self.errors = []  # headless: the messages a dialog would have shown
 
     # -- the pieces a module supplies ------------------------------------------------
     def createLogic(self, scene):
@@ -127,6 +132,15 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         self.initializeParameterNode()
         self.layout.addStretch(1)
 
+    def setupHeadless(self, scene):
+        """No Qt (``setup`` built nothing): the logic on ``scene`` and its parameter
+        node, so the handlers run on the parameter node alone. Returns the logic."""
+        if self.ui is not None:
+            raise RuntimeError("setupHeadless is for a widget without Qt")
+        self.logic = self.createLogic(scene)
+        self.setParameterNode(self.logic.getParameterNode())
+        return self.logic
+
     def cleanup(self):
         import slicer
 
@@ -164,7 +178,7 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
 
     def updateGUIFromParameterNode(self, caller=None, event=None):
         node = self._parameterNode
-        if node is None or self._updatingGUI:
+        if node is None or self._updatingGUI or self.ui is None:
             return
         self._updatingGUI = True
         try:
@@ -226,13 +240,22 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         button sets the cancel token, which the Lib checks between steps.
 
         Returns the result, or None when the work failed (the error is shown)
-        or was cancelled (said in the status bar).
+        or was cancelled (said in the status bar). Headless: no dialog, no
+        progress, the error kept in ``errors``.
         """
-        import qt
-        import slicer
-
         from fluoguide.errors import FluoCancelled
         from fluoguide.progress import CancelToken
+
+        if self.ui is None:
+            try:
+                return work(None, CancelToken())
+            except FluoCancelled:
+                return None
+            except Exception as exc:
+                self.showError(title, exc)
+                return None
+        import qt
+        import slicer
 
         dialog = slicer.util.createProgressDialog(parent=self.parent, value=0, maximum=100,
                                                   labelText=title, windowTitle=title)
@@ -259,9 +282,8 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
 
     def showError(self, title, exc):
         """Bad input and device errors as their one-line message; anything else with
-        its type, and its traceback in the application log."""
-        import slicer
-
+        its type, and its traceback in the application log. Headless: kept in
+        ``errors`` and logged."""
         from fluoguide.errors import FluoError
 
         if isinstance(exc, FluoError):
@@ -269,13 +291,21 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         else:
             log.exception("%s failed", title)
             text = f"{type(exc).__name__}: {exc}"
+        if self.ui is None:
+            self.errors.append(f"{title} failed: {text}")
+            log.warning("%s failed: %s", title, text)
+            return
+        import slicer
+
         slicer.util.errorDisplay(f"{title} failed:\n\n{text}", windowTitle=self.moduleName)
 
     def run(self, title, fn, *args, **kwargs):
         """Call ``fn`` (short work, no progress); errors are shown. Returns its result or None."""
-        import slicer
-
         try:
+            if self.ui is None:
+                return fn(*args, **kwargs)
+            import slicer
+
             with slicer.util.WaitCursor():
                 return fn(*args, **kwargs)
         except Exception as exc:

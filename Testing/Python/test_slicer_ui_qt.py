@@ -5,7 +5,7 @@ of a Qt class is created as that class, and every property set on it is one Qt
 knows and can read (a bad enum or a value of the wrong type is a loader
 warning, and any warning fails the test; a misspelt property name becomes a
 silent dynamic property, which the test looks for); spin-box ranges and
-defaults and combo-box items are what the module code expects.
+defaults (integer and floating) and combo-box items are what the module code expects.
 
 What it cannot: the CTK and Slicer classes (ctkCollapsibleButton,
 ctkPathLineEdit, qMRMLNodeComboBox, qMRMLWidget) are unknown to plain Qt. The
@@ -123,11 +123,12 @@ def test_qt_widgets_have_their_class_range_and_items(name):
     for wname, role, kind in getattr(module, name + "Widget").BINDINGS:
         w = widgets[wname]
         default = logic.PARAMETERS.get(role)
-        if kind == "int":
+        if kind in ("int", "float") and "minimum" in w:  # a CTK slider is a plain QWidget here
             assert w["minimum"] <= default <= w["maximum"], (wname, default, w)
         if kind == "choice":
             assert default in w["items"], (wname, default, w["items"])
     # the form's own spin-box defaults are the logic's defaults (no surprise on first open)
     for wname, role, kind in getattr(module, name + "Widget").BINDINGS:
-        if kind == "int" and any(p.get("name") == "value" for p in xml[wname].findall("property")):
+        if kind in ("int", "float") and any(p.get("name") == "value"
+                                            for p in xml[wname].findall("property")):
             assert widgets[wname]["value"] == logic.PARAMETERS[role], wname

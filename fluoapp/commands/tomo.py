@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
 from fluoapp.cli import add_json_flag, cli_group
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
@@ -44,28 +42,9 @@ def _simulate_accuracy_help():
 
 def _parse_yields(text):
     """``LABEL:VALUE[,LABEL:VALUE...]`` -> {label: yield per mm}."""
-    out = {}
-    for part in str(text).split(","):
-        if not part.strip():
-            continue
-        lab, sep, val = part.partition(":")
-        try:
-            label, value = int(lab), float(val)
-        except ValueError:
-            raise FluoInputError("expected LABEL:VALUE[,LABEL:VALUE...] (yield in 1/mm)",
-                                 field="--yield", value=text) from None
-        if not sep or label <= 0:
-            raise FluoInputError("expected LABEL:VALUE with a label >= 1", field="--yield",
-                                 value=part)
-        if not (np.isfinite(value) and value >= 0):
-            raise FluoInputError("yield must be a finite number >= 0 [1/mm]",
-                                 field=f"--yield {label}", value=val)
-        if label in out:
-            raise FluoInputError("label given twice", field="--yield", value=label)
-        out[label] = value
-    if not out:
-        raise FluoInputError("expected LABEL:VALUE[,LABEL:VALUE...]", field="--yield", value=text)
-    return out
+    from fluoguide.parameters import parse_yields
+
+    return parse_yields(text, field="--yield")
 
 
 def _points(path, field):

@@ -9,26 +9,15 @@ from __future__ import annotations
 import numpy as np
 
 from fluoguide import mrml_io
+# the yield colour map and volume style are the foundation's (the desktop panel uses them too)
+from fluoguide.display import YIELD_COLORMAP, style_yield_volume, yield_color_node_id
 
 __all__ = ["YIELD_COLORMAP", "colormap_css_gradient", "style_yield_volume", "glyph_points_model",
            "isosurface_model"]
 
-# Slicer's "Iron" table (black - purple - red - yellow - white): monotonic in
-# lightness, so a brighter colour always means more yield, and it is in
-# slicer-core's built-in colours (the file-based Inferno/Viridis are not).
-YIELD_COLORMAP = "vtkMRMLColorTableNodeIron"
-
-
-def _color_node_id(scene, preferred=YIELD_COLORMAP):
-    for cid in (preferred, "vtkMRMLColorTableNodeRainbow"):
-        if scene.GetNodeByID(cid) is not None:
-            return cid
-    return None
-
-
 def colormap_css_gradient(scene, n_stops=9):
     """CSS linear-gradient sampled from the yield colour table (the colour bar)."""
-    cid = _color_node_id(scene)
+    cid = yield_color_node_id(scene)
     if cid is None:
         return "linear-gradient(to right, black, white)"
     lut = scene.GetNodeByID(cid).GetLookupTable()
@@ -38,29 +27,6 @@ def colormap_css_gradient(scene, n_stops=9):
         r, g, b, _ = lut.GetTableValue(int(round(k * (n - 1) / (n_stops - 1))))
         stops.append(f"rgb({int(255 * r)},{int(255 * g)},{int(255 * b)})")
     return "linear-gradient(to right, " + ", ".join(stops) + ")"
-
-
-def style_yield_volume(scene, node, threshold_fraction=0.2):
-    """Colour map, window over [0, max] and a lower threshold at a fraction of the max.
-
-    Returns ``(vmin, vmax, threshold)`` in the volume's units [1/mm].
-    """
-    arr = mrml_io.volume_array(node)
-    vmax = float(np.nanmax(arr)) if arr.size else 0.0
-    vmax = vmax if vmax > 0 else 1.0
-    if node.GetDisplayNode() is None:
-        node.CreateDefaultDisplayNodes()
-    disp = node.GetDisplayNode()
-    cid = _color_node_id(scene)
-    if cid:
-        disp.SetAndObserveColorNodeID(cid)
-    disp.SetAutoWindowLevel(0)
-    disp.SetWindowLevelMinMax(0.0, vmax)
-    thr = float(threshold_fraction) * vmax
-    disp.SetAutoThreshold(0)
-    disp.SetApplyThreshold(1)
-    disp.SetThreshold(thr, vmax * 1.0001)
-    return 0.0, vmax, thr
 
 
 def glyph_points_model(scene, name, points_mm, radius_mm=0.6, color=(1.0, 0.2, 0.2)):
