@@ -423,9 +423,18 @@ def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_
         pos = q + inward * t[:, None]
     elem, _ = locator(mesh).locate(pos)
     for i in np.flatnonzero(elem < 0):
-        raise FluoInputError(f"cannot be buried 1/mut' = {depth[i]:.3g} mm deep: the tissue under "
-                             "it is thinner than that", field=f"source[{i}]",
-                             value=np.round(q[i], 4).tolist())
+        # a facet of a voxel mesh's staircase (or a sloped facet shared with air)
+        # can point the normal across a thin shelf while the tissue is thick a
+        # little to the side: try the inward normals of the facets around it
+        alt = _bury_around(mesh, q[i], facet[i], depth[i], bl)
+        if alt is None:
+            raise FluoInputError(f"cannot be buried 1/mut' = {depth[i]:.3g} mm deep: the tissue "
+                                 "under it is thinner than that", field=f"source[{i}]",
+                                 value=np.round(q[i], 4).tolist())
+        pos[i] = alt
+        if notes is not None:
+            notes.append(f"source[{i}]: its facet's normal leaves the tissue within 1/mut' = "
+                         f"{depth[i]:.3g} mm; buried along a neighbouring facet's normal instead")
     d = bl.closest(pos)[3]
     for i in np.flatnonzero(d < 0.7 * depth):
         if notes is not None:
@@ -433,6 +442,25 @@ def source_positions(mesh, surface_points_mm, musp_per_mm, mua_per_mm, max_snap_
                          f"burial depth 1/mut' = {depth[i]:.3g} mm (thin tissue or an edge "
                          "nearby): the diffusion model is less accurate there")
     return pos
+
+
+def _bury_around(mesh, q, facet, depth, bl):
+    """A point ``depth`` inside the mesh from boundary point ``q`` along the
+    inward normal of a boundary facet next to ``facet`` (sharing a node with it,
+    or the next ring), the one that ends farthest from the surface; None when
+    every such direction leaves the mesh."""
+    bf = mesh.boundary_facets
+    nodes = set(bf[facet].tolist())
+    ring = np.flatnonzero(np.isin(bf, list(nodes)).any(axis=1))
+    ring2 = np.flatnonzero(np.isin(bf, np.unique(bf[ring])).any(axis=1))
+    dirs = -mesh.boundary_normals[np.unique(np.concatenate([ring, ring2]))]
+    cand = q[None, :] + dirs * depth
+    elem, _ = locator(mesh).locate(cand)
+    inside = np.flatnonzero(elem >= 0)
+    if not len(inside):
+        return None
+    d = bl.closest(cand[inside])[3]
+    return cand[inside[int(np.argmax(d))]]
 
 
 def point_source_rhs(mesh, positions_mm):
