@@ -91,7 +91,9 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
 
     # -- the pieces a module supplies ------------------------------------------------
     def createLogic(self, scene):
-        raise NotImplementedError
+        """The module's logic on ``scene``: every module widget defines it (FluoCalib,
+        FluoNav and FluoTomo do); the base class cannot know which logic to make."""
+        raise NotImplementedError(f"{type(self).__name__} must define createLogic(scene)")
 
     def setupConnections(self):
         """Connect the module's buttons (``self.ui.xxxButton.connect("clicked(bool)", ...)``)."""
