@@ -70,10 +70,10 @@ class PoseError:
     rotation_deg: float
 
     def __post_init__(self):
-        for name in ("translation_mm", "rotation_deg"):
-            v = getattr(self, name)
-            if not np.isfinite(v) or v < 0:
-                raise FluoInputError("must be a finite number >= 0", field=name, value=v)
+        # a pose error beyond the size of the scene (1 m) or a half turn describes
+        # no tracked camera: refused, not rendered as a view of nothing
+        for name, hi in (("translation_mm", 1000.0), ("rotation_deg", 180.0)):
+            check_number(name, getattr(self, name), 0.0, hi)
 
     def random(self, rng):
         """A zero-mean Gaussian error (4x4), independent per call."""
