@@ -115,22 +115,19 @@ class LabelMap:
     def mesh_to_ras(self, mesh):
         """A mesh of the local frame moved into RAS (elements re-oriented where
         the direction mirrors); ``meta["frame"] = "RAS"``."""
-        from FluoTomoLib.meshing.mesh import Mesh
-
-        meta = {k: v for k, v in mesh.meta.items() if not str(k).startswith("_")}
-        meta["frame"] = "RAS"
-        out = Mesh(self.to_ras(mesh.nodes_mm), mesh.elements, mesh.element_region, mesh.name,
-                   meta)
-        return out.oriented() if np.linalg.det(self.direction) < 0 else out
+        return self._moved_mesh(mesh, self.to_ras, "RAS")
 
     def mesh_to_local(self, mesh):
         """A mesh in RAS (e.g. read back from a model node) in the local frame."""
+        return self._moved_mesh(mesh, self.to_local, "local")
+
+    def _moved_mesh(self, mesh, move, frame):
         from FluoTomoLib.meshing.mesh import Mesh
 
         meta = {k: v for k, v in mesh.meta.items() if not str(k).startswith("_")}
-        meta["frame"] = "local"
-        out = Mesh(self.to_local(mesh.nodes_mm), mesh.elements, mesh.element_region, mesh.name,
-                   meta)
+        meta["frame"] = frame
+        out = Mesh(move(mesh.nodes_mm), mesh.elements, mesh.element_region, mesh.name, meta)
+        # a mirroring direction turns every tetrahedron inside out
         return out.oriented() if np.linalg.det(self.direction) < 0 else out
 
     def vector_to_local(self, vectors_ras):
