@@ -50,11 +50,12 @@ def _noop(params):
 N_NOOP = 200
 
 
-def _one(study, config, out_dir):
+def _one(study, config, out_dir, seeds=1):
     """Run one configuration in this process; print one JSON line."""
     t_import = time.perf_counter()
     from fluoguide.runs.cluster import executor
-    from FluoTomoLib.studies.thesis import run_study
+    from FluoTomoLib.studies.spec import study_spec
+    from FluoTomoLib.studies.thesis import run_spec
 
     cfg = CONFIGS[config]
     t0 = time.perf_counter()
@@ -63,7 +64,9 @@ def _one(study, config, out_dir):
         with executor(workers=cfg["workers"], threads=cfg["threads"], log=quiet,
                       dashboard=False) as ex:
             t_started = time.perf_counter()
-            out = run_study(study, out_dir=out_dir, executor=ex, threads=cfg["threads"])
+            # seeds 0..N-1: N noise draws of every (target, method), one shared Jacobian
+            spec = study_spec(study, seeds=list(range(seeds)))
+            out = run_spec(spec, out_dir=out_dir, executor=ex, threads=cfg["threads"])
             t_run = time.perf_counter()
             # the overhead per task: no-op tasks through the same engine and executor
             from fluoguide.runs.engine import run_tasks
@@ -88,7 +91,7 @@ def _one(study, config, out_dir):
     print("RESULT " + json.dumps(doc), flush=True)
 
 
-def _run_config(study, config, root):
+def _run_config(study, config, root, seeds=1):
     env = dict(os.environ)
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
         if CONFIGS[config]["threads"] is None:
@@ -98,7 +101,7 @@ def _run_config(study, config, root):
     out = Path(root) / config
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "benchmarks.bench_scale", "--one", config,
-                        "--study", study, "--out", str(out)], capture_output=True, text=True,
+                        "--study", study, "--seeds", str(seeds), "--out", str(out)], capture_output=True, text=True,
                        env=env, timeout=3600)
     line = next((ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")), None)
     if r.returncode != 0 or line is None:
@@ -120,6 +123,9 @@ def _stable_rows(path):
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m benchmarks scale")
     ap.add_argument("--study", default="B", choices=["A", "B", "C"])
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="noise seeds per (target, method): study B has 15 tasks per seed, all "
+                         "sharing one Jacobian (default 1)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of every configuration")
     ap.add_argument("--configs", default=",".join(CONFIGS))
     ap.add_argument("--json", default=None, help="write the numbers here")
@@ -127,22 +133,24 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
-        _one(args.study, args.one, args.out)
+        _one(args.study, args.one, args.out, args.seeds)
         return 0
     configs = [c.strip() for c in args.configs.split(",")]
-    if any(c not in CONFIGS for c in configs) or "serial" not in configs or args.repeats < 1:
-        print(f"configs must include serial and be among {', '.join(CONFIGS)}; repeats >= 1",
+    if any(c not in CONFIGS for c in configs) or "serial" not in configs or args.repeats < 1 \
+            or not 1 <= args.seeds <= 1000:
+        print(f"configs must include serial and be among {', '.join(CONFIGS)}; repeats >= 1; "
+              f"seeds 1..1000",
               file=sys.stderr)
         return 2
     from fluoguide.threads import cpu_count
 
-    print(f"study {args.study}; {cpu_count()} cores; load average before "
+    print(f"study {args.study} x {args.seeds} seed(s); {cpu_count()} cores; load average before "
           f"{os.getloadavg()[0]:.1f} (other work on this machine slows every figure below)")
     results = {c: [] for c in configs}
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as root:
         for rep in range(args.repeats):
             for c in configs:          # interleaved: a load change hits every configuration
-                doc = _run_config(args.study, c, Path(root) / f"r{rep}")
+                doc = _run_config(args.study, c, Path(root) / f"r{rep}", args.seeds)
                 doc["same_table_as_serial"] = None
                 results[c].append(doc)
         ref = _stable_rows(results["serial"][0]["table"])
@@ -176,7 +184,7 @@ def main(argv=None):
               f"{m['cpu_per_wall']:>8.2f} {1e3 * m['noop_per_task_s']:>10.2f} {speed:>8.2f} "
               f"{eff:>6.2f} {m['load_before']:>4.1f}-{m['load_after']:<4.1f} {same}")
     per_task = base / n_tasks
-    summary = {"study": args.study, "tasks": n_tasks, "serial_per_task_s": per_task,
+    summary = {"study": args.study, "seeds": args.seeds, "tasks": n_tasks, "serial_per_task_s": per_task,
                "serial_tasks_per_hour": 3600 / per_task, "configs": med, "runs": results}
     if "dask-1" in med:
         overhead = med["dask-1"]["noop_per_task_s"]
@@ -192,6 +200,14 @@ def main(argv=None):
         for n in (2, 8, 32, 128):
             print(f"  {n:>4} workers: ~{3600 * n / per_cluster_task:,.0f} tasks per hour "
                   f"(per-task cost x tasks / N, overhead included; no transfer limit assumed)")
+    jac = results["serial"][0].get("jacobian_s")
+    if jac:
+        # Amdahl: the shared Jacobian runs once, on one worker, before the tasks that need it
+        tasks_s = base - jac
+        print(f"shared Jacobian {jac:.2f} s of the serial {base:.2f} s (computed once, on one "
+              f"worker); the tasks alone: {tasks_s:.2f} s serial, so 2 workers can at best "
+              f"give {base / (jac + tasks_s / 2):.2f}x")
+        summary["jacobian_s"] = jac
     print(f"one machine, serial pinned: ~{3600 / per_task:,.0f} tasks per hour")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1))
