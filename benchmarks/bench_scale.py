@@ -91,6 +91,68 @@ def _one(study, config, out_dir, seeds=1):
     print("RESULT " + json.dumps(doc), flush=True)
 
 
+MC_CONFIGS = {
+    # serial: pocl's own threads (every core); workers: 1 OpenCL thread each
+    "mc-serial": dict(workers=None, threads=1),
+    "mc-dask-1": dict(workers=1, threads=1),
+    "mc-dask-2": dict(workers=2, threads=1),
+}
+
+
+def _one_mc(config, out_dir, photons, runs):
+    """One Monte Carlo budget (half-space runs) in this process; print one JSON line."""
+    from fluoguide.runs.cluster import executor
+    from fluoguide.runs.store import RunStore
+    from FluoTomoLib.montecarlo.halfspace import HalfSpace, simulate_halfspace
+
+    cfg = MC_CONFIGS[config]
+    med = HalfSpace(0.01, 1.0, 1.37, size_mm=(80, 80, 40))
+    load0 = os.getloadavg()[0]
+    with open(os.devnull, "w") as quiet:
+        t0 = time.perf_counter()
+        with executor(workers=cfg["workers"], threads=cfg["threads"], log=quiet,
+                      dashboard=False) as ex:
+            t_started = time.perf_counter()
+            merged = simulate_halfspace(med, photons, runs=runs, seed=501, engine="mcxcl",
+                                        executor=ex, threads=cfg["threads"],
+                                        store=RunStore(out_dir))
+            t_run = time.perf_counter()
+    doc = {"config": config, "workers": cfg["workers"] or 1, "cluster_start_s": t_started - t0,
+           "run_s": t_run - t_started, "photons": merged["photons"],
+           "R_5mm": next(r["R_per_mm2"] for r in merged["R"] if r["rho_mm"] == 5.0),
+           "device": merged["device"], "load_before": load0, "load_after": os.getloadavg()[0]}
+    print("RESULT " + json.dumps(doc), flush=True)
+
+
+def _main_mc(args):
+    """Serial against 1 and 2 workers for one Monte Carlo photon budget."""
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="bench-scale-mc-") as root:
+        for c in MC_CONFIGS:
+            r = subprocess.run([sys.executable, "-m", "benchmarks.bench_scale", "--one", c,
+                                "--photons", str(args.photons), "--runs", str(args.runs),
+                                "--out", str(Path(root) / c)], capture_output=True, text=True,
+                               timeout=7200)
+            line = next((ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")), None)
+            if r.returncode != 0 or line is None:
+                print(f"{c} failed (rc {r.returncode}): {r.stderr[-2000:]}", file=sys.stderr)
+                return 1
+            results[c] = json.loads(line[len("RESULT "):])
+    base = results["mc-serial"]["run_s"]
+    print(f"Monte Carlo: {args.runs} runs x {args.photons} photons, half-space 80 x 80 x 40 mm")
+    print(f"{'configuration':<12} {'workers':>7} {'run [s]':>8} {'start [s]':>9} "
+          f"{'photons/s':>10} {'speed-up':>8} {'R(5 mm)':>12} {'load':>9}")
+    for c, d in results.items():
+        print(f"{c:<12} {d['workers']:>7} {d['run_s']:>8.1f} {d['cluster_start_s']:>9.2f} "
+              f"{d['photons'] / d['run_s']:>10.0f} {base / d['run_s']:>8.2f} {d['R_5mm']:>12.6e} "
+              f"{d['load_before']:>4.1f}-{d['load_after']:<4.1f}")
+    same = len({d["R_5mm"] for d in results.values()}) == 1
+    print("same photons in every configuration (R(5 mm) identical):", same)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+    return 0 if same else 1
+
+
 def _run_config(study, config, root, seeds=1):
     env = dict(os.environ)
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
@@ -129,12 +191,22 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=1, help="runs of every configuration")
     ap.add_argument("--configs", default=",".join(CONFIGS))
     ap.add_argument("--json", default=None, help="write the numbers here")
+    ap.add_argument("--mc", action="store_true",
+                    help="instead of the study: one Monte Carlo photon budget (--runs runs of "
+                         "--photons) serially and on 1 and 2 workers")
+    ap.add_argument("--photons", type=int, default=20_000, help="--mc: photons per run")
+    ap.add_argument("--runs", type=int, default=8, help="--mc: independent runs (tasks)")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.one in MC_CONFIGS:
+        _one_mc(args.one, args.out, args.photons, args.runs)
+        return 0
     if args.one:
         _one(args.study, args.one, args.out, args.seeds)
         return 0
+    if args.mc:
+        return _main_mc(args)
     configs = [c.strip() for c in args.configs.split(",")]
     if any(c not in CONFIGS for c in configs) or "serial" not in configs or args.repeats < 1 \
             or not 1 <= args.seeds <= 1000:

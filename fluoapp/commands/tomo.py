@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 from fluoapp.cli import add_json_flag, cli_group
+from fluoapp.runopts import add_run_options, check_run_options, executor_for
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
 
@@ -74,6 +75,18 @@ def _simulate(args):
     if args.photons is not None and args.engine != "mc":
         raise FluoInputError("photons are for the Monte Carlo engine (--engine mc)",
                              field="--photons", value=args.photons)
+    for name, v in (("--workers", args.workers), ("--scheduler", args.scheduler),
+                    ("--mc-runs", args.mc_runs), ("--resume", args.resume or None)):
+        if v is not None and args.engine != "mc":
+            raise FluoInputError("runs Monte Carlo's photon budgets (--engine mc)", field=name,
+                                 value=v)
+    if args.resume and not args.mc_runs:
+        raise FluoInputError("--resume needs the folder of the earlier runs (--mc-runs)",
+                             field="--resume")
+    threads = check_run_options(args)
+    store = None
+    if args.mc_runs:
+        atomic.check_writable(args.mc_runs, "--mc-runs", folder=True)
     if (args.sources is None) != (args.detectors is None):
         raise FluoInputError("give both --sources and --detectors, or neither (default scan)",
                              field="--sources" if args.sources is None else "--detectors")
@@ -89,18 +102,24 @@ def _simulate(args):
 
         place_on_surface(lm, src, "sources", file=args.sources)
         place_on_surface(lm, det, "detectors", file=args.detectors)
-    # a bar only on a terminal: a pipe gets the JSON or one error line
-    with TqdmProgress("simulate") as bar:
+    if args.mc_runs:
+        from fluoguide.runs.store import RunStore
+
+        store = RunStore(args.mc_runs, resume=args.resume)
+    # a bar only on a terminal: a pipe gets the JSON or one error line; the Monte
+    # Carlo runs go where the run options say (serial here by default)
+    with TqdmProgress("simulate") as bar, executor_for(args, threads) as ex:
         acq, info = simulate_acquisition(
             lm, optics, yields, src, det, noise_pct=args.noise_pct, seed=args.seed,
             engine=args.engine, exclude_mm=args.exclude_mm, accuracy=args.accuracy,
             simulate_mm=args.element_mm, target=args.target, photons=args.photons,
-            progress=bar)
+            progress=bar, executor=ex, mc_store=store, threads=threads)
     write_acquisition(args.out, acq, simulation=info)
     return {"output": str(args.out), "sources": len(acq.sources_ras_mm),
             "detectors": len(acq.detectors_ras_mm), "measurements": acq.n_measurements,
             "engine": info["engine"], "simulation_mesh_nodes": info.get("mesh_nodes"),
             "photon_noise_pct": info.get("photon_noise_pct"),
+            "mc_executor": info.get("mc_executor"),
             "noise_pct": info["noise_pct"], "seed": info["seed"], "target": info["target"],
             "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
 
@@ -186,6 +205,10 @@ def register(subparsers):
                    help=_simulate_accuracy_help())
     p.add_argument("--element-mm", type=float, default=None, help="simulation element size "
                    "near the optodes and target [mm] (default: from --accuracy)")
+    p.add_argument("--mc-runs", default=None, metavar="DIR",
+                   help="--engine mc: record every Monte Carlo run here as it finishes (a "
+                   "killed simulation continues with --resume; default: not recorded)")
+    add_run_options(p)
     p.add_argument("--out", required=True, help="acquisition folder to write "
                    "(acquisition.json, sources.csv, detectors.csv, data.csv)")
     add_json_flag(p)

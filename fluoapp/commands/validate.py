@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
+from fluoapp.runopts import add_run_options, check_run_options, executor_for
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
 
@@ -37,8 +38,11 @@ def _check_budget(args):
     from fluoguide.errors import check_number
 
     check_number("--seed", args.seed, 0, 2**32 - 1, integer=True)
+    run_opts = (("--workers", getattr(args, "workers", None)),
+                ("--scheduler", getattr(args, "scheduler", None)),
+                ("--resume", getattr(args, "resume", False) or None))
     given = [name for name, v in (("--photons", args.photons), ("--runs", args.runs),
-                                  ("--quick", args.quick or None)) if v is not None]
+                                  ("--quick", args.quick or None), *run_opts) if v is not None]
     if args.mc_in is not None and given:
         raise FluoInputError("applies when Monte Carlo runs (drop --mc-in)", field=given[0],
                              value=getattr(args, given[0][2:]))
@@ -76,6 +80,7 @@ def _mc(args):
     from FluoTomoLib.montecarlo.plots import validation_figure
 
     _check_budget(args)
+    threads = check_run_options(args)
     out = _out_dir(args.out)
     t0 = time.perf_counter()
     budget = dict(QUICK if args.quick else FULL)
@@ -101,12 +106,18 @@ def _mc(args):
         medium = HalfSpace(_positive(args.mua, "--mua", 10) or 0.01,
                            _positive(args.musp, "--musp", 100) or 1.0,
                            n, g=0.9 if args.g is None else args.g)
-        with TqdmProgress("Monte Carlo") as bar:
-            from FluoTomoLib.montecarlo.engine import load_engine
+        from fluoguide.runs.store import RunStore
+        from FluoTomoLib.montecarlo.engine import load_engine
 
-            eng = load_engine(args.engine)
+        load_engine(args.engine)      # missing engine: one line before any cluster starts
+        # every run is a task of the run engine: written to OUT/mc_runs as it finishes
+        # (--resume continues a killed set), split across Dask workers with --workers
+        # or --scheduler; a seed draws the same photons wherever it runs
+        with TqdmProgress("Monte Carlo") as bar, executor_for(args, threads) as ex:
             merged = simulate_halfspace(medium, budget["photons"], runs=budget["runs"],
-                                        seed=args.seed, engine=eng, progress=bar)
+                                        seed=args.seed, engine=args.engine, progress=bar,
+                                        executor=ex, threads=threads,
+                                        store=RunStore(out / "mc_runs", resume=args.resume))
         mc_source = "this run"
         out.mkdir(parents=True, exist_ok=True)
         reference.write_json_atomic(out / "mc_halfspace.json",
@@ -136,7 +147,7 @@ def _mc(args):
         "medium": medium.metadata()["medium"], "volume_mm": list(medium.size_mm),
         "voxel_mm": medium.voxel_mm, "mc_source": mc_source,
         "photons": merged["photons"], "runs": merged["runs"], "seeds": merged["seeds"],
-        "device": merged["device"], "engine": merged["engine"],
+        "mc_executor": merged.get("executor"), "device": merged["device"], "engine": merged["engine"],
         "engine_version": merged["engine_version"], "mc_seconds": merged["seconds"],
         "energy": merged["energy"], "A": res["A"], "boundary_default": res["boundary"],
         "agree_within_pct": compare.AGREE_PCT, "agree_from_mm": res["agree_from_mm"],
@@ -182,6 +193,7 @@ def _mc_fluorescence(args):
     from FluoTomoLib.optics import robin_A
 
     _check_budget(args)
+    threads = check_run_options(args)
     out = _out_dir(args.out)
     t0 = time.perf_counter()
     case = reference.fluorescence_case()
@@ -200,10 +212,15 @@ def _mc_fluorescence(args):
         photons = args.photons or (20_000 if args.quick else 100_000)
         runs = args.runs or (2 if args.quick else 3)
         radius = 2.0
-        with TqdmProgress("Monte Carlo") as bar:
+        from fluoguide.runs.store import RunStore
+        from FluoTomoLib.montecarlo.engine import load_engine
+
+        load_engine(args.engine)      # missing engine: one line before any cluster starts
+        with TqdmProgress("Monte Carlo") as bar, executor_for(args, threads) as ex:
             res = simulate_acquisition(*[case[k] for k in keys], photons=photons, seed=args.seed,
                                        runs=runs, detector_radius_mm=radius, engine=args.engine,
-                                       progress=bar)
+                                       progress=bar, executor=ex, threads=threads,
+                                       store=RunStore(out / "mc_runs", resume=args.resume))
         data = reference.fluorescence_set(case, res, _command_line())
         out.mkdir(parents=True, exist_ok=True)
         reference.write_json_atomic(out / "mc_fluorescence.json", data)
@@ -242,6 +259,76 @@ def _mc_fluorescence(args):
             "device": meta["device"], "engine_version": meta["engine_version"],
             "A": {b: f["A"] for b, f in fem.items()}, "rows": rows, "warnings": warnings,
             "seconds": time.perf_counter() - t0}
+
+
+def _mc_tomography(args):
+    from FluoTomoLib.pipelines import tube_mc
+
+    from fluoguide.runs.grid import parse_values
+
+    depths = parse_values(args.depths, "--depths") if args.depths else list(tube_mc.DEPTHS_MM)
+    for d in depths:
+        if not 2.0 <= d <= 16.0:
+            raise FluoInputError("tube depths must be within 2..16 mm", field="--depths", value=d)
+    for name, v in (("--photons", args.photons), ("--workers", args.workers),
+                    ("--scheduler", args.scheduler), ("--resume", args.resume or None)):
+        if v is not None and not args.simulate:
+            raise FluoInputError("applies when Monte Carlo runs (--simulate)", field=name,
+                                 value=v)
+    if args.simulate and args.mc_in is not None:
+        raise FluoInputError("--simulate makes the Monte Carlo data; --mc-in reads stored ones",
+                             field="--mc-in", value=args.mc_in)
+    if args.photons is not None:
+        from fluoguide.errors import check_number
+
+        check_number("--photons", args.photons, 1, 1e9, integer=True)
+    threads = check_run_options(args)
+    methods = [m.strip().upper() for m in args.methods.split(",")]
+    if not methods or any(m not in ("NP", "SP", "HP") for m in methods) or \
+            len(set(methods)) != len(methods):
+        raise FluoInputError("expected methods from NP, SP, HP, each once", field="--methods",
+                             value=args.methods)
+    out = _out_dir(args.out)
+    if args.simulate:
+        from FluoTomoLib.montecarlo.engine import load_engine
+
+        load_engine("auto")
+    t0 = time.perf_counter()
+    with TqdmProgress("mc-tomography") as bar, executor_for(args, threads) as ex:
+        res = tube_mc.validate_tube_mc(
+            depths, mc_root=args.mc_in, simulate=args.simulate,
+            photons=args.photons or tube_mc.PHOTONS, out_dir=out, methods=methods,
+            accuracy=args.accuracy, executor=ex, threads=threads, resume=args.resume,
+            progress=bar)
+    out.mkdir(parents=True, exist_ok=True)
+    res["figure"] = tube_mc.figure(res, out / "validate_mc_tomography.png")
+    _write_csv(out / "validate_mc_tomography.csv", res["rows"], list(res["rows"][0].keys()))
+    res["table"] = str(out / "validate_mc_tomography.csv")
+    res["warnings"] = [f"depth {g['depth_mm']:g} mm, {m} from {name} data: {w}"
+                       for g in res["depths"] for name, per in g["rows"].items()
+                       for m, r in per.items() for w in r["warnings"]]
+    res["seconds"] = time.perf_counter() - t0
+    from fluoguide.jsonable import dumps
+
+    tmp = out / "validate_mc_tomography.json.tmp"
+    tmp.write_text(dumps(res))
+    tmp.replace(out / "validate_mc_tomography.json")
+    if not args.json:
+        print(f"{'depth':>5} {'method':>6} {'FEM data: yield %':>18} {'centroid %':>10} "
+              f"{'MC data: yield %':>17} {'centroid %':>10}", file=sys.stderr)
+        for g in res["depths"]:
+            for m in methods:
+                f, c = g["rows"]["diffusion FEM"][m], g["rows"]["Monte Carlo"][m]
+                print(f"{g['depth_mm']:5g} {m:>6} {f['yield_error_pct']:+18.1f} "
+                      f"{_fmt(f['centroid_error_pct']):>10} {c['yield_error_pct']:+17.1f} "
+                      f"{_fmt(c['centroid_error_pct']):>10}", file=sys.stderr)
+        return {"table": res["table"], "figure": res["figure"],
+                "seconds": round(res["seconds"], 1), "warnings": res["warnings"]}
+    return res
+
+
+def _fmt(v):
+    return "-" if v is None else f"{v:+.1f}"
 
 
 def register(sub):
@@ -287,7 +374,9 @@ def register(sub):
     p.add_argument("--reference", default=None,
                    help="independent R(rho) CSV to check the MC against (default: the stored "
                    "independent run when the medium is its own)")
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--out", required=True, help="output folder (created if missing); the "
+                   "Monte Carlo runs' records go to OUT/mc_runs (--resume continues them)")
+    add_run_options(p)
     add_json_flag(p)
     p.set_defaults(func=_mc)
 
@@ -310,6 +399,34 @@ def register(sub):
     p.add_argument("--mc-in", default=None,
                    help="compare a stored fluorescence set (JSON) instead of running Monte Carlo "
                    "(default: run it)")
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--out", required=True, help="output folder (created if missing); the "
+                   "Monte Carlo runs' records go to OUT/mc_runs (--resume continues them)")
+    add_run_options(p)
     add_json_flag(p)
     p.set_defaults(func=_mc_fluorescence)
+
+    p = grp.add_parser(
+        "mc-tomography", help="NP/SP/HP of the cylinder-tube from Monte Carlo data",
+        description="The cylinder-tube phantom reconstructed (NP/SP/HP, fluo tomo reconstruct's "
+        "path, a 0.8 mm label map) from Monte Carlo data (MCX on 0.5 mm voxels: stored in "
+        "FluoTomoLib/montecarlo/data/tube, or made here with --simulate) and from "
+        "diffusion-FEM data of the same 12 sources and 13 detectors (whole phantom, its own "
+        "mesh), with the same 1 %% noise: the yield and centroid errors side by side "
+        "(docs/validation.md). Writes validate_mc_tomography.{csv,json,png} to --out.")
+    p.add_argument("--depths", default=None, metavar="D1,D2,...",
+                   help="tube depths [mm] (default 2.7,4.7,6.7, the stored sets)")
+    p.add_argument("--simulate", action="store_true",
+                   help="run the Monte Carlo here (about 15-25 min per depth on 2 CPU cores; "
+                   "its runs go where --workers/--scheduler say, recorded in OUT/mc_runs) and "
+                   "write the acquisitions to OUT/mc (default: read the stored ones)")
+    p.add_argument("--photons", type=int, default=None,
+                   help="--simulate: photons per run, 2 runs per optode (default 100000)")
+    p.add_argument("--mc-in", default=None, metavar="DIR",
+                   help="folder of depth_<d>mm acquisitions to read (default: the stored ones)")
+    p.add_argument("--methods", default="NP,SP,HP", help="methods (default NP,SP,HP)")
+    p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default="fast",
+                   help="the reconstruction's accuracy level (default fast)")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    add_run_options(p)
+    add_json_flag(p)
+    p.set_defaults(func=_mc_tomography)

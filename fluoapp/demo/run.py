@@ -27,6 +27,7 @@ STAGE_TABLE = [
     ("light_calibration", "radiometric, illumination and laser calibration", ("phantoms",)),
     ("surface_mapping", "tracked views and surface-flux mapping", ()),
     ("tomography", "tracked acquisition and reconstruction", ("phantoms",)),
+    ("tomography_mc", "the tube reconstructed from Monte Carlo data", ()),
     ("oral_tomography", "oral-cavity acquisition and reconstruction", ("phantoms",)),
 ]
 STAGE_NAMES = [name for name, _, _ in STAGE_TABLE]

@@ -210,6 +210,9 @@ def dask_executor(address=None, workers="auto", threads=1, log=None, dashboard=T
             environ = {}
             if threads is not None:
                 environ.update({v: int(threads) for v in ENV_VARS})
+                # pocl (MCX-CL's CPU OpenCL) starts one thread per core in every worker
+                # unless told; the photons a seed draws do not depend on it (Engine.run)
+                environ["POCL_MAX_PTHREAD_COUNT"] = int(threads)
             # the worker's statistical profiler samples every thread's stack each 10 ms
             # under the GIL: off, the tasks are the workers' only work
             with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,

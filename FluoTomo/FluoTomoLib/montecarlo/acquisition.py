@@ -30,14 +30,16 @@ approximation on staircased curved surfaces.
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import report
 
-from FluoTomoLib.montecarlo.engine import check_photons, check_seed, load_engine, time_gate_ns
+from FluoTomoLib.montecarlo.engine import (check_photons, check_seed, load_engine,
+                                           max_exit_records, time_gate_ns)
 from FluoTomoLib.optics import check_properties, fresnel_moments, fresnel_reflectance
 
 
@@ -166,7 +168,9 @@ def _cfg(geo, rows, g, photons, seed, pos, direction, icdf=None):
         "srcpos": [float(x) for x in pos], "srcdir": [float(x) for x in direction],
         "issrcfrom0": 1,
         "detpos": np.array([[*centre, float(np.linalg.norm(centre)) + 2.0]]),
-        "savedetflag": "dpx", "maxdetphoton": int(photons),
+        # room for every launched photon to exit (MCX-CL rounds the launch count up to
+        # whole work items, and in weakly absorbing media nearly all of them exit)
+        "savedetflag": "dpx", "maxdetphoton": max_exit_records(photons),
         "isreflect": 1, "outputtype": "energy", "autopilot": 1,
     }
     if icdf is not None:
@@ -181,10 +185,96 @@ def _fluence(res, geo, mua_of_label):
         return np.where(mua > 0, E / (mua * geo.h ** 3), 0.0)
 
 
+def _pack_scene(geo, rows_x, rows_m, gamma):
+    """The scene as plain values (a Shared input's arguments: JSON-able, hashable)."""
+    import base64
+    import zlib
+
+    return {"labels_ijk": base64.b64encode(zlib.compress(geo.labels_ijk.tobytes(), 6)).decode(),
+            "shape": list(geo.shape), "h": geo.h, "R": geo.R.tolist(),
+            "origin": geo.origin.tolist(), "rows_x": [list(r) for r in rows_x],
+            "rows_m": [list(r) for r in rows_m], "gamma": [float(v) for v in gamma]}
+
+
+def scene_input(packed):
+    """Shared input: the Monte Carlo scene (geometry, media, the fluorescing voxels)."""
+    import base64
+    import zlib
+
+    lab_ijk = np.frombuffer(zlib.decompress(base64.b64decode(packed["labels_ijk"])),
+                            np.uint8).reshape(packed["shape"])
+    M = np.eye(4)
+    M[:3, :3] = np.asarray(packed["R"]) * packed["h"]
+    M[:3, 3] = packed["origin"]
+    geo = LabelMapGeometry(np.transpose(lab_ijk, (2, 1, 0)), M)
+    gamma = np.asarray(packed["gamma"], float)
+    glow = np.flatnonzero(gamma[geo.labels_ijk].ravel() > 0)
+    return {"geo": geo, "rows_x": [tuple(r) for r in packed["rows_x"]],
+            "rows_m": [tuple(r) for r in packed["rows_m"]],
+            "mua_x": np.array([0.0] + [r[0] for r in packed["rows_x"]]),
+            "mua_m": np.array([0.0] + [r[0] for r in packed["rows_m"]]),
+            "glow": glow, "yield_glow": gamma[geo.labels_ijk].ravel()[glow]}
+
+
+def detector_task(params, scene):
+    """One emission run from a detector (reciprocity): its adjoint fluence times
+    C / (4 pi) on the fluorescing voxels only (``arrays["adjoint"]``)."""
+    from FluoTomoLib.montecarlo.engine import load_engine
+
+    geo = scene["geo"]
+    pos, n_in = np.asarray(params["launch"][0]), np.asarray(params["launch"][1])
+    lab = geo.labels_ijk[tuple(np.floor(pos).astype(int))]
+    n_det = scene["rows_m"][lab - 1][2]
+    res = load_engine(params["engine"]).run(
+        _cfg(geo, scene["rows_m"], params["g"], params["photons"], params["seed"], pos, n_in,
+             icdf=detector_launch_icdf(n_det)))
+    adj = _fluence(res, geo, scene["mua_m"]).ravel()[scene["glow"]]
+    return {"seed": params["seed"], "arrays": {
+        "adjoint": adj * (detector_acceptance(n_det) / (4 * np.pi))}}
+
+
+def source_task(params, scene):
+    """One excitation run from a source: the excitation fluence on the fluorescing
+    voxels (``arrays["phi"]``) and the excitation datum of every detector
+    (``arrays["excitation"]``: exiting weight within the detector disc per mm^2)."""
+    from FluoTomoLib.montecarlo.engine import load_engine
+
+    geo, mua_x = scene["geo"], scene["mua_x"]
+    photons = params["photons"]
+    pos, n_in = np.asarray(params["launch"][0]), np.asarray(params["launch"][1])
+    eng = load_engine(params["engine"])
+    res = eng.run(_cfg(geo, scene["rows_x"], params["g"], photons, params["seed"], pos, n_in))
+    phi = _fluence(res, geo, mua_x).ravel()[scene["glow"]]
+    dp = res.get("detp") or {}
+    full = False
+    if "p" in dp and len(dp["p"]):
+        ppath = dp["ppath"] * geo.h
+        w = np.exp(-(ppath * mua_x[1:][None, :ppath.shape[1]]).sum(axis=1))
+        exit_ras = geo.to_ras(dp["p"])
+        full = len(dp["p"]) >= max_exit_records(photons)
+    else:
+        w = np.zeros(0)
+        exit_ras = np.zeros((0, 3))
+    r = float(params["detector_radius_mm"])
+    det = np.asarray(params["detectors_ras"], float)
+    ex = np.array([w[np.linalg.norm(exit_ras - d, axis=1) <= r].sum() for d in det])
+    return {"seed": params["seed"], "exit_records_full": bool(full),
+            "engine": eng.name, "engine_version": eng.version, "device": eng.device,
+            "arrays": {"phi": phi, "excitation": ex / (photons * np.pi * r ** 2)}}
+
+
 def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras, detectors_ras,
                          yield_per_label, photons, seed=1, runs=2, g=0.9, detector_radius_mm=1.0,
-                         engine="auto", progress=None, cancel=None):
+                         engine="auto", progress=None, cancel=None, executor=None, store=None,
+                         threads=1):
     """Excitation and emission data of every source-detector pair by Monte Carlo.
+
+    Every MCX run (each detector's and each source's, per repeat) is a task of the
+    run engine (``fluoguide.runs``): serial here by default, split across Dask
+    workers with ``executor``, written as it finishes and resumable with ``store``.
+    A task returns only the fluence on the fluorescing voxels, so what travels back
+    is small whatever the volume; the same seeds give the same data wherever the
+    runs ran (Engine.run's fixed launch shape).
 
     Parameters
     ----------
@@ -195,18 +285,26 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
     sources_ras, detectors_ras : (S, 3), (D, 3) points on the tissue surface, RAS [mm]
     yield_per_label : {label: eta * mua_f [1/mm]} (missing labels: 0)
     photons : photons per run
-    seed : first seed; every run gets its own
+    seed : first seed; every run gets its own (repeat r: the detectors' runs, then the
+        sources', seeds counting up from ``seed + r (S + D)``)
     runs : independent repeats of every run (>= 2 for standard errors)
     g : Henyey-Greenstein anisotropy (mus = musp / (1 - g))
     detector_radius_mm : radius of the disc over which excitation exits are counted
+    executor, store, threads : as :func:`fluoguide.runs.run_tasks`
 
     Returns
     -------
     dict with ``excitation`` and ``excitation_se`` (S, D) [exiting power per mm^2 per
     unit entering excitation power], ``emission`` and ``emission_se`` (S, D) [emitted
     exitance per mm^2 per unit excitation power], ``photons_per_run``, ``runs``,
-    ``seeds``, ``seconds``, ``engine``, ``device``, ``warnings``.
+    ``seeds``, ``seconds``, ``engine``, ``device``, ``warnings``, ``executor``.
     """
+    import hashlib
+
+    from fluoguide.errors import FluoError
+    from fluoguide.runs.engine import run_tasks
+    from fluoguide.runs.tasks import Shared, Task
+
     photons = check_photons(photons)
     seed = check_seed(seed)
     if not (isinstance(runs, (int, np.integer)) and 1 <= runs <= 100):
@@ -234,53 +332,55 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
     launch_s = [geo.launch(p, f"sources_ras[{i}]") for i, p in enumerate(src)]
     launch_d = [geo.launch(p, f"detectors_ras[{i}]") for i, p in enumerate(det)]
     eng = load_engine(engine) if isinstance(engine, str) else engine
-    mua_x = np.array([0.0] + [r[0] for r in rows_x])
-    mua_m = np.array([0.0] + [r[0] for r in rows_m])
-    yield_vox = gamma[geo.labels_ijk]
     S, D = len(src), len(det)
-    ex = np.zeros((runs, S, D))
-    em = np.zeros((runs, S, D))
-    seeds = []
-    t0 = time.perf_counter()
-    total = runs * (S + D)
-    warnings = []
-
-    def next_seed(message):
-        check_cancel(cancel)
-        report(progress, len(seeds) / total, f"Monte Carlo: {message}")
-        seeds.append(seed + len(seeds))
-        return seeds[-1]
-
-    area = np.pi * detector_radius_mm ** 2
+    check_seed(seed + runs * (S + D) - 1)
+    packed = _pack_scene(geo, rows_x, rows_m, gamma)
+    scene_hash = hashlib.sha1(json.dumps(packed, sort_keys=True).encode()).hexdigest()[:16]
+    scene = Shared(f"Monte Carlo scene {scene_hash}", scene_input, (packed,))
+    common = {"scene": scene_hash, "photons": photons, "g": float(g), "engine": eng.name}
+    tasks = []
     for r in range(runs):
-        adj = []
+        base = seed + r * (S + D)
         for d, (pos, n_in) in enumerate(launch_d):
-            s_ = next_seed(f"detector {d + 1}/{D}, repeat {r + 1}/{runs}")
-            lab = geo.labels_ijk[tuple(np.floor(pos).astype(int))]
-            n_det = rows_m[lab - 1][2]
-            res = eng.run(_cfg(geo, rows_m, g, photons, s_, pos, n_in,
-                               icdf=detector_launch_icdf(n_det)))
-            adj.append((_fluence(res, geo, mua_m) * (detector_acceptance(n_det) / (4 * np.pi)),
-                        n_det))
+            tasks.append(Task(detector_task, {**common, "kind": "detector", "index": d,
+                                              "repeat": r, "seed": base + d,
+                                              "launch": [pos.tolist(), n_in.tolist()]},
+                              {"scene": scene}))
         for s, (pos, n_in) in enumerate(launch_s):
-            s_ = next_seed(f"source {s + 1}/{S}, repeat {r + 1}/{runs}")
-            res = eng.run(_cfg(geo, rows_x, g, photons, s_, pos, n_in))
-            phi_x = _fluence(res, geo, mua_x)
-            dp = res.get("detp") or {}
-            if "p" in dp and len(dp["p"]):
-                ppath = dp["ppath"] * geo.h
-                w = np.exp(-(ppath * mua_x[1:][None, :ppath.shape[1]]).sum(axis=1))
-                exit_ras = geo.to_ras(dp["p"])
-                if len(dp["p"]) >= photons:
-                    warnings.append("exit records hit their limit; excitation data may be low")
-            else:
-                w = np.zeros(0)
-                exit_ras = np.zeros((0, 3))
-            src_emit = yield_vox * phi_x * geo.h ** 3
+            tasks.append(Task(source_task, {**common, "kind": "source", "index": s, "repeat": r,
+                                            "seed": base + D + s,
+                                            "launch": [pos.tolist(), n_in.tolist()],
+                                            "detectors_ras": det.tolist(),
+                                            "detector_radius_mm": float(detector_radius_mm)},
+                              {"scene": scene}))
+    t0 = time.perf_counter()
+    out = run_tasks(tasks, store=store, executor=executor, threads=threads, progress=progress,
+                    cancel=cancel, label="Monte Carlo acquisition")
+    arrays_of = store.arrays if store is not None else (lambda rec: rec.get("_arrays") or {})
+    warnings = []
+    adj = np.zeros((runs, D), object)
+    phi = np.zeros((runs, S), object)
+    ex = np.zeros((runs, S, D))
+    for rec in out["records"]:
+        p = rec["params"]
+        if rec["status"] != "ok":
+            raise FluoError(f"Monte Carlo run ({p['kind']} {p['index']}, repeat {p['repeat']}, "
+                            f"seed {p['seed']}) failed: {rec['error']}")
+        a = arrays_of(rec)
+        if p["kind"] == "detector":
+            adj[p["repeat"], p["index"]] = a["adjoint"]
+        else:
+            phi[p["repeat"], p["index"]] = a["phi"]
+            ex[p["repeat"], p["index"]] = a["excitation"]
+            if rec["result"].get("exit_records_full"):
+                warnings.append("exit records hit their limit; excitation data may be low")
+    yg = scene_input(packed)["yield_glow"] * geo.h ** 3
+    em = np.zeros((runs, S, D))
+    for r in range(runs):
+        for s in range(S):
+            src_emit = yg * phi[r, s]
             for d in range(D):
-                near = np.linalg.norm(exit_ras - det[d], axis=1) <= detector_radius_mm
-                ex[r, s, d] = w[near].sum() / (photons * area)
-                em[r, s, d] = float(np.sum(src_emit * adj[d][0]))
+                em[r, s, d] = float(np.sum(src_emit * adj[r, d]))
     report(progress, 1.0, "Monte Carlo acquisition done")
     if runs < 2:
         warnings.append("one run per source and detector: no standard errors")
@@ -289,10 +389,11 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
     return {
         "excitation": ex.mean(axis=0), "excitation_se": se(ex),
         "emission": em.mean(axis=0), "emission_se": se(em),
-        "photons_per_run": photons, "runs": runs, "seeds": seeds,
+        "photons_per_run": photons, "runs": runs, "seeds": [t.params["seed"] for t in tasks],
         "detector_radius_mm": float(detector_radius_mm), "g": float(g),
         "seconds": time.perf_counter() - t0, "engine": eng.name,
-        "engine_version": eng.version, "device": eng.device, "warnings": warnings,
+        "engine_version": eng.version, "device": eng.device, "warnings": sorted(set(warnings)),
+        "executor": {k: out[k] for k in ("executor", "workers", "computed", "reused")},
         "units": {"excitation": "exiting power per mm^2 per unit entering excitation power "
                                 "(disc of detector_radius_mm)",
                   "emission": "emitted exitance per mm^2 per unit entering excitation power"},

@@ -38,6 +38,17 @@ C_MM_PER_NS = 299.792458
 
 ENGINES = ("auto", "mcxcl", "mcx")
 
+# MCX-CL's launch shape (work items, work-group size): see Engine.run
+MCXCL_THREADS = 4096
+MCXCL_BLOCK = 64
+
+
+def max_exit_records(photons):
+    """Exit records MCX keeps per run: above the launch count (work items round it
+    up; in weakly absorbing media nearly every photon exits), so a full buffer
+    means records were lost."""
+    return int(2 * int(photons) + 4096)
+
 
 class MonteCarloUnavailable(FluoError):
     """The Monte Carlo engine (pmcxcl / pmcx) or its compute device is missing."""
@@ -119,6 +130,14 @@ class Engine:
         where saved) whatever the binding returns."""
         cfg = dict(cfg)
         cfg.setdefault("gpuid", self.gpuid)
+        if self.name == "mcxcl" and cfg.get("autopilot", 1):
+            # A fixed launch shape instead of MCX's autopilot: MCX seeds each work item
+            # from the run's seed, and autopilot sizes the launch from the device's
+            # compute units, so the same seed drew other photons on a 1-core worker
+            # than on the 2-core serial loop (measured).  Fixed, a seed gives the same
+            # photons on any CPU count (the fluence then differs only in the float
+            # atomics' summation order, ~1e-6 relative) and the time is the same.
+            cfg.update(autopilot=0, nthread=MCXCL_THREADS, nblocksize=MCXCL_BLOCK)
         with _lock, _quiet_fd1() as log:
             try:
                 res = self.module.run(cfg)

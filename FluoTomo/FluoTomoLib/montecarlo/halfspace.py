@@ -32,6 +32,7 @@ from FluoTomoLib.montecarlo.engine import (
     check_photons,
     check_seed,
     load_engine,
+    max_exit_records,
     mcx_props,
     time_gate_ns,
 )
@@ -140,6 +141,15 @@ class HalfSpace:
                 out.append(np.column_stack([xy[idx], np.full(len(idx), -z)]))
         return out
 
+    def params(self):
+        """The constructor's arguments as plain values (a run-engine task's parameters:
+        ``HalfSpace(**m.params())`` is the same medium)."""
+        return {"mua_per_mm": self.mua, "musp_per_mm": self.musp, "n": self.n, "g": self.g,
+                "size_mm": list(self.size_mm), "voxel_mm": self.voxel_mm,
+                "rho_mm": self.rho_mm.tolist(),
+                "fluence_depths_mm": self.fluence_depths_mm.tolist(),
+                "fluence_rho_mm": self.fluence_rho_mm.tolist()}
+
     def metadata(self):
         return {
             "medium": {"mua_per_mm": self.mua, "musp_per_mm": self.musp, "g": self.g,
@@ -166,7 +176,7 @@ class HalfSpace:
             "srcpos": list(self.source_grid), "srcdir": [0.0, 0.0, 1.0], "issrcfrom0": 1,
             # one detector sphere around the whole box: every exit is recorded
             "detpos": np.array([[*centre, float(np.linalg.norm(centre)) + 2.0]]),
-            "savedetflag": "dpx", "maxdetphoton": int(photons),
+            "savedetflag": "dpx", "maxdetphoton": max_exit_records(photons),
             "isreflect": 1, "outputtype": "energy", "autopilot": 1,
         }
 
@@ -226,7 +236,7 @@ def run_halfspace(medium, photons, seed, engine="auto"):
         "W": W, "W2": W2, "count": cnt,
         "exit_top": float(wt.sum()) / photons, "exit_other": float(w[~top].sum()) / photons,
         "absorbed": absorbed, "absorbed_voxels": float(E.sum()),
-        "records": int(n_rec), "records_max": int(photons),
+        "records": int(n_rec), "records_max": max_exit_records(photons),
         "fluence": fl,
     }
 
@@ -301,9 +311,60 @@ def merge_halfspace(medium, runs):
     }
 
 
+RUN_ARRAYS = ("W", "W2", "count", "fluence")
+
+
+def halfspace_task(params):
+    """One run as a run-engine task (``fluoguide.runs``): ``params`` = ``medium``
+    (:meth:`HalfSpace.params`), ``photons``, ``seed``, ``engine``.  The tallies go to
+    the task's arrays, the rest to its row."""
+    medium = HalfSpace(**params["medium"])
+    run = run_halfspace(medium, params["photons"], params["seed"], params.get("engine", "auto"))
+    run["arrays"] = {k: np.asarray(run.pop(k)) for k in RUN_ARRAYS}
+    return run
+
+
+def halfspace_tasks(medium, photons_per_run, runs=4, seed=1, engine="auto"):
+    """The run-engine tasks of ``runs`` independent runs (seeds seed, seed + 1, ...)."""
+    from fluoguide.runs.tasks import Task
+
+    photons = check_photons(photons_per_run)
+    if not (isinstance(runs, (int, np.integer)) and 1 <= runs <= 1000):
+        raise FluoInputError("must be a whole number from 1 to 1000", field="runs", value=runs)
+    seed = check_seed(seed)
+    check_seed(seed + runs - 1)
+    if not isinstance(engine, str):
+        engine = engine.name
+    return [Task(halfspace_task, {"medium": medium.params(), "photons": photons,
+                                  "seed": seed + i, "engine": engine}) for i in range(runs)]
+
+
+def runs_of_records(records, arrays_of):
+    """The per-run dicts :func:`merge_halfspace` pools, from run-engine records
+    (``arrays_of(record)`` -> the task's arrays); a failed run raises its error."""
+    from fluoguide.errors import FluoError
+
+    out = []
+    for rec in records:
+        if rec["status"] != "ok":
+            raise FluoError(f"Monte Carlo run (seed {rec['params']['seed']}) failed: "
+                            f"{rec['error']}")
+        run = dict(rec["result"])
+        run.update(arrays_of(rec))
+        out.append(run)
+    return out
+
+
 def simulate_halfspace(medium, photons_per_run, runs=4, seed=1, engine="auto", progress=None,
-                       cancel=None):
+                       cancel=None, executor=None, store=None, threads=1):
     """``runs`` independent MCX runs (seeds seed, seed+1, ...) of ``medium``, merged.
+
+    The runs are tasks of the run engine (``fluoguide.runs``): serial in this
+    process by default, or split across a Dask cluster's workers
+    (``executor``); with a ``store`` (a RunStore) each finished run is written
+    at once and a killed set resumes without redoing them.  A seed draws the
+    same photons wherever it runs (Engine.run's fixed launch shape), so the
+    merged result does not depend on the number of workers.
 
     Parameters
     ----------
@@ -311,16 +372,16 @@ def simulate_halfspace(medium, photons_per_run, runs=4, seed=1, engine="auto", p
     photons_per_run : photons launched per run
     runs : number of independent runs (>= 2 for a spread-based standard error)
     seed : first seed
-    engine : "auto", "mcxcl", "mcx" or a loaded Engine
+    engine : "auto", "mcxcl", "mcx" (or a loaded Engine: its name is used)
+    executor, store, threads : as :func:`fluoguide.runs.run_tasks`
     """
-    if not (isinstance(runs, (int, np.integer)) and 1 <= runs <= 1000):
-        raise FluoInputError("must be a whole number from 1 to 1000", field="runs", value=runs)
-    seed = check_seed(seed)
-    eng = load_engine(engine) if isinstance(engine, str) else engine
-    out = []
-    for i in range(runs):
-        check_cancel(cancel)
-        report(progress, i / runs, f"Monte Carlo run {i + 1}/{runs}")
-        out.append(run_halfspace(medium, photons_per_run, seed + i, eng))
+    from fluoguide.runs.engine import run_tasks
+
+    tasks = halfspace_tasks(medium, photons_per_run, runs, seed, engine)
+    out = run_tasks(tasks, store=store, executor=executor, threads=threads, progress=progress,
+                    cancel=cancel, label="Monte Carlo half-space")
+    arrays_of = store.arrays if store is not None else (lambda rec: rec.get("_arrays") or {})
+    merged = merge_halfspace(medium, runs_of_records(out["records"], arrays_of))
+    merged["executor"] = {k: out[k] for k in ("executor", "workers", "computed", "reused")}
     report(progress, 1.0, "Monte Carlo done")
-    return merge_halfspace(medium, out)
+    return merged

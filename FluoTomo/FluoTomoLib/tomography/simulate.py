@@ -226,7 +226,8 @@ def simulate_mc(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pc
     mc = mc_acquisition(remap[lm.labels_kji], lm.ijk_to_ras, ox, om, sources_ras, detectors_ras,
                         {k + 1: ys[k] for k in range(len(labels))}, photons=photons,
                         seed=int(seed) + 1, runs=2, engine="auto", progress=progress,
-                        cancel=cancel)
+                        cancel=cancel, executor=settings.get("executor"),
+                        store=settings.get("mc_store"), threads=settings.get("threads", 1))
     A = float(robin_A(optics.n, optics.boundary))
     clean = 2.0 * A * mc["emission"]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -243,9 +244,13 @@ def simulate_mc(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pc
                      "more photons are needed for them")
     info = {"engine": "mc", "mc_engine": mc["engine"], "device": mc["device"],
             "photons_per_run": photons, "runs": mc["runs"], "seeds": mc["seeds"],
+            "mc_executor": mc["executor"],
             "robin_A": A, "domain": "the label map's voxels",
             "photon_noise_pct": {"median": float(100 * np.median(rel_se)),
                                  "max": float(100 * np.max(rel_se))},
+            # per pair (sources x detectors), same units as the data: what a grader
+            # compares a model's data against, with the photon noise it must allow
+            "photon_se": (2.0 * A * mc["emission_se"]).tolist(),
             "mesh_warnings": notes, "seconds": time.perf_counter() - t0}
     noisy = add_noise(clean, noise_pct, np.random.default_rng(seed))
     return {"data": noisy, "clean": clean, "info": info}
@@ -257,7 +262,7 @@ ENGINES = {"fem": simulate_fem, "mc": simulate_mc}
 def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors_ras=None,
                          scan=None, noise_pct=1.0, seed=0, engine="fem", exclude_mm=None,
                          accuracy="balanced", simulate_mm=None, target=None, photons=None,
-                         progress=None, cancel=None):
+                         progress=None, cancel=None, executor=None, mc_store=None, threads=1):
     """A simulated acquisition of a label map.
 
     Parameters
@@ -274,6 +279,9 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
         (default DEFAULT_SCAN's 3 mm)
     accuracy, simulate_mm : the simulation mesh (accuracy.LEVELS)
     photons : photons per Monte Carlo run (engine "mc"; default MC_PHOTONS)
+    executor, mc_store, threads : engine "mc": where its runs go (a run-engine
+        executor: serial by default, or Dask workers), the RunStore that records
+        each finished run (a killed simulation resumes), threads per run
 
     Returns
     -------
@@ -303,6 +311,7 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
         target = lm.default_target()
     settings = accuracy_settings(accuracy, simulate_mm=simulate_mm)
     settings["target"] = target
+    settings.update(executor=executor, mc_store=mc_store, threads=threads)
     if photons is not None:
         from FluoTomoLib.montecarlo.engine import check_photons
 

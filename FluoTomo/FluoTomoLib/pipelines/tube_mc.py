@@ -1,0 +1,263 @@
+"""The cylinder-tube graded on Monte Carlo data: the honest accuracy figure.
+
+The tube study of :mod:`FluoTomoLib.pipelines.tube` simulates its data with the
+project's own diffusion FEM (on a finer, whole-phantom mesh).  Here the data come
+from photon transport written outside the project (MCX-CL / MCX through
+:mod:`FluoTomoLib.montecarlo`), on the phantom's 0.5 mm voxels, and the same
+sources and detectors are also simulated by the diffusion FEM on the whole
+phantom; both are reconstructed by the public label-map path
+(``reconstruct_labelmap_methods``, as ``fluo tomo reconstruct``) on a 0.8 mm
+label map of the phantom (another discretisation than either simulation).  The
+difference between the two rows of a depth is what the diffusion model's own
+error does to NP / SP / HP.
+
+Layout: a line of ``SOURCES`` laser points across the tube (x = 0, along y,
+``PITCH_MM`` apart) and ``SOURCES + 1`` detectors between and beyond them;
+pairs closer than ``EXCLUDE_MM`` are unused.  The Monte Carlo acquisitions are
+stored in ``FluoTomoLib/montecarlo/data/tube/depth_<d>mm/`` (a CPU needs
+about 15-25 min per depth for ``PHOTONS`` photons x 2 runs per optode);
+``fluo validate mc-tomography --simulate`` regenerates them.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError, seeded_rng
+from fluoguide.progress import check_cancel, report, scaled
+
+SOURCES = 12
+PITCH_MM = 3.0
+EXCLUDE_MM = 3.0
+MC_VOXEL_MM = 0.5          # MCX's grid (cubic voxels); the tube is 2.4 mm across
+RECON_VOXEL_MM = 0.8       # the reconstruction's label map (the demo's CBCT voxel)
+PHOTONS = 100_000
+RUNS = 2
+DEPTHS_MM = (2.7, 4.7, 6.7)
+NOISE_PCT = 1.0            # relative Gaussian noise added to both data sets (same seed)
+STORE = Path(__file__).resolve().parents[1] / "montecarlo" / "data" / "tube"
+
+
+def depth_folder(depth_mm, root=None):
+    return Path(root or STORE) / f"depth_{float(depth_mm):.1f}mm"
+
+
+def optode_line(n_sources=SOURCES, pitch_mm=PITCH_MM):
+    """Sources (S, 3) and detectors (S + 1, 3) on the liquid surface (z = 0), RAS mm."""
+    ys = (np.arange(n_sources) - 0.5 * (n_sources - 1)) * pitch_mm
+    yd = (np.arange(n_sources + 1) - 0.5 * n_sources) * pitch_mm
+    src = np.stack([np.zeros_like(ys), ys, np.zeros_like(ys)], axis=1)
+    det = np.stack([np.zeros_like(yd), yd, np.zeros_like(yd)], axis=1)
+    return src, det
+
+
+def tube_scene(depth_mm, voxel_mm):
+    """(LabelMap, Optics, {2: true yield}, truth) of the cylinder-tube phantom."""
+    from fluoguide.phantoms import cylinder_tube
+    from FluoTomoLib.tomography import LabelMap, optics_from_phantom
+
+    ph = cylinder_tube(voxel_mm=voxel_mm, depth_mm=depth_mm)
+    truth = ph.truth()
+    optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
+    lm = LabelMap(ph.labels, ph.spacing_mm, ph.origin_mm,
+                  source=f"cylinder-tube {voxel_mm:g} mm voxels, depth {depth_mm:g} mm")
+    return lm, optics_from_phantom(optics), {2: float(optics[2]["yield_per_mm"])}, truth
+
+
+def mc_seed(depth_mm):
+    """The acquisition seed of a depth (the stored sets': 1, 1001, 2001)."""
+    d = round(float(depth_mm), 1)
+    if d in DEPTHS_MM:
+        return 1 + 1000 * DEPTHS_MM.index(d)
+    return 100_001 + int(round(1000 * d))
+
+
+def simulate_tube(depth_mm, engine="mc", photons=PHOTONS, seed=None, accuracy="fine",
+                  progress=None, cancel=None, executor=None, mc_store=None, threads=1):
+    """Simulate the tube's acquisition (no added noise) with Monte Carlo on 0.5 mm
+    voxels (``engine="mc"``) or the diffusion FEM on a mesh of the whole phantom
+    (``engine="fem"``, ``accuracy``).  Returns (Acquisition, info)."""
+    from FluoTomoLib.tomography import simulate_acquisition
+
+    lm, optics, yields, _ = tube_scene(depth_mm, MC_VOXEL_MM)
+    src, det = optode_line()
+    kw = dict(photons=photons, executor=executor, mc_store=mc_store, threads=threads) \
+        if engine == "mc" else dict(accuracy=accuracy)
+    # the acquisition's seed; the MC engine seeds its runs from seed + 1 on
+    # (tomography.simulate_mc), so the stored sets' runs start at 2, 1002, 2002
+    seed = mc_seed(depth_mm) if seed is None else seed
+    return simulate_acquisition(lm, optics, yields, src, det, noise_pct=0.0, seed=seed,
+                                engine=engine, exclude_mm=EXCLUDE_MM, target=2,
+                                progress=progress, cancel=cancel, **kw)
+
+
+def _errors(result, truth_yield, depth_mm, lm):
+    """Yield and centroid errors of one method's result (the target label 2)."""
+    s = result["summary"]
+    reg = s["regions"]["2"]
+    cen = s.get("target_centroid_ras_mm")
+    row = {"yield_per_mm": reg["yield_per_mm"],
+           "yield_error_pct": 100.0 * (reg["yield_per_mm"] - truth_yield) / truth_yield,
+           "peak_yield_per_mm": s["peak_yield_per_mm"],
+           "peak_error_pct": 100.0 * (s["peak_yield_per_mm"] - truth_yield) / truth_yield,
+           "centroid_depth_mm": None if cen is None else -float(cen[2]),
+           "warnings": list(s["warnings"]), "iterations": s["solver"]["iterations"]}
+    row["centroid_error_pct"] = None if cen is None else \
+        100.0 * (row["centroid_depth_mm"] - depth_mm) / depth_mm
+    return row
+
+
+def grade_depth(depth_mm, mc_acquisition, fem_acquisition=None, methods=("NP", "SP", "HP"),
+                accuracy="fast", noise_pct=NOISE_PCT, seed=0, progress=None, cancel=None):
+    """Reconstruct one depth from Monte Carlo data and from diffusion-FEM data of the
+    same optodes (simulated here on the whole phantom unless given), on the 0.8 mm
+    label map, and return the errors side by side.
+
+    Both data sets get the same relative Gaussian noise (``noise_pct``, same seed)
+    on top of what they carry (the Monte Carlo's photon noise).
+    """
+    from FluoTomoLib.tomography import reconstruct_labelmap_methods
+    from FluoTomoLib.tomography.simulate import add_noise
+
+    t0 = time.perf_counter()
+    lm, optics, yields, _ = tube_scene(depth_mm, RECON_VOXEL_MM)
+    truth_yield = yields[2]
+    if fem_acquisition is None:
+        report(progress, 0.0, f"diffusion FEM data, depth {depth_mm:g} mm (whole phantom)")
+        fem_acquisition, _ = simulate_tube(depth_mm, "fem", progress=scaled(
+            progress, 0.0, 0.3, "FEM data"), cancel=cancel)
+    rows = {}
+    for k, (name, acq) in enumerate((("diffusion FEM", fem_acquisition),
+                                     ("Monte Carlo", mc_acquisition))):
+        check_cancel(cancel)
+        data = acq.data.copy()
+        acq = type(acq)(acq.sources_ras_mm, acq.detectors_ras_mm,
+                        np.where(acq.mask, add_noise(data, noise_pct, seeded_rng(seed)), 0.0),
+                        acq.mask, acq.units, dict(acq.meta))
+        solved = reconstruct_labelmap_methods(
+            lm, optics, acq, methods, target=2, accuracy=accuracy,
+            progress=scaled(progress, 0.3 + 0.35 * k, 0.65 + 0.35 * k, f"{name} data"),
+            cancel=cancel)
+        rows[name] = {m: _errors(r, truth_yield, depth_mm, lm) for m, r in solved.items()}
+    return {"depth_mm": float(depth_mm), "true_yield_per_mm": truth_yield,
+            "noise_pct": noise_pct, "accuracy": accuracy, "rows": rows,
+            "seconds": time.perf_counter() - t0}
+
+
+def regenerate_command(depth_mm, photons=PHOTONS):
+    """The command that makes a depth's Monte Carlo acquisition (as stored)."""
+    return (f"fluo validate mc-tomography --simulate --depths {float(depth_mm):g} --photons "
+            f"{int(photons)} --out DIR (writes DIR/mc/{depth_folder(depth_mm, '.').name})")
+
+
+def read_stored(depth_mm, root=None):
+    """The stored Monte Carlo acquisition of a depth (refused with the command that
+    makes it when it is missing)."""
+    from FluoTomoLib.tomography import read_acquisition
+
+    folder = depth_folder(depth_mm, root)
+    if not (folder / "acquisition.json").is_file():
+        raise FluoInputError("no Monte Carlo acquisition for this depth (make it with "
+                             "fluo validate mc-tomography --simulate --depths "
+                             f"{float(depth_mm):g} --out DIR)", file=str(folder),
+                             field="depth_mm", value=float(depth_mm))
+    return read_acquisition(folder)
+
+
+def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=PHOTONS,
+                     out_dir=None, methods=("NP", "SP", "HP"), accuracy="fast", executor=None,
+                     threads=1, resume=False, progress=None, cancel=None):
+    """NP / SP / HP of the cylinder-tube from Monte Carlo data next to diffusion data.
+
+    ``simulate``: run the Monte Carlo here (its runs on ``executor``, recorded in
+    ``out_dir/mc_runs/`` and resumable), writing the acquisitions to
+    ``out_dir/mc/``; otherwise read the stored ones (``mc_root``, default
+    :data:`STORE`).  Returns the rows (depth x data x method) and per-depth details.
+    """
+    from FluoTomoLib.tomography import write_acquisition
+
+    depths = [float(d) for d in depths_mm]
+    if not depths or any(not (2.0 <= d <= 16.0) for d in depths):
+        raise FluoInputError("tube depths must be within 2..16 mm", field="depths_mm",
+                             value=depths_mm)
+    if simulate and out_dir is None:
+        raise FluoInputError("simulating needs an output folder", field="out_dir")
+    acqs, mc_info = {}, {}
+    n = len(depths)
+    for i, d in enumerate(depths):          # inputs first: a missing set fails before work
+        if not simulate:
+            acqs[d] = read_stored(d, mc_root)
+            mc_info[d] = acqs[d].meta.get("simulation", {})
+    rows, details = [], []
+    for i, d in enumerate(depths):
+        check_cancel(cancel)
+        lo, hi = i / n, (i + 1) / n
+        if simulate:
+            from fluoguide.runs.store import RunStore
+
+            store = RunStore(Path(out_dir) / "mc_runs" / depth_folder(d).name, resume=resume)
+            acq, info = simulate_tube(d, "mc", photons, executor=executor, mc_store=store,
+                                      threads=threads,
+                                      progress=scaled(progress, lo, lo + 0.5 * (hi - lo),
+                                                      f"Monte Carlo, depth {d:g} mm"),
+                                      cancel=cancel)
+            info["regenerate"] = regenerate_command(d, photons)
+            write_acquisition(depth_folder(d, Path(out_dir) / "mc"), acq, simulation=info)
+            acqs[d], mc_info[d] = acq, info
+            lo = lo + 0.5 * (hi - lo)
+        g = grade_depth(d, acqs[d], methods=methods, accuracy=accuracy,
+                        progress=scaled(progress, lo, hi, f"depth {d:g} mm"), cancel=cancel)
+        info = mc_info[d]
+        g["mc"] = {k: info.get(k) for k in ("photons_per_run", "runs", "photon_noise_pct",
+                                            "mc_engine", "device", "seconds", "regenerate")}
+        details.append(g)
+        for data_name, per_method in g["rows"].items():
+            for m, r in per_method.items():
+                rows.append({"depth_mm": d, "data": data_name, "method": m,
+                             "yield_error_pct": r["yield_error_pct"],
+                             "peak_error_pct": r["peak_error_pct"],
+                             "centroid_error_pct": r["centroid_error_pct"],
+                             "yield_per_mm": r["yield_per_mm"],
+                             "centroid_depth_mm": r["centroid_depth_mm"],
+                             "iterations": r["iterations"], "warnings": len(r["warnings"])})
+    report(progress, 1.0, "done")
+    return {"rows": rows, "depths": details, "true_yield_per_mm": details[0]["true_yield_per_mm"],
+            "layout": {"sources": SOURCES, "detectors": SOURCES + 1, "pitch_mm": PITCH_MM,
+                       "exclude_mm": EXCLUDE_MM, "mc_voxel_mm": MC_VOXEL_MM,
+                       "reconstruction_voxel_mm": RECON_VOXEL_MM},
+            "noise_pct": NOISE_PCT, "accuracy": accuracy}
+
+
+def figure(result, path):
+    """Yield and centroid errors against depth, per method, from diffusion and Monte
+    Carlo data (one PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    colours = {"NP": "tab:red", "SP": "tab:orange", "HP": "tab:blue"}
+    for ax, key, label in ((axes[0], "yield_error_pct", "mean yield in the tube, error [%]"),
+                           (axes[1], "centroid_error_pct", "centroid depth, error [%]")):
+        for m, c in colours.items():
+            for data_name, style in (("diffusion FEM", "--o"), ("Monte Carlo", "-s")):
+                pts = [(r["depth_mm"], r[key]) for r in result["rows"]
+                       if r["method"] == m and r["data"] == data_name and r[key] is not None]
+                if pts:
+                    x, y = zip(*pts)
+                    ax.plot(x, y, style, color=c, label=f"{m}, {data_name} data")
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xlabel("tube depth [mm]")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Cylinder-tube reconstructed from Monte Carlo data (solid) and diffusion-FEM "
+                 "data (dashed), same optodes", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return str(path)
