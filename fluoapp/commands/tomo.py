@@ -4,6 +4,7 @@ fluorescence tomography of any label map from the shell
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -166,6 +167,8 @@ def _batch(args):
     atomic.write_text(Path(args.out) / "batch.json", dumps(out))
     if out["failures"]:
         out["_exit_code"] = 1     # every case is written; the batch is not a success
+        print(f"fluo: error: {out['failures']} of {out['tasks']} cases failed (their rows in "
+              f"{Path(args.out) / 'table.csv'} say why)", file=sys.stderr)
     return out
 
 

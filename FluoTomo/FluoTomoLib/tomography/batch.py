@@ -204,6 +204,7 @@ def load_batch(path, methods=None, lam=None, accuracy=None):
         raise FluoInputError(f"the batch has {len(rows)} cases; at most {MAX_TASKS} in one run",
                              file=p, value=len(rows))
     base = p.resolve().parent
+    check_settings(methods, lam, accuracy, where="--")      # the command line's, named so
     # a row's own value, else the command line's, else the file's default
     defaults = check_settings(*(file_defaults.get(k) if v is None else v for k, v in (
         ("methods", methods), ("lambda", lam), ("accuracy", accuracy))), file=p)

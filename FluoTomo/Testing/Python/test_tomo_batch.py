@@ -84,6 +84,7 @@ def test_batch_cli_rows_files_and_a_case_that_fails_when_it_runs(scenes, tmp_pat
     out = tmp_path / "run"
     r = _fluo(["tomo", "batch", str(batch), "--out", str(out), "--accuracy", "fast", "--json"], d)
     assert r.returncode == 1, r.stderr[-3000:]
+    assert r.stderr.strip().splitlines()[-1].startswith("fluo: error: 1 of 3 cases failed")
     doc = json.loads(r.stdout)
     assert doc["tasks"] == 3 and doc["failures"] == 1 and doc["computed"] == 3
     rows = {row["name"]: row for row in doc["rows"]}
@@ -219,3 +220,5 @@ def test_yaml_batch_with_defaults_and_derived_names(scenes, tmp_path):
     cases = load_batch(d / "b.yaml", methods="HP", accuracy="balanced")
     assert [c["methods"] for c in cases] == ["HP", "NP,HP"]
     assert {c["accuracy"] for c in cases} == {"balanced"}
+    with pytest.raises(FluoInputError, match=r"^--lambda: .*\(got -1.0\)$"):
+        load_batch(d / "b.yaml", lam=-1.0)          # the command line's value, named as such
