@@ -5,6 +5,7 @@ A batch file is a CSV with a header, or a JSON / YAML mapping whose ``cases``
 is a list of rows (plus optional ``methods``, ``lambda``, ``accuracy``
 defaults for every row). One row per case::
 
+    # lines starting with '#' are comments
     name,labels,optics,acquisition,methods,target,truth
     p01,p01/labels.nrrd,optics.json,p01/acq,"NP,SP,HP",7,0.0026
     p02,p02/labels.nrrd,optics.json,p02/acq,HP,,
@@ -88,7 +89,9 @@ def _read_rows(path):
         table = list(csv.reader(io.StringIO(text)))
     except csv.Error as exc:
         raise FluoInputError(f"not a CSV file ({exc})", file=p) from None
-    lines = [(n + 1, r) for n, r in enumerate(table) if any(c.strip() for c in r)]
+    # blank lines and comment lines (first cell starting with '#') are not rows
+    lines = [(n + 1, r) for n, r in enumerate(table)
+             if any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
     if not lines:
         raise FluoInputError("the batch file is empty (expected a header and one row per case)",
                              file=p)

@@ -120,7 +120,10 @@ def test_batch_cli_rows_files_and_a_case_that_fails_when_it_runs(scenes, tmp_pat
 
 
 def test_batch_resumes_computing_only_the_missing_case(scenes, tmp_path):
-    cases = load_batch(_batch(scenes["dir"], GOOD, "resume.csv"), accuracy="fast")
+    batch = _batch(scenes["dir"], GOOD + ["# c,labels.nrrd,optics.json,acq1,HP,,\n"],
+                   "resume.csv")                          # a comment line is not a case
+    cases = load_batch(batch, accuracy="fast")
+    assert [c["name"] for c in cases] == ["a", "b"]
     first = run_batch(cases, tmp_path / "run")
     assert first["computed"] == 2 and first["failures"] == 0
     cols, rows1 = read_table(tmp_path / "run" / "table.csv")
@@ -143,9 +146,11 @@ def test_batch_resumes_computing_only_the_missing_case(scenes, tmp_path):
     assert changed[0]["inputs_sha1"] != cases[0]["inputs_sha1"]
 
 
+@pytest.mark.slow
 def test_batch_gives_the_same_table_serially_and_on_two_workers(scenes, tmp_path):
     """Real CLI, serial and on a 2-worker local cluster (12.5 s in all on a quiet
-    machine: fast): the stable columns of the tables and the volumes are identical."""
+    2-core machine, 24 s loaded: slow): the stable columns of the tables and the
+    volumes are identical."""
     d = scenes["dir"]
     batch = _batch(d, GOOD, "workers.csv")
     runs = {}
