@@ -53,12 +53,12 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 def _read_rows(path):
     """(rows, defaults, where) of a batch file: rows as dicts of raw values and
     ``where(i)`` naming row i for messages (CSV: its line)."""
-    from fluoguide.runs.grid import MAX_FILE_BYTES, load_study_file
+    from fluoguide.runs.grid import load_study_file, read_small_text
 
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix in (".json", ".yaml", ".yml"):
-        doc = load_study_file(p)
+        doc = load_study_file(p, "batch file")
         unknown = [k for k in doc if k not in ("cases",) + FILE_DEFAULTS]
         if unknown:
             raise FluoInputError(f"unknown key (expected cases, {', '.join(FILE_DEFAULTS)})",
@@ -76,15 +76,7 @@ def _read_rows(path):
     if suffix != ".csv":
         raise FluoInputError("a batch file ends in .csv, .json, .yaml or .yml", file=p,
                              value=p.suffix)
-    if not p.is_file():
-        raise FluoInputError("batch file not found", file=p)
-    if p.stat().st_size > MAX_FILE_BYTES:
-        raise FluoInputError("batch file is larger than 1 MiB", file=p, value=p.stat().st_size)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FluoInputError(f"cannot read the batch file ({exc.__class__.__name__})",
-                             file=p) from None
+    text = read_small_text(p, "batch file", encoding="utf-8-sig")     # a spreadsheet's BOM
     try:
         table = list(csv.reader(io.StringIO(text)))
     except csv.Error as exc:
@@ -279,11 +271,12 @@ def load_batch(path, methods=None, lam=None, accuracy=None):
         if name is not None and not _NAME.match(str(name)):
             raise FluoInputError("a case name is 1-64 letters, digits, '.', '_' or '-' (it "
                                  "names a folder)", file=p, field=f"{at}, name", value=name)
-        for q in (lab_path, opt_path, acq_path):
+        # an acquisition.json names its data files inside its folder: hash the folder
+        hashed = (lab_path, opt_path, acq_path.parent if acq_path.is_file() else acq_path)
+        for q in hashed:
             if q not in digests:
                 digests[q] = _digest(q)
-        sha = hashlib.sha1("".join(digests[q] for q in (lab_path, opt_path, acq_path))
-                           .encode()).hexdigest()[:16]
+        sha = hashlib.sha1("".join(digests[q] for q in hashed).encode()).hexdigest()[:16]
         cases.append({"name": None if name is None else str(name), "_derived": _derived(
             lab_path, acq_path), "_at": at, "labels": str(lab_path), "optics": str(opt_path),
             "acquisition": str(acq_path), "methods": ",".join(m), "lambda": lam_i,

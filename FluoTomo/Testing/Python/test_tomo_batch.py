@@ -198,7 +198,7 @@ def test_bad_batch_files_exit_2_with_one_line_and_write_nothing(scenes, tmp_path
         "dup.json": (json.dumps({"cases": [{"name": "x", "labels": "labels.nrrd", "optics":
                                             "optics.json", "acquisition": "acq1"}] * 2}),
                      "cases[1], name: duplicate"),
-        "list.yaml": ("- labels: labels.nrrd\n", "a study file holds a mapping"),
+        "list.yaml": ("- labels: labels.nrrd\n", "a batch file holds a mapping"),
     }
     for name, (text, needle) in cases.items():
         (d / name).write_text(text)
