@@ -1,5 +1,5 @@
 """Command-line options of every command that runs many tasks on the run engine
-(``fluo study`` today; ``fluo tomo batch`` and Monte Carlo photon budgets next).
+(``fluo study`` and ``fluo tomo batch``; Monte Carlo photon budgets next).
 
 ``--workers [N|auto]`` runs on an embedded local Dask cluster (``auto``, the
 default when the option has no value: as many workers as the machine has cores

@@ -31,7 +31,8 @@ without one is listed as a failure ("no base invocation"), never skipped. A
 command that serves until stopped goes in ``SERVES`` (it passes once it prints
 its address). An option whose kind the name does not tell goes in ``KINDS``.
 
-Run it alone for a table: ``python Testing/Python/fuzz_cli.py [--only CMD] [-j 2]``.
+Run it alone for a table: ``python Testing/Python/fuzz_cli.py [--only CMD] [-j 2]``
+(``--only tomo`` fuzzes every tomo subcommand, ``--only "tomo batch"`` one).
 ``test_fuzz_cli.py`` runs it under pytest (slow).
 """
 
@@ -254,6 +255,15 @@ def _own_scene(f, fx):
            str(d / "optics.json"), "--yield", "7:0.0026", "--accuracy", "fast", "--out",
            str(d / "acq")], f)
     fx.update(own_labels=d / "labels.nrrd", own_optics=d / "optics.json", own_acq=d / "acq")
+    # fluo tomo batch: one case (HP) on those inputs, and batch files that must be refused
+    head = "name,labels,optics,acquisition,methods,truth\n"
+    for name, row in (("batch", "own,labels.nrrd,optics.json,acq,HP,0.0026"),
+                      ("batch_escape", "own,../../../etc/passwd,optics.json,acq,HP,"),
+                      ("batch_nan_truth", "own,labels.nrrd,optics.json,acq,HP,nan"),
+                      ("batch_dup", "own,labels.nrrd,optics.json,acq,HP,\n"
+                                    "own,labels.nrrd,optics.json,acq,SP,")):
+        (d / f"{name}.csv").write_text(head + row + "\n")
+        fx[f"own_{name}"] = d / f"{name}.csv"
 
 
 # ----------------------------------------------------------------- declarations
@@ -296,6 +306,7 @@ BASES = {
                           "--yield 7:0.0026 --accuracy fast --seed 1 --out {out}",
     ("tomo", "reconstruct"): "tomo reconstruct --labels {own_labels} --optics {own_optics} "
                              "--acquisition {own_acq} --accuracy fast --method HP --out {out}",
+    ("tomo", "batch"): "tomo batch {own_batch} --accuracy fast --out {out}",
     ("validate", "mc"): "validate mc --mc-in {mc_halfspace} --mesh-level test --boundary fresnel "
                         "--out {out}",
     ("validate", "mc-fluorescence"): "validate mc-fluorescence --mc-in {mc_fluorescence} "
@@ -325,7 +336,8 @@ KINDS = {"--board": "str", "--roi": "str", "--refine": "str", "--rho": "str", "-
          "--allow-origin": "str", "--workspace": "outdir", "--frames": "indir",
          "name": "str", "study": "str", "--sweep": "str", "--scheme": "str", "--hp-basis": "str",
          "--labels": "inpath", "--optics": "inpath", "--acquisition": "indir",
-         "--yield": "str", "--engine": "str", "--accuracy": "str", "--data-model": "str"}
+         "--yield": "str", "--engine": "str", "--accuracy": "str", "--data-model": "str",
+         "batch": "inpath", "--methods": "str"}
 
 HOSTILE = {
     "float": ["nan", "inf", "-inf", "-1", "0", "1e300"],
@@ -352,6 +364,9 @@ REFUSE_ALSO = {
     (("demo",), "--only"): ["bogus"],
     (("mesh",), "--refine"): ["sphere:0,0,0,5,1"],      # the base uses --fast: not applied
     (("track",), "--tools"): ["3"],                      # --sim: not applied
+    # batch files naming a path outside their folder, a NaN truth, one name twice
+    (("tomo", "batch"), "batch"): ["{own_batch_escape}", "{own_batch_nan_truth}",
+                                   "{own_batch_dup}"],
 }
 
 # Whole invocations of issue #21 that need another base: (command words, what,
@@ -454,7 +469,8 @@ def _positional_index(parser, argv, ncmd, dest):
 def make_cases(only=None):
     cases = []
     for path, (parser, opts) in sorted(command_options().items()):
-        if only and path[0] not in only:
+        # "tomo" fuzzes every tomo subcommand, "tomo batch" that one
+        if only and not any((" ".join(path) + " ").startswith(o.strip() + " ") for o in only):
             continue
         base = BASES.get(path)
         if base is None:
@@ -484,7 +500,7 @@ def make_cases(only=None):
                 cases.append(Case(path, opt, value, argv + json_flag,
                                   must_refuse=refuse_only or value in refuse))
     for path, what, argv, refuse in SPECIAL:
-        if not only or path[0] in only:
+        if not only or any((" ".join(path) + " ").startswith(o.strip() + " ") for o in only):
             cases.append(Case(path, what, "-", shlex.split(argv) + ["--json"], must_refuse=refuse))
     return cases
 

@@ -1,9 +1,12 @@
-"""``fluo tomo simulate`` and ``fluo tomo reconstruct``: fluorescence tomography
-of any label map from the shell (docs/tomography-own-scene.md)."""
+"""``fluo tomo simulate``, ``fluo tomo reconstruct`` and ``fluo tomo batch``:
+fluorescence tomography of any label map from the shell
+(docs/tomography-own-scene.md; the batch runs on the run engine, docs/scale.md)."""
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 from fluoapp.cli import add_json_flag, cli_group
 from fluoapp.runopts import add_run_options, check_run_options, executor_for
@@ -163,6 +166,32 @@ def _reconstruct(args):
     return summary
 
 
+def _batch(args):
+    from FluoTomoLib.tomography.batch import load_batch, run_batch
+
+    from fluoguide import atomic
+    from fluoguide.jsonable import dumps
+
+    t0 = time.perf_counter()
+    threads = check_run_options(args)
+    # every row and input checked, and the output folder, before any work or writing
+    cases = load_batch(args.batch, methods=args.methods, lam=args.lam, accuracy=args.accuracy)
+    atomic.check_writable(args.out, "--out", folder=True)
+    with TqdmProgress("tomo batch") as bar, executor_for(args, threads) as ex:
+        out = run_batch(cases, args.out, executor=ex, threads=threads, resume=args.resume,
+                        progress=bar)
+    # seconds: the whole command (checks, cluster start and stop, files); run_seconds:
+    # the run engine's part (the tasks, and writing their records)
+    out = {"batch": str(args.batch), "out": str(args.out), **out,
+           "run_seconds": out["seconds"], "seconds": time.perf_counter() - t0}
+    atomic.write_text(Path(args.out) / "batch.json", dumps(out))
+    if out["failures"]:
+        out["_exit_code"] = 1     # every case is written; the batch is not a success
+        print(f"fluo: error: {out['failures']} of {out['tasks']} cases failed (their rows in "
+              f"{Path(args.out) / 'table.csv'} say why)", file=sys.stderr)
+    return out
+
+
 def register(subparsers):
     tomo = cli_group(subparsers, "tomo", "fluorescence tomography of any label map: simulate "
                      "an acquisition, reconstruct the yield")
@@ -256,3 +285,29 @@ def register(subparsers):
                    "reconstruction.json)")
     add_json_flag(p)
     p.set_defaults(func=_reconstruct)
+
+    p = tomo.add_parser(
+        "batch", help="reconstruct many (label map, optics, acquisition) cases: yield volumes "
+        "and one table (serially or on Dask)",
+        description="A batch file (CSV with a header, or JSON/YAML with 'cases': a list) names "
+        "one case per row: labels, optics, acquisition (paths relative to the batch file's "
+        "folder, inside it), optional name, methods, lambda, accuracy, target and truth (the "
+        "target's true yield [1/mm]: the table then carries the errors). Every row and input is "
+        "checked before any work; each case runs all its methods on one model (one mesh, one "
+        "Jacobian). Writes OUT/table.csv (one row per case, as each finishes; --resume "
+        "continues a killed run), OUT/cases/NAME/METHOD/yield.nrrd + reconstruction.json and "
+        "OUT/batch.json. Exit 1 when a case failed (its row says why), 2 on bad input "
+        "(docs/scale.md, docs/tomography-own-scene.md).")
+    p.add_argument("batch", help="batch file (.csv, .json, .yaml, .yml)")
+    p.add_argument("--methods", default=None, metavar="NP,SP,HP",
+                   help="methods of the cases that name none (default NP,SP,HP)")
+    p.add_argument("--lambda", dest="lam", type=float, default=None,
+                   help="regularisation lambda of the cases that name none (default 10)")
+    p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default=None,
+                   help="accuracy of the cases that name none (default balanced): "
+                   + ACCURACY_HELP.replace("accuracy level (default %(default)s): ", ""))
+    p.add_argument("--out", required=True, help="run folder (table.csv, tasks/, cases/, "
+                   "batch.json)")
+    add_run_options(p)
+    add_json_flag(p)
+    p.set_defaults(func=_batch)

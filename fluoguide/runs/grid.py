@@ -55,21 +55,30 @@ def convert(value, field, kind, file=None):
     return x
 
 
-def load_study_file(path):
-    """The mapping in a JSON (``.json``) or YAML (``.yaml``/``.yml``) study file.
+def read_small_text(path, what="study file", encoding="utf-8"):
+    """The text of a settings file a person wrote (a study or batch file): refused
+    (file named, ``what`` it is) when missing, over MAX_FILE_BYTES or not text."""
+    p = Path(path)
+    if not p.is_file():
+        raise FluoInputError(f"{what} not found", file=p)
+    if p.stat().st_size > MAX_FILE_BYTES:
+        raise FluoInputError(f"{what} is larger than 1 MiB", file=p, value=p.stat().st_size)
+    try:
+        return p.read_text(encoding=encoding)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FluoInputError(f"cannot read the {what} ({exc.__class__.__name__})",
+                             file=p) from None
+
+
+def load_study_file(path, what="study file"):
+    """The mapping in a JSON (``.json``) or YAML (``.yaml``/``.yml``) study file
+    (or another settings file: ``what`` names it in messages).
 
     Raises FluoInputError (file named) when the file is missing, too large, not
     parseable, or not a mapping with text keys.
     """
     p = Path(path)
-    if not p.is_file():
-        raise FluoInputError("study file not found", file=p)
-    if p.stat().st_size > MAX_FILE_BYTES:
-        raise FluoInputError("study file is larger than 1 MiB", file=p, value=p.stat().st_size)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FluoInputError(f"cannot read the study file ({exc.__class__.__name__})", file=p) from None
+    text = read_small_text(p, what)
     suffix = p.suffix.lower()
     if suffix == ".json":
         from fluoguide.jsonable import read_json
@@ -85,9 +94,9 @@ def load_study_file(path):
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
             raise FluoInputError(f"not valid YAML{where}", file=p) from None
     else:
-        raise FluoInputError("a study file ends in .json, .yaml or .yml", file=p, value=p.suffix)
+        raise FluoInputError(f"a {what} ends in .json, .yaml or .yml", file=p, value=p.suffix)
     if not isinstance(doc, dict) or not doc:
-        raise FluoInputError("a study file holds a mapping of settings (name: value or list)",
+        raise FluoInputError(f"a {what} holds a mapping of settings (name: value or list)",
                              file=p, value=type(doc).__name__)
     for k in doc:
         if not isinstance(k, str):

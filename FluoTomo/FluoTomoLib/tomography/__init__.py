@@ -12,6 +12,7 @@ Modules
 - ``model``: The reconstruction mesh and model of a label map, with the tube study's accuracy machinery for any target label.
 - ``simulate``: Simulated acquisitions of a label map: the scan, the engines, the noise.
 - ``reconstruct``: Reconstruction of fluorescence yield on a user's label map.
+- ``batch``: Many own scenes at once: a batch file of cases on the run engine.
 """
 
 from fluoguide.lazy import attach
@@ -30,4 +31,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
                  "simulate_fem", "simulate_acquisition"],
     "reconstruct": ["reconstruct_labelmap", "reconstruct_labelmap_methods", "nodal_to_grid",
                     "write_reconstruction"],
+    "batch": ["load_batch", "reconstruct_case", "batch_tasks", "run_batch",
+              "write_case_outputs"],
 })
