@@ -72,3 +72,13 @@ def test_quick_demo_end_to_end(tmp_path):
     assert mapping["independent: miss rate corrected % (guard)"] < 5
     assert mapping["independent: visible pixels corrected (guard)"] >= 0.5
     assert (tmp_path / "q" / "mapping_mismatch.png").is_file()
+    # the tube from stored Monte Carlo data (photon transport written outside the
+    # project) beside diffusion data of the same optodes: HP from MC data measured
+    # -12.1 % (diffusion data -6.5 %) at 4.7 mm; 25 % is its bound here
+    mc = metrics["tomography_mc"]
+    assert mc["depths [mm]"] == [4.7]
+    hp_mc = mc["HP from Monte Carlo data: tube yield error % per depth"][0]
+    np_mc = mc["NP from Monte Carlo data: tube yield error % per depth"][0]
+    assert abs(hp_mc) < 25 and abs(hp_mc) < abs(np_mc)
+    assert len(mc["HP from diffusion FEM data: tube yield error % per depth"]) == 1
+    assert (tmp_path / "q" / "tomography_mc.png").is_file()

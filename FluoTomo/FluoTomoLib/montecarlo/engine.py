@@ -114,6 +114,8 @@ class Engine:
     device : the compute device in words (e.g. "OpenCL pthread-skylake-avx512-AMD EPYC, 2 cores")
     """
 
+    fixed_launch = False       # MCX-CL on a CPU: see run()
+
     def __init__(self, name, module, version, device, gpuid=1):
         self.name = name
         self.module = module
@@ -130,13 +132,14 @@ class Engine:
         where saved) whatever the binding returns."""
         cfg = dict(cfg)
         cfg.setdefault("gpuid", self.gpuid)
-        if self.name == "mcxcl" and cfg.get("autopilot", 1):
+        if self.fixed_launch and cfg.get("autopilot", 1):
             # A fixed launch shape instead of MCX's autopilot: MCX seeds each work item
             # from the run's seed, and autopilot sizes the launch from the device's
             # compute units, so the same seed drew other photons on a 1-core worker
             # than on the 2-core serial loop (measured).  Fixed, a seed gives the same
             # photons on any CPU count (the fluence then differs only in the float
             # atomics' summation order, ~1e-6 relative) and the time is the same.
+            # CPU devices only (pocl): a GPU needs far more work items than this.
             cfg.update(autopilot=0, nthread=MCXCL_THREADS, nblocksize=MCXCL_BLOCK)
         with _lock, _quiet_fd1() as log:
             try:
@@ -226,6 +229,8 @@ def _opencl_engine():
     dev = f"OpenCL {g.get('name', 'device')}, {g.get('core', '?')} compute units"
     eng = Engine("mcxcl", pmcxcl, version, dev, gpuid=1)
     eng.preloaded = preload
+    # pocl's CPU device ("pthread-..." before pocl 5, "cpu-..." after)
+    eng.fixed_launch = str(g.get("name", "")).lower().startswith(("pthread", "cpu"))
     return eng
 
 

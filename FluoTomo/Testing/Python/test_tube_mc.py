@@ -35,8 +35,8 @@ def test_stored_monte_carlo_acquisitions_are_what_the_regeneration_makes():
     for d in tube_mc.DEPTHS_MM:
         acq = tube_mc.read_stored(d)
         sim = acq.meta["simulation"]
-        np.testing.assert_allclose(acq.sources_ras_mm, src, atol=1e-6)
-        np.testing.assert_allclose(acq.detectors_ras_mm, det, atol=1e-6)
+        np.testing.assert_allclose(acq.sources_ras_mm, src, atol=1e-3)   # placed on the surface
+        np.testing.assert_allclose(acq.detectors_ras_mm, det, atol=1e-3)
         S, D = len(src), len(det)
         first = tube_mc.mc_seed(d) + 1
         assert sim["seeds"] == list(range(first, first + 2 * (S + D)))
