@@ -28,7 +28,7 @@ demo-quick: $(STAMP)
 TEST_THREADS := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 
 test: $(STAMP)
-	$(TEST_THREADS) $(PY) -m pytest -q
+	$(TEST_THREADS) $(PY) -m pytest -q --durations=30
 
 test-fast: $(STAMP)
 	$(TEST_THREADS) $(PY) -m pytest -q -m "not slow and not browser"
