@@ -196,6 +196,13 @@ def _pack_scene(geo, rows_x, rows_m, gamma):
             "rows_m": [list(r) for r in rows_m], "gamma": [float(v) for v in gamma]}
 
 
+def _fluorescing(geo, gamma):
+    """Flat indices of the voxels with a yield > 0, and their yields [1/mm]."""
+    y = gamma[geo.labels_ijk].ravel()
+    glow = np.flatnonzero(y > 0)
+    return glow, y[glow]
+
+
 def scene_input(packed):
     """Shared input: the Monte Carlo scene (geometry, media, the fluorescing voxels)."""
     import base64
@@ -207,13 +214,12 @@ def scene_input(packed):
     M[:3, :3] = np.asarray(packed["R"]) * packed["h"]
     M[:3, 3] = packed["origin"]
     geo = LabelMapGeometry(np.transpose(lab_ijk, (2, 1, 0)), M)
-    gamma = np.asarray(packed["gamma"], float)
-    glow = np.flatnonzero(gamma[geo.labels_ijk].ravel() > 0)
+    glow, yield_glow = _fluorescing(geo, np.asarray(packed["gamma"], float))
     return {"geo": geo, "rows_x": [tuple(r) for r in packed["rows_x"]],
             "rows_m": [tuple(r) for r in packed["rows_m"]],
             "mua_x": np.array([0.0] + [r[0] for r in packed["rows_x"]]),
             "mua_m": np.array([0.0] + [r[0] for r in packed["rows_m"]]),
-            "glow": glow, "yield_glow": gamma[geo.labels_ijk].ravel()[glow]}
+            "glow": glow, "yield_glow": yield_glow}
 
 
 def detector_task(params, scene):
@@ -374,7 +380,7 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
             ex[p["repeat"], p["index"]] = a["excitation"]
             if rec["result"].get("exit_records_full"):
                 warnings.append("exit records hit their limit; excitation data may be low")
-    yg = scene_input(packed)["yield_glow"] * geo.h ** 3
+    yg = _fluorescing(geo, gamma)[1] * geo.h ** 3
     em = np.zeros((runs, S, D))
     for r in range(runs):
         for s in range(S):

@@ -154,8 +154,9 @@ def regenerate_command(depth_mm, photons=PHOTONS):
 
 
 def read_stored(depth_mm, root=None):
-    """The stored Monte Carlo acquisition of a depth (refused with the command that
-    makes it when it is missing)."""
+    """The stored Monte Carlo acquisition of a depth, checked to be that depth's: the
+    optode line of :func:`optode_line` and ``tube_depth_mm`` in its simulation record
+    (refused with the command that makes it when missing or another scene's)."""
     from FluoTomoLib.tomography import read_acquisition
 
     folder = depth_folder(depth_mm, root)
@@ -164,7 +165,21 @@ def read_stored(depth_mm, root=None):
                              "fluo validate mc-tomography --simulate --depths "
                              f"{float(depth_mm):g} --out DIR)", file=str(folder),
                              field="depth_mm", value=float(depth_mm))
-    return read_acquisition(folder)
+    acq = read_acquisition(folder)
+    sim = acq.meta.get("simulation") or {}
+    made_for = sim.get("tube_depth_mm")
+    if made_for is None or abs(float(made_for) - float(depth_mm)) > 1e-6:
+        raise FluoInputError(f"is not this depth's Monte Carlo acquisition (made for "
+                             f"{made_for} mm; regenerate: {regenerate_command(depth_mm)})",
+                             file=str(folder / "acquisition.json"),
+                             field="simulation.tube_depth_mm", value=made_for)
+    src, det = optode_line()
+    if acq.sources_ras_mm.shape != src.shape or acq.detectors_ras_mm.shape != det.shape or \
+            not (np.allclose(acq.sources_ras_mm, src, atol=1e-3)
+                 and np.allclose(acq.detectors_ras_mm, det, atol=1e-3)):
+        raise FluoInputError("holds other sources or detectors than the tube's optode line",
+                             file=str(folder), field="sources/detectors")
+    return acq
 
 
 def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=PHOTONS,
@@ -205,6 +220,7 @@ def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=
                                                       f"Monte Carlo, depth {d:g} mm"),
                                       cancel=cancel)
             info["regenerate"] = regenerate_command(d, photons)
+            info["tube_depth_mm"] = d
             write_acquisition(depth_folder(d, Path(out_dir) / "mc"), acq, simulation=info)
             acqs[d], mc_info[d] = acq, info
             lo = lo + 0.5 * (hi - lo)

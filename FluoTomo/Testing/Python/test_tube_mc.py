@@ -67,3 +67,17 @@ def test_mc_tomography_refuses_before_any_work(tmp_path):
               "--out", str(out))
     assert r.returncode == 2 and "--mc-in" in r.stderr
     assert not out.exists()
+
+
+def test_another_depths_acquisition_is_refused(tmp_path):
+    """A stored set copied under another depth's name would be graded against the
+    wrong truth with exit 0: it is refused, naming the file and what it was made for."""
+    import shutil
+
+    from fluoguide.errors import FluoInputError
+    from FluoTomoLib.pipelines import tube_mc
+
+    shutil.copytree(tube_mc.depth_folder(4.7), tube_mc.depth_folder(2.7, tmp_path))
+    with pytest.raises(FluoInputError, match="made for 4.7 mm"):
+        tube_mc.read_stored(2.7, tmp_path)
+    assert tube_mc.read_stored(4.7).meta["simulation"]["tube_depth_mm"] == 4.7
