@@ -147,7 +147,8 @@ def _mc(args):
         "medium": medium.metadata()["medium"], "volume_mm": list(medium.size_mm),
         "voxel_mm": medium.voxel_mm, "mc_source": mc_source,
         "photons": merged["photons"], "runs": merged["runs"], "seeds": merged["seeds"],
-        "mc_executor": merged.get("executor"), "device": merged["device"], "engine": merged["engine"],
+        "mc_executor": merged.get("executor"), "device": merged["device"],
+        "engine": merged["engine"],
         "engine_version": merged["engine_version"], "mc_seconds": merged["seconds"],
         "energy": merged["energy"], "A": res["A"], "boundary_default": res["boundary"],
         "agree_within_pct": compare.AGREE_PCT, "agree_from_mm": res["agree_from_mm"],
@@ -304,9 +305,6 @@ def _mc_tomography(args):
     res["figure"] = tube_mc.figure(res, out / "validate_mc_tomography.png")
     _write_csv(out / "validate_mc_tomography.csv", res["rows"], list(res["rows"][0].keys()))
     res["table"] = str(out / "validate_mc_tomography.csv")
-    res["warnings"] = [f"depth {g['depth_mm']:g} mm, {m} from {name} data: {w}"
-                       for g in res["depths"] for name, per in g["rows"].items()
-                       for m, r in per.items() for w in r["warnings"]]
     res["seconds"] = time.perf_counter() - t0
     from fluoguide.jsonable import dumps
 

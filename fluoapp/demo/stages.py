@@ -328,9 +328,7 @@ def stage_tomography_mc(ctx):
         res["depths"][0]["mc"]["photons_per_run"], res["depths"][0]["mc"]["runs"]]
     summary["Monte Carlo photon noise % (median per depth)"] = [
         round(g["mc"]["photon_noise_pct"]["median"], 2) for g in res["depths"]]
-    summary["reconstruction warnings"] = [
-        f"depth {g['depth_mm']:g} mm, {m} from {name} data: {w}" for g in res["depths"]
-        for name, per in g["rows"].items() for m, r in per.items() for w in r["warnings"]]
+    summary["reconstruction warnings"] = res["warnings"]
     ctx.metrics["tomography_mc"] = summary
     ctx.note("tomography_mc", "Both data sets carry the same 1 % Gaussian noise; the Monte "
              "Carlo data also carry their photon noise. The reconstruction (fluo tomo "

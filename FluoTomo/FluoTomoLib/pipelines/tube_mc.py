@@ -240,7 +240,11 @@ def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=
                              "centroid_depth_mm": r["centroid_depth_mm"],
                              "iterations": r["iterations"], "warnings": len(r["warnings"])})
     report(progress, 1.0, "done")
-    return {"rows": rows, "depths": details, "true_yield_per_mm": details[0]["true_yield_per_mm"],
+    # every reconstruction's warnings, where a reader of the JSON sees them
+    warnings = [f"depth {g['depth_mm']:g} mm, {m} from {name} data: {w}" for g in details
+                for name, per in g["rows"].items() for m, r in per.items()
+                for w in r["warnings"]]
+    return {"rows": rows, "depths": details, "warnings": warnings, "true_yield_per_mm": details[0]["true_yield_per_mm"],
             "layout": {"sources": SOURCES, "detectors": SOURCES + 1, "pitch_mm": PITCH_MM,
                        "exclude_mm": EXCLUDE_MM, "mc_voxel_mm": MC_VOXEL_MM,
                        "reconstruction_voxel_mm": RECON_VOXEL_MM},
