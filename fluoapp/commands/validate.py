@@ -267,7 +267,9 @@ def _mc_tomography(args):
 
     from fluoguide.runs.grid import parse_values
 
-    depths = parse_values(args.depths, "--depths") if args.depths else list(tube_mc.DEPTHS_MM)
+    # an empty --depths is a mistake, not "the default depths"
+    depths = parse_values(args.depths, "--depths") if args.depths is not None \
+        else list(tube_mc.DEPTHS_MM)
     for d in depths:
         if not 2.0 <= d <= 16.0:
             raise FluoInputError("tube depths must be within 2..16 mm", field="--depths", value=d)
@@ -276,6 +278,9 @@ def _mc_tomography(args):
         if v is not None and not args.simulate:
             raise FluoInputError("applies when Monte Carlo runs (--simulate)", field=name,
                                  value=v)
+    if args.mc_in is not None and not args.mc_in.strip():
+        raise FluoInputError("needs a folder of depth_<d>mm acquisitions", field="--mc-in",
+                             value=args.mc_in)
     if args.simulate and args.mc_in is not None:
         raise FluoInputError("--simulate makes the Monte Carlo data; --mc-in reads stored ones",
                              field="--mc-in", value=args.mc_in)

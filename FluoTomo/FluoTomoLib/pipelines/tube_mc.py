@@ -42,7 +42,11 @@ STORE = Path(__file__).resolve().parents[1] / "montecarlo" / "data" / "tube"
 
 
 def depth_folder(depth_mm, root=None):
-    return Path(root or STORE) / f"depth_{float(depth_mm):.1f}mm"
+    """``root/depth_<d>mm`` (root None: the stored sets; an empty root is refused)."""
+    if root is not None and not str(root).strip():
+        raise FluoInputError("needs a folder of depth_<d>mm acquisitions", field="mc_root",
+                             value=str(root))
+    return Path(STORE if root is None else root) / f"depth_{float(depth_mm):.1f}mm"
 
 
 def optode_line(n_sources=SOURCES, pitch_mm=PITCH_MM):

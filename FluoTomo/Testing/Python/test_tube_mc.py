@@ -66,6 +66,11 @@ def test_mc_tomography_refuses_before_any_work(tmp_path):
     r = _fluo("validate", "mc-tomography", "--simulate", "--mc-in", str(tmp_path),
               "--out", str(out))
     assert r.returncode == 2 and "--mc-in" in r.stderr
+    # empty values are mistakes, not "the defaults" (the CI fuzz found both running
+    # the whole grading: --depths '' and --mc-in '')
+    for opt in ("--depths", "--mc-in"):
+        r = _fluo("validate", "mc-tomography", opt, "", "--out", str(out))
+        assert r.returncode == 2 and opt in r.stderr, (opt, r.stderr[-300:])
     assert not out.exists()
 
 
