@@ -98,7 +98,7 @@ def simulate_tube(depth_mm, engine="mc", photons=PHOTONS, seed=None, accuracy="f
                                 progress=progress, cancel=cancel, **kw)
 
 
-def _errors(result, truth_yield, depth_mm, lm):
+def _errors(result, truth_yield, depth_mm):
     """Yield and centroid errors of one method's result (the target label 2)."""
     s = result["summary"]
     reg = s["regions"]["2"]
@@ -137,15 +137,15 @@ def grade_depth(depth_mm, mc_acquisition, fem_acquisition=None, methods=("NP", "
     for k, (name, acq) in enumerate((("diffusion FEM", fem_acquisition),
                                      ("Monte Carlo", mc_acquisition))):
         check_cancel(cancel)
-        data = acq.data.copy()
         acq = type(acq)(acq.sources_ras_mm, acq.detectors_ras_mm,
-                        np.where(acq.mask, add_noise(data, noise_pct, seeded_rng(seed)), 0.0),
+                        np.where(acq.mask, add_noise(acq.data, noise_pct, seeded_rng(seed)),
+                                 0.0),
                         acq.mask, acq.units, dict(acq.meta))
         solved = reconstruct_labelmap_methods(
             lm, optics, acq, methods, target=2, accuracy=accuracy,
             progress=scaled(progress, 0.3 + 0.35 * k, 0.65 + 0.35 * k, f"{name} data"),
             cancel=cancel)
-        rows[name] = {m: _errors(r, truth_yield, depth_mm, lm) for m, r in solved.items()}
+        rows[name] = {m: _errors(r, truth_yield, depth_mm) for m, r in solved.items()}
     return {"depth_mm": float(depth_mm), "true_yield_per_mm": truth_yield,
             "noise_pct": noise_pct, "accuracy": accuracy, "rows": rows,
             "seconds": time.perf_counter() - t0}
@@ -165,9 +165,8 @@ def read_stored(depth_mm, root=None):
 
     folder = depth_folder(depth_mm, root)
     if not (folder / "acquisition.json").is_file():
-        raise FluoInputError("no Monte Carlo acquisition for this depth (make it with "
-                             "fluo validate mc-tomography --simulate --depths "
-                             f"{float(depth_mm):g} --out DIR)", file=str(folder),
+        raise FluoInputError(f"no Monte Carlo acquisition for this depth (make it with "
+                             f"{regenerate_command(depth_mm)})", file=str(folder),
                              field="depth_mm", value=float(depth_mm))
     acq = read_acquisition(folder)
     sim = acq.meta.get("simulation") or {}
@@ -206,7 +205,7 @@ def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=
         raise FluoInputError("simulating needs an output folder", field="out_dir")
     acqs, mc_info = {}, {}
     n = len(depths)
-    for i, d in enumerate(depths):          # inputs first: a missing set fails before work
+    for d in depths:          # inputs first: a missing set fails before work
         if not simulate:
             acqs[d] = read_stored(d, mc_root)
             mc_info[d] = acqs[d].meta.get("simulation", {})
