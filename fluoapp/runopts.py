@@ -15,7 +15,9 @@ import sys
 from fluoguide.errors import FluoInputError
 
 
-def add_run_options(p):
+def add_run_options(p, threads_default="1"):
+    """The options on parser ``p``; ``threads_default=None``: --threads defaults to the
+    process's library threads (``fluo --threads``) serially and 1 on workers (fluo demo)."""
     g = p.add_argument_group("running many tasks (Dask)")
     g.add_argument("--workers", nargs="?", const="auto", default=None, metavar="N|auto",
                    help="run on a local Dask cluster of N worker processes (auto, the default "
@@ -23,9 +25,11 @@ def add_run_options(p):
     g.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="tcp://HOST:PORT of a running Dask scheduler (default: $FLUO_SCHEDULER): "
                    "the same tasks on a real cluster; its workers need FluoGuide installed")
-    g.add_argument("--threads", default="1", metavar="N",
-                   help="BLAS/OpenMP/numba threads per task (default 1: one task per core, no "
-                   "oversubscription); 'none' leaves the libraries' own defaults")
+    default_text = ("1: one task per core, no oversubscription" if threads_default == "1" else
+                    "the process's (fluo --threads) serially, 1 per task on workers")
+    g.add_argument("--threads", default=threads_default, metavar="N",
+                   help=f"BLAS/OpenMP/numba threads per task (default {default_text}); "
+                   "'none' leaves the libraries' own defaults")
     g.add_argument("--resume", action="store_true",
                    help="reuse the finished tasks of an earlier (killed) run in --out")
     g.add_argument("--no-dashboard", action="store_true",

@@ -66,6 +66,12 @@ class DemoContext:
     notes: list = field(default_factory=list)     # (stage, text)
     state: dict = field(default_factory=dict)     # objects handed between stages
     progress: object = None                       # progress(fraction, message) of the running stage
+    cancel: object = None                         # CancelToken of the whole demo
+    # the tomography cases' run engine (fluoguide.runs): None = serial here;
+    # BLAS/OpenMP threads per case (None: the process's); reuse finished cases
+    executor: object = None
+    threads: int | None = None
+    resume: bool = False
 
     def figure(self, stage, name, caption):
         self.figures.append((stage, name, caption))
@@ -86,10 +92,15 @@ def _stages():
     return demo_stages.STAGES
 
 
-def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None):
+def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None,
+             executor=None, threads=None, resume=False):
     """Run the demo stages into ``out_dir``; returns the metrics dict.
 
     ``only``: stage names (:data:`STAGE_NAMES`) to run, with the stages they need.
+    ``executor``, ``threads``: where the tomography cases run (one
+    ``fluoguide.runs`` task per tube depth and one for the oral cavity; default
+    serial in this process) and the library threads of each; ``resume``: reuse
+    the cases an earlier (killed) demo finished in ``out_dir/runs``.
     Raises FluoInputError for an unknown stage name (before anything is
     written) and FluoError (after writing metrics.json and report.html) when a
     stage fails; the message names the stage.
@@ -104,7 +115,8 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
         probe.unlink()
     except OSError as exc:
         raise FluoInputError(f"output folder is not writable ({exc.strerror})", file=out) from None
-    ctx = DemoContext(out=out, quick=quick, seed=seed)
+    ctx = DemoContext(out=out, quick=quick, seed=seed, cancel=cancel, executor=executor,
+                      threads=threads, resume=bool(resume))
     stages = [s for s in _stages() if s[0] in names]
     ctx.metrics = {"quick": quick, "seed": seed, "stage_seconds": {}, "stages_completed": [],
                    "stages_failed": {}}

@@ -144,7 +144,7 @@ def _tomo_figures(ctx, runs):
     run = runs[d]
     geometry = ctx.state["tube_phantoms"][d].truth()["geometry"]
     centre = geometry["tube_centre_mm"]
-    _section_figure(ctx.out / "tomo_sections.png", run, (-8, 8), (0, -10),
+    _section_figure(ctx.out / "tomo_sections.png", run["sections"],
                     true_circle=((centre[1], centre[2]), geometry["tube_radius_mm"]))
     ctx.figure("tomography", "tomo_sections.png",
                f"Cross-section through the tube at {d:.1f} mm (x = 0): truth | NP | SP | HP, "
@@ -169,29 +169,23 @@ def _tomo_figures(ctx, runs):
                "position, the detectors are ~1 mm^2 ROIs of such frames.")
 
 
-def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8, true_circle=None):
+def _section_figure(path, sections, sources_mm=None, true_circle=None):
     """y-z section at x = 0 of truth | NP | SP | HP on one colour scale (blank
-    where there is no tissue), the true target outlined in cyan on every panel:
-    ``true_circle`` ((y, z) centre, radius; mm) where its geometry is a circle,
-    else the half-way contour of the simulated true yield; ``sources``: mark where
-    the laser entered."""
-    from FluoTomoLib.fem.locate import locator
-
+    where there is no tissue), from the images the case sampled
+    (``FluoTomoLib.pipelines.cases.section_images``); the true target outlined
+    in cyan on every panel: ``true_circle`` ((y, z) centre, radius; mm) where its
+    geometry is a circle, else the half-way contour of the simulated true
+    yield; ``sources_mm``: mark where the laser entered."""
     plt = _plt()
-    ny = int(abs(y_mm[1] - y_mm[0]) * px_per_mm) + 1
-    nz = int(abs(z_mm[1] - z_mm[0]) * px_per_mm) + 1
-    yy, zz = np.meshgrid(np.linspace(*y_mm, ny), np.linspace(*z_mm, nz))
-    pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
-    panels = [("forward model (truth)", run["fine"], run["true_yield_fine"])]
-    panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in ("NP", "SP", "HP")]
-    vmax = max(float(np.max(v)) for _, _, v in panels)
+    y_mm, z_mm = tuple(sections["y_mm"]), tuple(sections["z_mm"])
+    panels = [("forward model (truth)", sections["truth"])]
+    panels += [(m, sections[m]) for m in ("NP", "SP", "HP")]
+    vmax = max(float(np.nanmax(img)) for _, img in panels)
     cmap = plt.get_cmap("inferno").with_extremes(bad="white")
     fig, axes = plt.subplots(1, 4, figsize=(14, 3.4), constrained_layout=True)
-    truth = None
-    for ax, (title, mesh, values) in zip(axes, panels):
-        P = locator(mesh).interpolation_matrix(pts, outside="nan")
-        inside = np.asarray(P.sum(axis=1)).ravel() > 0.5     # rows outside the mesh are empty
-        img = np.where(inside, P @ values, np.nan).reshape(yy.shape)
+    truth = sections["truth"]
+    yy, zz = np.meshgrid(np.linspace(*y_mm, truth.shape[1]), np.linspace(*z_mm, truth.shape[0]))
+    for ax, (title, img) in zip(axes, panels):
         im = ax.imshow(1e3 * img, extent=(*y_mm, min(z_mm), max(z_mm)), origin="upper",
                        cmap=cmap, vmin=0, vmax=1e3 * vmax, aspect="equal")
         if true_circle is not None:
@@ -199,13 +193,11 @@ def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8, true_circ
             t = np.linspace(0, 2 * np.pi, 181)
             ax.plot(cy + radius * np.cos(t), cz + radius * np.sin(t), color="cyan", lw=0.9)
         else:
-            if truth is None:
-                # half-way between the tissue's lowest and highest true yield
-                truth = img
-                level = 0.5 * (np.nanmin(truth) + np.nanmax(truth))
+            # half-way between the tissue's lowest and highest true yield
+            level = 0.5 * (np.nanmin(truth) + np.nanmax(truth))
             ax.contour(yy, zz, truth, levels=[level], colors="cyan", linewidths=0.9)
-        if sources:
-            ax.plot(run["sources_true_mm"][:, 1], run["sources_true_mm"][:, 2], "c.", ms=3)
+        if sources_mm is not None:
+            ax.plot(sources_mm[:, 1], sources_mm[:, 2], "c.", ms=3)
         ax.set_title(title)
         ax.set_xlabel("y [mm]")
     axes[0].set_ylabel("z [mm]")
@@ -214,24 +206,45 @@ def _section_figure(path, run, y_mm, z_mm, sources=False, px_per_mm=8, true_circ
     plt.close(fig)
 
 
+def _run_cases(ctx, name, tasks):
+    """The tomography cases of a stage on the run engine (``fluo demo --workers`` /
+    ``--scheduler``; serial in this process by default), recorded in
+    OUT/runs/NAME (``--resume`` reuses the finished ones); the cases as
+    ``cases.case_of_record`` rebuilds them, in task order.  A failed case
+    fails the stage, naming it."""
+    from fluoguide.errors import FluoError
+    from fluoguide.runs import RunStore, run_tasks
+    from FluoTomoLib.pipelines.cases import case_of_record
+
+    store = RunStore(ctx.out / "runs" / name, resume=ctx.resume)
+    run = run_tasks(tasks, store=store, executor=ctx.executor, threads=ctx.threads,
+                    progress=ctx.progress, cancel=ctx.cancel, label=f"fluo demo: {name}")
+    ctx.metrics.setdefault("runs", {})[name] = {
+        k: run[k] for k in ("tasks", "computed", "reused", "failures", "seconds", "executor",
+                            "workers")}
+    if run["failed"]:
+        f = run["failed"][0]
+        raise FluoError(f"{len(run['failed'])} of {len(tasks)} cases failed; the first "
+                        f"({f['params']}): {f['error']} (records in {store.dir})")
+    return [case_of_record(rec, store.arrays(rec)) for rec in run["records"]]
+
+
 def stage_tomography(ctx):
     """Tracked non-contact acquisition and NP/SP/HP reconstruction at each tube depth."""
-    from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
+    from FluoTomoLib.pipelines.cases import case_tasks
 
     # The public label-map path (fluo tomo reconstruct's): the simulation meshes
     # the whole phantom, the region of interest is chosen from the decay length
     # and its truncation error is reported (it was graded by itself before:
     # 30 x 50 mm, 7.9 % median / 29 % max change of the data).  Quick: the
-    # "fast" accuracy level, same tube resolution.
-    runs = {}
-    cases = sorted(ctx.state["tube_phantoms"].items())
-    for k, (d, ph) in enumerate(cases):
-        runs[d] = simulate_and_reconstruct(
-            ph, seed=ctx.seed, accuracy="fast" if ctx.quick else "balanced",
-            progress=scaled(ctx.progress, k / len(cases), (k + 1) / len(cases),
-                            f"case {k + 1} of {len(cases)}, tube at {d:.1f} mm"))
-    ctx.state["tomo_runs"] = runs
-    depths = sorted(runs)
+    # "fast" accuracy level, same tube resolution.  One run-engine task per
+    # depth: each builds its phantom (the one stage_phantoms wrote, from the
+    # same depth and seed) and returns plain arrays, so the depths can go to
+    # Dask workers side by side (about 10 GB each in quick mode).
+    depths = sorted(ctx.state["tube_phantoms"])
+    tasks = case_tasks(depths, seed=ctx.seed,
+                       tube_options={"accuracy": "fast" if ctx.quick else "balanced"})
+    runs = dict(zip(depths, _run_cases(ctx, "tomography", tasks)))
     methods = ["NP", "SP", "HP"]
     ctx.metrics["yield_error_pct"] = {m: [runs[d]["results"][m]["peak_error_pct"] for d in depths]
                                       for m in methods}
@@ -554,12 +567,12 @@ def stage_surface_mapping(ctx):
 def stage_oral_tomography(ctx):
     """The same acquisition and reconstruction on the oral cavity: a curved surface,
     beams and camera looking into the cavity, the ICG-rich tongue as the target."""
-    from FluoTomoLib.pipelines.oral import simulate_and_reconstruct_oral
+    from FluoTomoLib.pipelines.cases import case_tasks
 
-    ph = ctx.state["phantoms"]["oral-cavity"]
     # the same meshes in quick mode: at 2 mm the tongue's 0.7 mm decay length is
-    # not resolved (measured: HP's agar value ran away)
-    run = simulate_and_reconstruct_oral(ph, seed=ctx.seed, progress=ctx.progress)
+    # not resolved (measured: HP's agar value ran away).  A run-engine task like
+    # the tube's depths (its phantom is stage_phantoms' oral cavity, rebuilt from the seed)
+    run, = _run_cases(ctx, "oral_tomography", case_tasks(oral=True, seed=ctx.seed))
     methods = ["NP", "SP", "HP"]
     out = {}
     for m in methods:
@@ -575,7 +588,8 @@ def stage_oral_tomography(ctx):
                                       for w in run["results"][m].get("warnings", [])]
     ctx.metrics["oral_tomography"] = out
 
-    _section_figure(ctx.out / "oral_sections.png", run, (-16, 26), (-8, -40), sources=True)
+    _section_figure(ctx.out / "oral_sections.png", run["sections"],
+                    sources_mm=run["sources_true_mm"])
     ctx.figure("oral_tomography", "oral_sections.png",
                "Oral cavity, section x = 0 through the tongue (the cavity is white: not tissue): "
                "truth | NP | SP | HP, same colour scale; cyan line: the true tongue; cyan dots: "

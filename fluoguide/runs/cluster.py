@@ -84,9 +84,12 @@ class DaskExecutor:
 
     name = "dask"
 
-    def __init__(self, client, kind="local"):
+    def __init__(self, client, kind="local", dashboard=True):
         self.client = client
         self.kind = kind
+        # a local cluster started without its dashboard still serves Dask's HTTP
+        # routes under the name "dashboard" (on port 8787): not announced as one
+        self.dashboard = dashboard
 
     @property
     def workers(self):
@@ -95,11 +98,13 @@ class DaskExecutor:
     def describe(self):
         info = {"executor": f"dask ({self.kind})", "workers": self.workers,
                 "scheduler": self.client.scheduler.address}
-        with contextlib.suppress(Exception):
-            info["dashboard"] = self.client.dashboard_link
+        if self.dashboard:
+            with contextlib.suppress(Exception):
+                info["dashboard"] = self.client.dashboard_link
         return info
 
-    def run(self, todo, threads, on_done, cancel=None):
+    def run(self, todo, threads, on_done, cancel=None, task_progress=None):
+        # task_progress is the serial loop's: here the run's progress is per task
         from distributed import as_completed
 
         client = self.client
@@ -226,7 +231,7 @@ def dask_executor(address=None, workers="auto", threads=1, log=None, dashboard=T
                 client = Client(cluster, set_as_default=False)
                 client.wait_for_workers(n, timeout=120)
             kind = f"local, started in {time.perf_counter() - t0:.1f} s"
-        ex = DaskExecutor(client, kind=kind)
+        ex = DaskExecutor(client, kind=kind, dashboard=bool(address) or dashboard)
         d = ex.describe()
         msg = f"dask: {d['workers']} workers ({kind}) at {d['scheduler']}"
         if d.get("dashboard"):

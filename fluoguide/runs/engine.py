@@ -15,6 +15,12 @@ Both executors do the same things in the same way:
   arrives (:class:`fluoguide.runs.store.RunStore`).
 
 Cancelling (CancelToken) or Ctrl-C stops the run; what finished is kept.
+
+A task function that declares ``reports_progress = True`` (an attribute of the
+function) is called with ``progress=`` and ``cancel=`` keywords by the serial
+loop: a task of minutes (a demo case) then shows its own steps and stops
+mid-way when cancelled. On a Dask worker it runs without them (the run's
+progress is per task there), and its numbers are the same either way.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import time
 import traceback
 
 from fluoguide.errors import FluoCancelled, FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 from fluoguide.runs.tasks import check_unique
 from fluoguide.threads import limited_threads
 
@@ -71,6 +77,11 @@ def call_shared(func, threads, *args):
         return func(*args)
 
 
+def takes_progress(func):
+    """Whether the serial loop passes ``progress``/``cancel`` to ``func`` (module docstring)."""
+    return getattr(func, "reports_progress", False) is True
+
+
 def call_task(func, params, threads, inputs):
     """Run one task (serial loop or a Dask worker); never raises for the task's own error.
 
@@ -111,9 +122,11 @@ class SerialExecutor:
     def describe(self):
         return {"executor": "serial", "workers": 1}
 
-    def run(self, todo, threads, on_done, cancel=None):
+    def run(self, todo, threads, on_done, cancel=None, task_progress=None):
         """Call ``on_done(task, result, error, seconds, worker)`` for each task in order.
 
+        ``task_progress(task)``: the progress callback handed to a task that
+        reports its own (``takes_progress``), with ``cancel``.
         Returns the number of shared inputs computed (each once)."""
         self.shared_built = 0
         need = {}
@@ -150,8 +163,11 @@ class SerialExecutor:
                         if not errors[failed.name].startswith("shared input") else errors[failed.name],
                         None, "serial")
             else:
-                _finish(on_done, t, call_task(t.func, t.params, threads,
-                                              {k: values[s.name] for k, s in t.inputs.items()}))
+                inputs = {k: values[s.name] for k, s in t.inputs.items()}
+                if takes_progress(t.func):
+                    inputs.update(progress=task_progress(t) if task_progress else None,
+                                  cancel=cancel)
+                _finish(on_done, t, call_task(t.func, t.params, threads, inputs))
             for s in closure:           # free what no later task needs
                 need[s.name] -= 1
                 if need[s.name] == 0:
@@ -230,7 +246,14 @@ def run_tasks(tasks, store=None, executor=None, threads=1, progress=None, cancel
         report(progress, done / len(tasks),
                f"{done}/{len(tasks)} tasks" + (f", {n_failed} failed" if n_failed else ""))
 
-    shared_built = executor.run(todo, threads, on_done, cancel=cancel) if todo else 0
+    def task_progress(task):
+        """The slice of the bar between this task's start and its end."""
+        done = len(records)
+        return scaled(progress, done / len(tasks), (done + 1) / len(tasks),
+                      f"task {done + 1} of {len(tasks)}")
+
+    shared_built = executor.run(todo, threads, on_done, cancel=cancel,
+                                task_progress=task_progress) if todo else 0
     ordered = [records[t.id] for t in tasks]
     rows = store.write_table(ordered) if store is not None else [row_of(r) for r in ordered]
     failed = [{"task": r["task"], "params": r["params"], "error": r["error"]}
