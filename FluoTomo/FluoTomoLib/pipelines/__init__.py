@@ -3,6 +3,7 @@
 
 Modules
 -------
+- ``cases``: The demo's tomography cases as run-engine tasks (one per tube depth, the oral cavity): plain values in, plain arrays out, so they run on Dask workers and resume.
 - ``oral``: Image-guided fluorescence tomography of the oral-cavity phantom.
 - ``steps``: The steps every image-guided tomography case shares, whatever the phantom: the tracked camera's acquisition of a laser scan (rendered frames -> ROI counts -> normalised boundary fluence), the reconstruction model and prior from the CBCT labels, and NP / SP / HP with the optional self-absorption feedback.  ``tube`` (cylinder-tube) and ``oral`` (oral cavity) put them together.
 - ``tube``: Image-guided fluorescence tomography of the cylinder-tube phantom, end to end.
@@ -11,6 +12,7 @@ Modules
 from fluoguide.lazy import attach
 
 __getattr__, __dir__, __all__ = attach(__name__, {
+    "cases": ["tube_case", "oral_case", "case_tasks", "case_of_record", "section_images"],
     "oral": ["tissue_air_facets", "simulate_and_reconstruct_oral"],
     "steps": ["nodal_optics", "acquire", "onto_surface_from_above", "reconstruction_model", "reconstruct_methods"],
     "tube": ["simulate_and_reconstruct"],
