@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from fluoapp.cli import add_json_flag
@@ -23,7 +24,7 @@ def _handler(args):
         threads = 1                        # workers side by side: one library thread each
     if not any(n in CASE_STAGES for n in names):
         distributed = False                # nothing to send: no cluster for the other stages
-    with executor_for(args, threads) if distributed else _serial() as ex, \
+    with executor_for(args, threads) if distributed else contextlib.nullcontext() as ex, \
             TqdmProgress("fluo demo") as bar:
         metrics = run_demo(args.out, quick=args.quick, seed=args.seed, progress=bar, only=only,
                            executor=ex, threads=threads, resume=args.resume)
@@ -41,12 +42,6 @@ def _handler(args):
     if "warnings" in metrics:          # never left out of the short form
         brief["warnings"] = metrics["warnings"]
     return brief
-
-
-def _serial():
-    import contextlib
-
-    return contextlib.nullcontext(None)
 
 
 def register(sub):

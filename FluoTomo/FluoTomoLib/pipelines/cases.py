@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from fluoguide.errors import FluoInputError
+from fluoguide.jsonable import to_jsonable
 
 METHODS = ("NP", "SP", "HP")
 
@@ -81,13 +82,6 @@ def _options(params, allowed, where):
     return extra
 
 
-def _plain(value):
-    """Numbers, text, lists and dicts only (numpy scalars and arrays made plain)."""
-    from fluoguide.jsonable import to_jsonable
-
-    return to_jsonable(value)
-
-
 def _record_of(run, phantom_name, extra_rows):
     """The task's result: headline columns, ``case`` (every number), ``arrays``."""
     results = {m: {k: v for k, v in r.items() if k != "yield"} for m, r in run["results"].items()}
@@ -120,7 +114,7 @@ def _record_of(run, phantom_name, extra_rows):
             if k in r:
                 row[f"{m}_{k}"] = r[k]
     row["warnings"] = sum(len(r.get("warnings", [])) for r in results.values())
-    row["case"] = _plain(case)
+    row["case"] = to_jsonable(case)        # numpy scalars and small arrays made plain
     row["arrays"] = arrays
     return row
 
