@@ -20,7 +20,7 @@ def _handler(args):
     names = stages_to_run(only)            # an unknown stage is refused before a cluster starts
     threads = check_run_options(args)
     distributed = args.workers is not None or scheduler_address(args.scheduler) is not None
-    if threads is None and distributed and args.threads is None:
+    if distributed and args.threads is None:
         threads = 1                        # workers side by side: one library thread each
     if not any(n in CASE_STAGES for n in names):
         distributed = False                # nothing to send: no cluster for the other stages
