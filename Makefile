@@ -26,12 +26,26 @@ demo-quick: $(STAMP)
 # one thread per library, as the fluo CLI's default (docs/performance.md): on a busy
 # 2-core machine the libraries' own defaults ran a reconstruction 7-11x slower
 TEST_THREADS := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
+# numba's compiled kernels, cached once for every process of a run (test
+# workers, fork-server children, subprocesses) and for the next run
+NUMBA_CACHE := NUMBA_CACHE_DIR=$(CURDIR)/$(VENV)/numba-cache
+# test processes side by side (pytest-xdist, work stealing): 2 measured fastest on
+# the 2-core machine (docs/testing.md); JOBS=1 runs them in one process
+JOBS ?= 2
+XDIST = $(if $(filter 1,$(JOBS)),-p no:xdist,-n $(JOBS) --dist worksteal)
 
-test: $(STAMP)
-	$(TEST_THREADS) $(PY) -m pytest -q --durations=30
+# Debian packages the tests need (Chromium, cmake, pocl, Qt's offscreen libraries):
+# installed when missing, or one line naming the command that installs them
+system-deps:
+	@bash .ci/system-deps.sh
+
+# the whole suite: every test runs (none skipped for a missing package); the 30
+# slowest and every skipped test with its reason are printed at the end
+test: system-deps $(STAMP)
+	$(TEST_THREADS) $(NUMBA_CACHE) $(PY) -m pytest -q $(XDIST) --durations=30
 
 test-fast: $(STAMP)
-	$(TEST_THREADS) $(PY) -m pytest -q -m "not slow and not browser"
+	$(TEST_THREADS) $(NUMBA_CACHE) $(PY) -m pytest -q $(XDIST) -m "not slow and not browser"
 
 bench: $(STAMP)
 	$(PY) -m benchmarks

@@ -7,9 +7,13 @@ output path that is a file, or below a file), one option at a time, on top of
 a valid base invocation that runs in seconds. Some options also get hostile
 files made for them (a truncated NRRD, a label 65535, duplicate tetrahedra, a
 damaged recording, a PNG whose header claims 20000 x 20000 pixels: the known
-failures of issue #21). Each case runs ``python -m fluoapp`` in a fresh folder,
-as its own process, under a wall-clock limit and a memory limit (its peak resident size sampled
-every 20 ms from /proc), and must end as:
+failures of issue #21). Each case runs in a fresh folder as its own process,
+under a wall-clock limit and a memory limit (its peak resident size sampled
+every 20 ms from /proc): each command's valid base invocation as a real
+``python -m fluoapp``, the hostile cases as children forked from one process
+that imported the stack once (``forkserver.py``: the same exit code, stdout and
+stderr, without the second or two of start-up that made most of the run's
+time). A case must end as:
 
 - exit 2 with one line ``fluo: error: ...`` (argparse: ``usage`` + one error
   line) naming what was wrong, or
@@ -52,6 +56,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from forkserver import Forkserver  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 PYTHONPATH = os.pathsep.join(str(ROOT / p) for p in ("", "FluoCalib", "FluoNav", "FluoTomo"))
@@ -563,19 +570,8 @@ def _wait(p, deadline, serve_marker=None, stdout_path=None):
         time.sleep(0.02)
 
 
-def run_case(case, fx, work):
-    """Run one case in a fresh folder and judge it; fills ``case.result``."""
-    cwd = Path(tempfile.mkdtemp(prefix="case-", dir=work))
-    logs = Path(tempfile.mkdtemp(prefix="log-", dir=work))
-    (cwd / "a_file").write_text("a file where a folder is expected\n")
-    (cwd / "a_dir").mkdir()
-    subst = {k: str(v) for k, v in fx.items()}
-    subst.update(missing=str(cwd / "does-not-exist"), a_file=str(cwd / "a_file"),
-                 a_dir=str(cwd / "a_dir"), out=str(cwd / "out"))
-    argv = [a.format(**subst) for a in case.argv]
-    before_fx = _snapshot(fx["root"])
-    before = _snapshot(cwd)
-    serve = SERVES.get(case.command)
+def _run_process(argv, cwd, logs, serve):
+    """``python -m fluoapp ARGV`` as its own process, limits as for a forked case."""
     t0 = time.monotonic()
     with open(logs / "stdout", "wb") as so, open(logs / "stderr", "wb") as se:
         p = subprocess.Popen([sys.executable, "-m", "fluoapp", *argv], cwd=cwd, env=ENV,
@@ -590,8 +586,38 @@ def run_case(case, fx, work):
     seconds = time.monotonic() - t0
     out = (logs / "stdout").read_text(errors="replace")
     err = (logs / "stderr").read_text(errors="replace")
+    return p.returncode, peak_kb, hung, served, seconds, out, err
+
+
+def run_case(case, fx, work, server=None):
+    """Run one case in a fresh folder and judge it; fills ``case.result``.
+
+    With a :class:`forkserver.Forkserver` the hostile cases run as children
+    forked from it (the same exit code, stdout and stderr, without a second of
+    start-up each); a command's valid base invocation always runs as a real
+    ``python -m fluoapp`` process.
+    """
+    cwd = Path(tempfile.mkdtemp(prefix="case-", dir=work))
+    logs = Path(tempfile.mkdtemp(prefix="log-", dir=work))
+    (cwd / "a_file").write_text("a file where a folder is expected\n")
+    (cwd / "a_dir").mkdir()
+    subst = {k: str(v) for k, v in fx.items()}
+    subst.update(missing=str(cwd / "does-not-exist"), a_file=str(cwd / "a_file"),
+                 a_dir=str(cwd / "a_dir"), out=str(cwd / "out"))
+    argv = [a.format(**subst) for a in case.argv]
+    before_fx = _snapshot(fx["root"])
+    before = _snapshot(cwd)
+    serve = SERVES.get(case.command)
+    if server is None or case.option == "(base)":
+        # the valid invocation of each command: a real ``python -m fluoapp`` process
+        rc, peak_kb, hung, served, seconds, out, err = _run_process(argv, cwd, logs, serve)
+    else:
+        res = server.run(argv, cwd=cwd, timeout=TIME_LIMIT_S, memory_limit_mb=MEMORY_LIMIT_MB,
+                         serve_marker=serve)
+        rc, peak_kb, hung, served = res.returncode, res.peak_mb * 1024, res.hung, res.served
+        seconds, out, err = res.seconds, res.stdout, res.stderr
     peak_mb = peak_kb / 1024.0
-    r = {"argv": argv, "rc": p.returncode, "seconds": round(seconds, 2),
+    r = {"argv": argv, "rc": rc, "seconds": round(seconds, 2),
          "peak_mb": round(peak_mb), "stderr": err[-600:]}
     problems = []
     lines = [ln for ln in err.splitlines() if ln.strip()]
@@ -602,19 +628,19 @@ def run_case(case, fx, work):
     elif served:
         if case.must_refuse:
             problems.append(f"served with {case.value} (must be refused)")
-    elif case.option == "(base)" and p.returncode != 0:
-        problems.append(f"the base invocation failed (exit {p.returncode}): the fuzz of this "
+    elif case.option == "(base)" and rc != 0:
+        problems.append(f"the base invocation failed (exit {rc}): the fuzz of this "
                         "command tests nothing")
-    elif p.returncode == 2:
+    elif rc == 2:
         if not lines or not (lines[-1].startswith("fluo: error:") or
                              (lines[-1].startswith("fluo ") and ": error:" in lines[-1])):
             problems.append("exit 2 without a 'fluo: error:' line")
         elif sum(": error:" in ln for ln in lines) > 1:
             problems.append("more than one error line")
-    elif p.returncode == 1:
+    elif rc == 1:
         if "internal error" in err or not lines or not lines[-1].startswith("fluo: error:"):
             problems.append("exit 1: unexpected exception")
-    elif p.returncode == 0:
+    elif rc == 0:
         if case.must_refuse:
             problems.append(f"exit 0 on {case.value} (must be refused)")
         if "--json" in argv:
@@ -625,10 +651,10 @@ def run_case(case, fx, work):
         nan_files = _json_files_with_nan(cwd)
         if nan_files:
             problems.append(f"wrote JSON with NaN/Infinity: {nan_files[:3]}")
-    elif p.returncode is not None and p.returncode < 0:
-        problems.append(f"killed by signal {-p.returncode}")
+    elif rc is not None and rc < 0:
+        problems.append(f"killed by signal {-rc}")
     else:
-        problems.append(f"exit {p.returncode}")
+        problems.append(f"exit {rc}")
     budget_mb = MEMORY_BUDGET_BY_COMMAND.get(tuple(case.command), MEMORY_BUDGET_MB)
     if peak_mb > budget_mb:
         problems.append(f"peak memory {peak_mb:.0f} MB > {budget_mb} MB")
@@ -636,7 +662,7 @@ def run_case(case, fx, work):
     debris = _debris(after)
     if debris:
         problems.append(f"temporary files left: {debris[:3]}")
-    if p.returncode != 0 and not served:
+    if rc != 0 and not served:
         new = sorted(str(x) for x in after - before if x.parts[0].startswith("out"))
         if new:
             problems.append(f"failed but wrote {new[:3]}")
@@ -660,12 +686,13 @@ def run(only=None, jobs=2, work=None, progress=None):
     todo = [c for c in cases if c.argv is not None]
 
     def one(c):
-        run_case(c, fx, work)
+        run_case(c, fx, work, server)
         if progress:
             progress(c)
         return c
 
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
+    # one process imports the stack; each hostile case is a child forked from it
+    with Forkserver(env=ENV) as server, ThreadPoolExecutor(max_workers=jobs) as pool:
         list(pool.map(one, todo))
     return cases
 

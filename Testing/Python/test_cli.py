@@ -1,17 +1,14 @@
-"""The ``fluo`` command: JSON output, one-line errors with exit code 2."""
+"""The ``fluo`` command: JSON output, one-line errors with exit code 2.
+
+Commands run through the ``fluo`` fixture (conftest.py): a child forked from a
+process that imported the stack, with a real process's exit code and streams;
+the fuzz runs every subcommand once as ``python -m fluoapp`` besides."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 
 from fluoapp.cli import build_parser, main
-
-
-def run_fluo(*args):
-    return subprocess.run([sys.executable, "-m", "fluoapp", *args], capture_output=True,
-                          text=True, timeout=300)
 
 
 def test_help_lists_every_subcommand():
@@ -20,15 +17,15 @@ def test_help_lists_every_subcommand():
         assert cmd in text
 
 
-def test_phantom_json_and_scene_info(tmp_path):
-    r = run_fluo("phantom", "cylinder-tube", "--out", str(tmp_path / "p"), "--depth-mm", "2.7",
+def test_phantom_json_and_scene_info(tmp_path, fluo):
+    r = fluo("phantom", "cylinder-tube", "--out", str(tmp_path / "p"), "--depth-mm", "2.7",
                  "--json")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["phantom"] == "cylinder-tube"
     for region in out["regions"].values():
         assert abs(region["volume_error_pct"]) < 2
-    r = run_fluo("scene", "info", str(tmp_path / "p" / "scene.mrml"), "--json")
+    r = fluo("scene", "info", str(tmp_path / "p" / "scene.mrml"), "--json")
     assert r.returncode == 0, r.stderr
     info = json.loads(r.stdout)
     assert {n["name"] for n in info["nodes"]} == {"CBCT", "CBCTLabels"}
@@ -39,9 +36,9 @@ def test_phantom_json_and_scene_info(tmp_path):
     (["phantom", "slab", "--out", "/proc/forbidden/x"], "/proc/forbidden"),
     (["scene", "info", "/nonexistent/scene.mrml"], "scene file not found"),
 ])
-def test_bad_input_is_one_line_exit_2(tmp_path, args, needle):
+def test_bad_input_is_one_line_exit_2(tmp_path, args, needle, fluo):
     args = [a.replace("X", str(tmp_path / "x")) for a in args]
-    r = run_fluo(*args)
+    r = fluo(*args)
     assert r.returncode == 2
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and needle in lines[0], r.stderr

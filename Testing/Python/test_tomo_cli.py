@@ -5,8 +5,6 @@ direction diag(-1, -1, 1), the origin far from zero.  Bad input: one line,
 exit 2, nothing written."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -16,11 +14,6 @@ from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion
 
 OPTICS = ellipsoid_inclusion_optics()
 TRUE_YIELD = 2.6e-3          # 2 ug/mL ICG (its absorption is in the simulation)
-
-
-def fluo(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "fluoapp", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout)
 
 
 def _one_line_exit_2(r, needle):
@@ -40,7 +33,7 @@ def _write_scene(folder, **kw):
 
 
 @pytest.fixture(scope="module")
-def small(tmp_path_factory):
+def small(tmp_path_factory, fluo):
     """A small scene and its simulated acquisition (fast settings)."""
     d = tmp_path_factory.mktemp("small")
     sc = _write_scene(d, semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0),
@@ -64,7 +57,7 @@ def test_simulate_writes_a_folder_a_person_can_read(small):
 
 @pytest.mark.parametrize("case", ["labels-missing", "off-surface", "wrong-shape", "nan",
                                   "negative-log", "bad-yield", "bad-accuracy-size"])
-def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case):
+def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
     d, sc, _ = small
     acq = tmp_path / "acq"
     import shutil
@@ -126,7 +119,7 @@ def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case):
     assert not (tmp_path / "out").exists()
 
 
-def test_help_states_every_default():
+def test_help_states_every_default(fluo):
     r = fluo("tomo", "reconstruct", "--help")
     assert r.returncode == 0
     text = " ".join(r.stdout.split())
@@ -166,7 +159,7 @@ def _check(sc, summary, yield_file, method, tol):
 
 
 @pytest.fixture(scope="module")
-def issue_scene(tmp_path_factory):
+def issue_scene(tmp_path_factory, fluo):
     d = tmp_path_factory.mktemp("issue")
     sc = _write_scene(d)                 # 0.5 x 0.6 x 0.7 mm, diag(-1,-1,1), origin (120,-80,340)
     r = fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics", d / "optics.json",
@@ -177,7 +170,7 @@ def issue_scene(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_issue_scene_through_the_cli(issue_scene):
+def test_issue_scene_through_the_cli(issue_scene, fluo):
     """HP within 15 %, SP within 30 %, the half-maximum centroid within 1 mm of
     the inclusion's centre and the volume's peak inside it, in RAS, from the
     written yield.nrrd (on the label map's grid)."""
@@ -256,7 +249,7 @@ def _mixed_meshes(tmp_path):
     return int(flip.sum())
 
 
-def test_forward_multi_region_either_orientation_and_yield(tmp_path):
+def test_forward_multi_region_either_orientation_and_yield(tmp_path, fluo):
     """``fluo forward``: regions from the mesh with optics.json, --yield gives the
     fluorescence data and the yield Jacobian; a mesh with mixed element
     orientation gives the same numbers and says how many it turned; only a
@@ -293,7 +286,7 @@ def test_forward_multi_region_either_orientation_and_yield(tmp_path):
     _one_line_exit_2(r, "[7]")
 
 
-def test_mesh_fast_reports_region_volumes_and_warns(tmp_path):
+def test_mesh_fast_reports_region_volumes_and_warns(tmp_path, fluo):
     """``fluo mesh --fast`` on a flipped, anisotropic label map: region volumes
     against the label map within 1 %; a region too small for the cells is in
     the JSON's warnings."""

@@ -28,7 +28,7 @@ def _chromium():
     path = os.environ.get("FLUO_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
     if not path:
         if os.environ.get("CI"):
-            pytest.fail("Debian's chromium is not installed (.ci/install-browser.sh installs it)")
+            pytest.fail("Debian's chromium is not installed (`make system-deps` installs it)")
         pytest.skip("chromium not installed: apt-get install chromium")
     return path
 

@@ -2,8 +2,6 @@
 calibration against synthetic data with known truth (issue #6 targets)."""
 
 import json
-import subprocess
-import sys
 from dataclasses import replace
 
 import numpy as np
@@ -172,24 +170,23 @@ def test_laser_bad_input():
                         truth["laser_to_tracker"], truth["phantom_to_tracker"], holdout=4)
 
 
-def test_cli_synth_then_calibrate_into_a_scene(tmp_path):
-    def fluo(*args):
-        out = subprocess.run([sys.executable, "-m", "fluoapp.cli", *args], capture_output=True,
-                             text=True, timeout=300)
+def test_cli_synth_then_calibrate_into_a_scene(tmp_path, fluo):
+    def fluo_json(*args):
+        out = fluo(*args)
         assert out.returncode == 0, out.stderr
         return json.loads(out.stdout)
 
-    fluo("calib", "synth-light", "--out", str(tmp_path / "d"), "--json")
+    fluo_json("calib", "synth-light", "--out", str(tmp_path / "d"), "--json")
     scene = tmp_path / "s" / "scene.mrml"
-    r = fluo("calib", "radiometry", str(tmp_path / "d" / "stack"), "--scene", str(scene), "--json",
-             "--out", str(tmp_path / "plots"))
+    r = fluo_json("calib", "radiometry", str(tmp_path / "d" / "stack"), "--scene", str(scene), "--json",
+                  "--out", str(tmp_path / "plots"))
     assert set(("gain_adu_per_e", "dark_current_e_per_s", "bias_e", "read_noise_e",
                 "linearity_r2", "nonlinearity_pct")) <= set(r)
-    il = fluo("calib", "illumination", str(tmp_path / "d" / "illumination"), "--scene", str(scene),
-              "--json")
+    il = fluo_json("calib", "illumination", str(tmp_path / "d" / "illumination"), "--scene", str(scene),
+                    "--json")
     assert set(("origin_mm", "axis", "half_angle_deg", "alpha", "gamma_per_mm", "system_gain_adu",
                 "ratio_mean", "ratio_sd")) <= set(il)
-    la = fluo("calib", "laser", str(tmp_path / "d" / "laser"), "--scene", str(scene), "--json")
+    la = fluo_json("calib", "laser", str(tmp_path / "d" / "laser"), "--scene", str(scene), "--json")
     assert set(("origin_mm", "direction", "error_3d_mm", "error_2d_px")) <= set(la)
     from fluoguide import mrml_io
     from FluoCalibLib.radiometry import scene as light_scene
@@ -199,6 +196,5 @@ def test_cli_synth_then_calibrate_into_a_scene(tmp_path):
     assert light_scene.load_calibration(back, light_scene.ILLUMINATION_KEY)["cone"]["alpha"] > 0
     assert len(light_scene.load_calibration(back, light_scene.LASER_KEY)["direction"]) == 3
     assert (tmp_path / "plots" / "photon_transfer.png").stat().st_size > 5000
-    bad = subprocess.run([sys.executable, "-m", "fluoapp.cli", "calib", "radiometry",
-                          str(tmp_path / "nowhere")], capture_output=True, text=True)
+    bad = fluo("calib", "radiometry", tmp_path / "nowhere")
     assert bad.returncode == 2 and "stack.json" in bad.stderr

@@ -9,7 +9,7 @@ with one line (:class:`MonteCarloUnavailable`) that says what to install.
 
 Two things make MCX-CL run on a CPU here:
 
-- Debian's ``pocl-opencl-icd`` (pocl's CPU OpenCL device; ``.ci/install-mc.sh``).
+- Debian's ``pocl-opencl-icd`` (pocl's CPU OpenCL device; ``make system-deps``).
 - The system libstdc++ loaded before ``import pmcxcl``: the wheel carries its own
   older copy, and once that one is loaded pocl's kernel build loses its include
   path and fails with "'stdint.h' file not found".  :func:`load_engine` does it.
@@ -214,10 +214,10 @@ def _opencl_engine():
     except Exception:
         raise MonteCarloUnavailable(
             "no OpenCL device: install pocl-opencl-icd (CPU) or a GPU's OpenCL driver "
-            "(.ci/install-mc.sh)") from None
+            "(`make system-deps`)") from None
     if not gpus:
         raise MonteCarloUnavailable("no OpenCL device found: install pocl-opencl-icd "
-                                    "(.ci/install-mc.sh)")
+                                    "(`make system-deps`)")
     g = gpus[0]
     version = "pmcxcl"
     try:

@@ -10,11 +10,9 @@ quick-demo depth); the oral case is the demo's own (9 s, 0.7 GB).
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
+import forkserver
 import numpy as np
 import pytest
 
@@ -98,12 +96,12 @@ def test_case_options_are_checked():
         tube_case({"depth_mm": 4.7, "seed": 0, "sources": 3})
 
 
-def _fluo(*args, env=None):
-    return subprocess.run([sys.executable, "-m", "fluoapp.cli", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=900,
-                          env={**os.environ, **(env or {})})
+def _fluo(*args):
+    """``fluo ARGS`` forked from the tests' fork server (conftest.py; one library thread)."""
+    return forkserver.fluo(*args, cwd=ROOT, timeout=900)
 
 
+@pytest.mark.slow      # three oral cases, one on a Dask worker: about 25 s
 def test_demo_cli_oral_case_on_workers_and_resumed(tmp_path):
     """``fluo demo --workers``: the oral-cavity case on a local Dask cluster gives
     the serial demo's numbers; ``--resume`` reuses the finished case."""

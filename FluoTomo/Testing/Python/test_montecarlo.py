@@ -2,18 +2,18 @@
 independent runs, stored sets against the FEM, reciprocity, the CLI.
 
 The engine is MCX-CL on the CPU (pocl); `make test` installs it (the 'mc' extra and
-.ci/install-mc.sh).  Photon counts in fast tests are a few thousand (seconds);
+`make system-deps`).  Photon counts in fast tests are a few thousand (seconds);
 anything statistical with real budgets is marked slow.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
+import forkserver
 import numpy as np
 import pytest
 
@@ -223,11 +223,9 @@ def test_stored_fluorescence_set_against_the_fem():
 
 # ---------------------------------------------------------------- CLI
 
-def _fluo(*args, env_extra=None):
-    env = dict(os.environ)
-    env.update(env_extra or {})
-    return subprocess.run([sys.executable, "-m", "fluoapp", *args], capture_output=True,
-                          text=True, cwd=ROOT, env=env)
+def _fluo(*args):
+    """``fluo ARGS`` forked from the tests' fork server (conftest.py; one library thread)."""
+    return forkserver.fluo(*args, cwd=ROOT)
 
 
 def test_cli_validate_mc_on_a_stored_set(tmp_path):
@@ -345,8 +343,7 @@ def test_mc_acquisition_small_case_against_the_fem():
 
 @pytest.mark.slow
 def test_cli_validate_mc_quick_end_to_end(tmp_path):
-    r = _fluo("validate", "mc", "--quick", "--out", str(tmp_path), "--json",
-              env_extra={"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+    r = _fluo("validate", "mc", "--quick", "--out", str(tmp_path), "--json")
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout)
     assert out["photons"] == 100_000 and out["runs"] == 4

@@ -26,7 +26,7 @@ def _skip_without_engine():
     from FluoTomoLib.montecarlo.engine import engine_available
 
     if not engine_available("mcxcl"):
-        pytest.skip("MCX-CL is not installed (the 'mc' extra, .ci/install-mc.sh)")
+        pytest.skip("MCX-CL is not installed (the 'mc' extra, `make system-deps`)")
 
 
 def _small_medium():

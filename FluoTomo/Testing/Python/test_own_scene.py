@@ -258,7 +258,7 @@ def test_monte_carlo_engine_agrees_with_the_fem_engine():
     from FluoTomoLib.tomography import simulate_acquisition
 
     if not engine_available("mcxcl"):
-        pytest.skip("MCX-CL is not installed (the 'mc' extra, .ci/install-mc.sh)")
+        pytest.skip("MCX-CL is not installed (the 'mc' extra, `make system-deps`)")
     nx, ny, nz = 36, 24, 14
     lab = np.full((nz, ny, nx), 3, np.int16)
     lab[nz - 6:nz - 2, ny // 2 - 2:ny // 2 + 2, nx // 2 - 2:nx // 2 + 2] = 7

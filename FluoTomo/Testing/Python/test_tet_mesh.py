@@ -1,8 +1,6 @@
 """Quality (fTetWild) label-map meshing, the fine/coarse operators and `fluo mesh`."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -189,15 +187,13 @@ def test_interpolation_operators_are_exact_on_linear_fields():
         reconstruction_mesh_pair(lab, (1, 1, 1), (0, 0, 0), 2.0, 1.0)
 
 
-def test_cli_quality_and_segmentation(tmp_path):
+def test_cli_quality_and_segmentation(tmp_path, fluo):
     import SimpleITK as sitk
 
     lab = _sphere_in_box()
     img = sitk.GetImageFromArray(lab)
     sitk.WriteImage(img, str(tmp_path / "lab.nrrd"))
-    r = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "lab.nrrd"),
-                        "--out", str(tmp_path / "m.vtu"), "--size", "3", "--json"],
-                       capture_output=True, text=True, timeout=300)
+    r = fluo("mesh", tmp_path / "lab.nrrd", "--out", tmp_path / "m.vtu", "--size", "3", "--json")
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
     for key in ("nodes", "tets", "regions", "min_dihedral_deg", "inverted", "seconds", "method"):
@@ -229,10 +225,7 @@ def test_cli_quality_and_segmentation(tmp_path):
     back4, *_ = _read_labelmap(tmp_path / "v.seg.nrrd")
     np.testing.assert_array_equal(back4, lab)
     (tmp_path / "bad.nrrd").write_bytes(b"NRRD0004\ngarbage\n")
-    bad = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "bad.nrrd"),
-                          "--out", str(tmp_path / "x.vtu")], capture_output=True, text=True)
+    bad = fluo("mesh", tmp_path / "bad.nrrd", "--out", tmp_path / "x.vtu")
     assert bad.returncode == 2 and "bad.nrrd" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "lab.nrrd"),
-                          "--out", str(tmp_path / "x.vtu"), "--refine", "cone:1,2"],
-                         capture_output=True, text=True)
+    bad = fluo("mesh", tmp_path / "lab.nrrd", "--out", tmp_path / "x.vtu", "--refine", "cone:1,2")
     assert bad.returncode == 2 and "--refine" in bad.stderr

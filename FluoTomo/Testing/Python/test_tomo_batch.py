@@ -3,11 +3,9 @@ case, a case that fails only when it runs, the same table serially and on two
 Dask workers, resuming, and bad batch files refused before any work."""
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
+import forkserver
 import numpy as np
 import pytest
 
@@ -25,9 +23,8 @@ HEADER = "name,labels,optics,acquisition,methods,target,truth\n"
 
 
 def _fluo(args, cwd, timeout=300):
-    return subprocess.run([sys.executable, "-m", "fluoapp", *args], cwd=cwd, env=dict(
-        os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-        NUMBA_NUM_THREADS="1"), capture_output=True, text=True, timeout=timeout)
+    """``fluo ARGS`` forked from the tests' fork server (conftest.py; one library thread)."""
+    return forkserver.fluo(*args, cwd=cwd, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

@@ -5,23 +5,19 @@ slow test (stage tomography_mc)."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import forkserver
+
 ROOT = Path(__file__).resolve().parents[3]
-ENV = dict(os.environ, PYTHONPATH=os.pathsep.join(
-    str(ROOT / p) for p in ("", "FluoCalib", "FluoNav", "FluoTomo")))
 
 
 def _fluo(*args):
-    return subprocess.run([sys.executable, "-m", "fluoapp", *args], capture_output=True,
-                          text=True, env=ENV, timeout=300)
+    """``fluo ARGS`` forked from the tests' fork server (conftest.py; one library thread)."""
+    return forkserver.fluo(*args, timeout=300)
 
 
 def test_stored_monte_carlo_acquisitions_are_what_the_regeneration_makes():

@@ -54,11 +54,9 @@ def test_bad_label_maps():
         mesh_labelmap_structured(lab, (1000, 1000, 1000), (0, 0, 0), 0.01)
 
 
-def test_thin_region_keeps_its_volume_and_cli(tmp_path):
+def test_thin_region_keeps_its_volume_and_cli(tmp_path, fluo):
     import json
-    import subprocess
-    import sys
-
+        
     from fluoguide.phantoms import write_phantom
 
     ph = make_phantom("cylinder-tube", depth_mm=3.7)
@@ -66,9 +64,8 @@ def test_thin_region_keeps_its_volume_and_cli(tmp_path):
     ref = labelmap_region_volumes(ph.labels, ph.spacing_mm)
     assert m.region_measures()[2] == pytest.approx(ref[2], rel=0.03)  # 2.4 mm tube, 1.6 mm cells
     write_phantom(ph, tmp_path / "p")
-    r = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "p" / "CBCTLabels.nrrd"),
-                        "--out", str(tmp_path / "m.vtu"), "--size", "2", "--fast", "--json"],
-                       capture_output=True, text=True, timeout=300)
+    r = fluo("mesh", tmp_path / "p" / "CBCTLabels.nrrd", "--out", tmp_path / "m.vtu", "--size", "2",
+             "--fast", "--json")
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
     assert doc["inverted"] == 0 and doc["min_dihedral_deg"] > 30
@@ -78,8 +75,7 @@ def test_thin_region_keeps_its_volume_and_cli(tmp_path):
 
     back = read_vtu(tmp_path / "m.vtu")
     assert back.n_elements == doc["tets"] and set(back.regions.tolist()) == {1, 2}
-    bad = subprocess.run([sys.executable, "-m", "fluoapp", "mesh", str(tmp_path / "nope.nrrd"),
-                          "--out", str(tmp_path / "x.vtu"), "--fast"], capture_output=True, text=True)
+    bad = fluo("mesh", tmp_path / "nope.nrrd", "--out", tmp_path / "x.vtu", "--fast")
     assert bad.returncode == 2 and "nope.nrrd" in bad.stderr
 
 
