@@ -30,10 +30,11 @@ process prints one line to stderr (``fluo: crash point POINT reached
 time (default 1) it reaches that named step of a write (with ``@NAME``: a step
 on a path that ends in NAME, one or more whole components, e.g.
 ``atomic.before_replace@table.csv`` or ``commit.moved@demo/CBCT.nrrd``), so a
-test interrupts exactly the step it means to, not a random moment. The points are :data:`CRASH_POINTS`; a POINT that
-is not one of them, or an N that is not a positive integer, is a ``ValueError``
-at the first point reached, never a run that is silently not killed. Without
-the variable a point costs one environment look-up.
+test interrupts exactly the step it means to, not a random moment. The points
+are :data:`CRASH_POINTS`; a POINT that is not one of them, or an N that is not a
+positive integer, is a ``ValueError`` at the first point reached, never a run
+that is silently not killed. Without the variable a point costs one environment
+look-up.
 """
 
 from __future__ import annotations
