@@ -379,7 +379,10 @@ def _roll_forward(out_dir, journal):
     for name in journal["files"]:
         src = stage / name
         if src.exists():  # moved already when a crash interrupted the last roll
-            os.replace(src, out_dir / name)
+            try:
+                os.replace(src, out_dir / name)
+            except FileNotFoundError:
+                continue  # a reader's recover() rolling the same journal moved it first
             crash_point("commit.moved", out_dir / name)
     _fsync_dir(out_dir)
     with contextlib.suppress(FileNotFoundError):
