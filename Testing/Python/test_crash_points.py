@@ -119,20 +119,22 @@ def test_the_nth_hit_of_a_point_kills_and_names_its_path(tmp_path):
             "for k, name in enumerate('abab'):\n"
             "    atomic.write_text(sys.argv[1] + '/' + name + '.txt', str(k))\n"
             "    print('wrote', k, flush=True)\n")
-    for point, path, a, b in (("atomic.before_replace:3", "a.txt", "0", "1"),
-                              ("atomic.before_replace@b.txt:2", "b.txt", "2", "1"),
-                              ("atomic.before_replace@a.txt", "a.txt", None, None)):
+    # value, the write it interrupts (0-3), the file, then a.txt and b.txt as left
+    for point, k, path, a, b in (("atomic.before_replace:3", 2, "a.txt", "0", "1"),
+                                 ("atomic.before_replace@b.txt:2", 3, "b.txt", "2", "1"),
+                                 ("atomic.before_replace@a.txt", 0, "a.txt", None, None)):
         for f in tmp_path.iterdir():
             f.unlink()
-        got = crashed([sys.executable, "-c", code, str(tmp_path)], point)
+        got, p = run_to_crash([sys.executable, "-c", code, str(tmp_path)], point)
         assert got == tmp_path / path
+        assert p.stdout.splitlines() == [f"wrote {j}" for j in range(k)]
         state = {n: (tmp_path / f"{n}.txt").read_text() if (tmp_path / f"{n}.txt").exists()
                  else None for n in "ab"}
         assert state == {"a": a, "b": b}              # the interrupted file holds its old text
         debris = hidden(tmp_path)
         assert len(debris) == 1 and debris[0].startswith(f".{path}.tmp-"), debris
         # the debris is the complete new text, never at the final name
-        assert (tmp_path / debris[0]).read_text() in "0123"
+        assert (tmp_path / debris[0]).read_text() == str(k)
     atomic.write_text(tmp_path / "a.txt", "next")     # the next write clears the debris
     assert hidden(tmp_path) == [] and (tmp_path / "a.txt").read_text() == "next"
 
@@ -160,12 +162,15 @@ def _files(folder):
 ])
 def test_scene_save_killed_at_each_step_of_its_commit_reads_old_or_new(tmp_path, point, seen,
                                                                        journal):
+    """save_scene over a saved scene (a journaled commit of four files, the .mrml
+    last), killed at each step: the loader reads version 1 or version 2, whole."""
     from test_scene_hostile import _scene_with, _versions
 
     target = tmp_path / "s" / "scene.mrml"
     mrml_io.save_scene(_scene_with(1), target)
     old = _files(target.parent)
-    _save_in_child(target, 2, point)
+    at = _save_in_child(target, 2, point)
+    assert target.parent in (at, at.parent)              # killed inside this scene's commit
     assert (target.parent / atomic.JOURNAL).exists() == journal
     assert hidden(target.parent)                         # the kill left its debris
     if seen == 1:                                        # nothing moved: the old bytes
