@@ -22,6 +22,19 @@ write to the same name removes debris whose process is gone.
 
 Errors the user can fix (the output is a folder, its parent is a file, no
 permission, read-only file system) are ``FluoInputError`` naming the path.
+
+Crash points (for tests of the promises above): with ``FLUO_CRASH_AT`` set to
+``POINT``, ``POINT:N``, ``POINT@NAME`` or ``POINT@NAME:N`` in the environment, the
+process prints one line to stderr (``fluo: crash point POINT reached
+(FLUO_CRASH_AT=...): PATH``), flushes it and kills itself with SIGKILL the N-th
+time (default 1) it reaches that named step of a write (with ``@NAME``: a step
+on a path that ends in NAME, one or more whole components, e.g.
+``atomic.before_replace@table.csv`` or ``commit.moved@demo/CBCT.nrrd``), so a
+test interrupts exactly the step it means to, not a random moment. The points
+are :data:`CRASH_POINTS`; a POINT that is not one of them, or an N that is not a
+positive integer, is a ``ValueError`` at the first point reached, never a run
+that is silently not killed. Without the variable a point costs one environment
+look-up.
 """
 
 from __future__ import annotations
@@ -32,10 +45,39 @@ import glob
 import json
 import os
 import shutil
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 
 from fluoguide.errors import FluoInputError
+
+#: The named steps where ``FLUO_CRASH_AT`` kills the process, in the order a
+#: write reaches them (see the module docstring), and the path each names
+#: (what ``@NAME`` matches the end of):
+#:
+#: ``atomic.before_replace`` (the final file)
+#:     :func:`atomic_path`: the temporary file is complete and on disk, not yet
+#:     renamed onto the final name (every single-file write, the journal too).
+#: ``folder.before_publish`` (the new folder)
+#:     :func:`publish_folder`: a new folder is complete in its staging folder
+#:     beside the final name, before the one rename.
+#: ``commit.before_journal`` (the folder committed into)
+#:     :func:`commit_files`: every file is staged inside the folder; no journal.
+#: ``commit.journal_written`` (the folder)
+#:     :func:`commit_files`: the journal is on disk; nothing moved yet.
+#: ``commit.moved`` (the file just moved in)
+#:     the roll forward (of a commit, or of :func:`recover`): after each file
+#:     moved in (``commit.moved:1`` is after the first of several moves).
+#: ``commit.before_cleanup`` (the folder)
+#:     the roll forward: every file moved and the journal removed, the
+#:     staging folder not yet removed.
+CRASH_POINTS = ("atomic.before_replace", "folder.before_publish", "commit.before_journal",
+                "commit.journal_written", "commit.moved", "commit.before_cleanup")
+CRASH_ENV = "FLUO_CRASH_AT"
+_crash_hits = {}             # FLUO_CRASH_AT value -> times its point was reached in this process
+_crash_lock = threading.Lock()
 
 JOURNAL = ".fluo-commit.json"
 STAGING_PREFIX = ".fluo-stage-"
@@ -53,6 +95,55 @@ def output_error(exc, path, field=None):
     if isinstance(exc, OSError) and exc.errno in _USER_ERRNOS:
         return FluoInputError(f"cannot write here ({exc.strerror})", file=path, field=field)
     return exc
+
+
+def crash_point(name, path=None):
+    """Die here (SIGKILL) when ``FLUO_CRASH_AT`` names this point and hit.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`CRASH_POINTS`.
+    path : path, optional
+        What is being written: named in the stderr line, and matched by the
+        ``@NAME`` of ``FLUO_CRASH_AT``.
+
+    Raises
+    ------
+    ValueError
+        When ``FLUO_CRASH_AT`` is set but names no crash point or has a bad
+        count, or ``name`` is not a crash point (a test must not pass because
+        nothing was killed).
+    """
+    spec = os.environ.get(CRASH_ENV)
+    if not spec:
+        return
+    head, colon, nth = spec.rpartition(":")
+    if not colon:
+        head, nth = spec, "1"
+    point, at, target = head.partition("@")
+    if (point not in CRASH_POINTS or not nth.isdigit() or int(nth) < 1
+            or (at and not target)):
+        raise ValueError(f"{CRASH_ENV}={spec!r}: expected POINT, POINT:N, POINT@NAME or "
+                         f"POINT@NAME:N (N >= 1), POINT one of {', '.join(CRASH_POINTS)}")
+    if name not in CRASH_POINTS:
+        raise ValueError(f"crash point {name!r} is not in atomic.CRASH_POINTS")
+    if point != name:
+        return
+    if at:
+        want = Path(target).parts
+        if path is None or Path(path).parts[-len(want):] != want:
+            return
+    with _crash_lock:        # writers in threads (the web app) count each hit once
+        hits = _crash_hits[spec] = _crash_hits.get(spec, 0) + 1
+        if hits != int(nth):
+            return
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()                # what was printed before stays before
+        line = f"fluo: crash point {name} reached ({CRASH_ENV}={spec})"
+        # straight to fd 2: sys.stderr may be a progress bar's or a captured stream
+        os.write(2, (line + (f": {path}" if path is not None else "") + "\n").encode())
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _pid_alive(pid):
@@ -128,6 +219,7 @@ def atomic_path(path, field=None):
             raise FluoInputError("the writer produced no file", file=path, field=field)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        crash_point("atomic.before_replace", path)
         try:
             os.replace(tmp, path)
         except OSError as exc:
@@ -214,6 +306,7 @@ def stage_beside(folder):
 def publish_folder(stage, folder):
     """Rename the complete ``stage`` to ``folder`` (which must not exist): one step."""
     stage, folder = Path(stage), Path(folder)
+    crash_point("folder.before_publish", folder)
     try:
         os.rename(stage, folder)
     except OSError as exc:
@@ -275,7 +368,9 @@ def commit_files(stage, out_dir, names):
     """
     stage, out_dir = Path(stage), Path(out_dir)
     journal = {"stage": os.path.relpath(stage, out_dir), "files": list(names)}
+    crash_point("commit.before_journal", out_dir)
     write_text(out_dir / JOURNAL, json.dumps(journal))
+    crash_point("commit.journal_written", out_dir)
     _roll_forward(out_dir, journal)
 
 
@@ -284,11 +379,16 @@ def _roll_forward(out_dir, journal):
     for name in journal["files"]:
         src = stage / name
         if src.exists():  # moved already when a crash interrupted the last roll
-            os.replace(src, out_dir / name)
+            try:
+                os.replace(src, out_dir / name)
+            except FileNotFoundError:
+                continue  # a reader's recover() rolling the same journal moved it first
+            crash_point("commit.moved", out_dir / name)
     _fsync_dir(out_dir)
     with contextlib.suppress(FileNotFoundError):
         (out_dir / JOURNAL).unlink()
     _fsync_dir(out_dir)
+    crash_point("commit.before_cleanup", out_dir)
     shutil.rmtree(stage, ignore_errors=True)
 
 

@@ -60,11 +60,14 @@ def load_stack(folder):
     ``exposure_s``, ``kind`` (light/dark) and optionally ``f_number``,
     ``wavelength_nm``, ``radiance_w_per_mm2_sr``; images are 16-bit PNG/TIFF
     or .npy.  Returns (frames, metadata dict)."""
+    from fluoguide import atomic
     from fluoguide.errors import check_number
     from fluoguide.jsonable import read_json
     from fluoguide.paths import inside
 
     folder = Path(folder)
+    if folder.is_dir():
+        atomic.recover(folder)   # finish a write_stack a crash interrupted: the new set, whole
     meta_path = folder / "stack.json"
     if not meta_path.is_file():
         raise FluoInputError("stack folder needs a stack.json", file=meta_path)

@@ -27,11 +27,13 @@ def read_dataset(folder, name, required=()):
     or an unreadable image.
     """
     from FluoCalibLib.radiometry.camera_response import _read_image
+    from fluoguide import atomic
     from fluoguide.paths import inside
 
     folder = Path(folder)
     if not folder.is_dir():
         raise FluoInputError("folder not found", field="folder", value=str(folder))
+    atomic.recover(folder)   # finish a write a crash interrupted: the new set, whole
     p = folder / name
     if not p.is_file():
         raise FluoInputError(f"folder needs {name}", file=p)

@@ -243,12 +243,15 @@ def read_acquisition(folder, labelmap=None, optics=None):
     (the tissue's refractive index sets the boundary factor 2A).  Returns an
     :class:`Acquisition`.
     """
+    from fluoguide import atomic
     from fluoguide.jsonable import read_json
 
     p = Path(folder)
     jpath = p if p.suffix == ".json" else p / "acquisition.json"
     if not p.exists():
         raise FluoInputError("acquisition folder not found", file=p)
+    if jpath.parent.is_dir():
+        atomic.recover(jpath.parent)   # finish a write a crash interrupted: the new set, whole
     doc = read_json(jpath)
     base = jpath.parent
     if doc.get("format", FORMAT) != FORMAT:
