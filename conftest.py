@@ -98,3 +98,26 @@ def fluo():
     import forkserver
 
     return forkserver.fluo
+
+
+@pytest.fixture(scope="session")
+def own_scene(tmp_path_factory):
+    """The shared own scene (``small_cases.write_own_scene``) and an acquisition
+    simulated from it by ``fluo tomo simulate --accuracy fast`` (label 7 at
+    ``small_cases.TRUE_YIELD``). A namespace: ``dir``, ``labels``, ``optics``,
+    ``acq`` (paths), ``sc`` (the scene dict with its truth), ``simulated`` (the
+    command's JSON). Read-only: a test that changes a file copies it first."""
+    import json
+    from types import SimpleNamespace
+
+    import forkserver
+    from small_cases import TRUE_YIELD, write_own_scene
+
+    d = tmp_path_factory.mktemp("own_scene")
+    sc = write_own_scene(d)
+    r = forkserver.fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics",
+                        d / "optics.json", "--yield", f"7:{TRUE_YIELD}", "--accuracy", "fast",
+                        "--out", d / "acq", "--json")
+    assert r.returncode == 0, r.stderr
+    return SimpleNamespace(dir=d, labels=d / "labels.nrrd", optics=d / "optics.json",
+                           acq=d / "acq", sc=sc, simulated=json.loads(r.stdout))

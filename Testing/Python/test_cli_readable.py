@@ -14,6 +14,7 @@ import pytest
 
 from fluoapp.cli import build_parser, main
 from fluoapp.demo.run import STAGE_NAMES, run_demo, stages_to_run
+from small_cases import SMALL_TUBE
 from fluoapp.format import format_result, has_unit
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress, mark_command_start, scaled
@@ -233,7 +234,13 @@ def test_only_with_an_unknown_stage_is_refused_before_anything_is_written(tmp_pa
 
 @pytest.mark.slow
 def test_only_tomography(tmp_path):
-    # failed with KeyError 'tube_phantoms' before the stages knew their needs
-    metrics = run_demo(tmp_path / "out", quick=True, only=["tomography"])
+    # failed with KeyError 'tube_phantoms' before the stages knew their needs; the
+    # tube cases at the coarser settings of test_demo_cases.py (the quick demo's
+    # own run in test_demo.py grades the tomography at its real resolution)
+    metrics = run_demo(tmp_path / "out", quick=True, only=["tomography"],
+                       case_options=SMALL_TUBE)
     assert metrics["stages_completed"] == ["phantoms", "tomography"]
     assert metrics["tomography"]["HP mean |yield error| %"] < 20
+    with pytest.raises(FluoInputError, match="unknown case option"):
+        run_demo(tmp_path / "bad", quick=True, only=["tomography"], case_options={"fine": 1})
+    assert not (tmp_path / "bad").exists()

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from fluoguide.labelmap_io import read_volume_nrrd, write_volume_nrrd
-from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
+from fluoguide.phantoms import ellipsoid_inclusion_optics
+from small_cases import TRUE_YIELD, write_scene
 
 OPTICS = ellipsoid_inclusion_optics()
-TRUE_YIELD = 2.6e-3          # 2 ug/mL ICG (its absorption is in the simulation)
 
 
 def _one_line_exit_2(r, needle):
@@ -23,25 +23,10 @@ def _one_line_exit_2(r, needle):
     assert "Traceback" not in r.stderr and r.stdout == ""
 
 
-def _write_scene(folder, **kw):
-    sc = ellipsoid_inclusion_labelmap(**kw)
-    folder.mkdir(parents=True, exist_ok=True)
-    write_volume_nrrd(folder / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"],
-                      sc["origin_mm"], sc["direction"])
-    (folder / "optics.json").write_text(json.dumps(OPTICS, indent=1))
-    return sc
-
-
 @pytest.fixture(scope="module")
-def small(tmp_path_factory, fluo):
-    """A small scene and its simulated acquisition (fast settings)."""
-    d = tmp_path_factory.mktemp("small")
-    sc = _write_scene(d, semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0),
-                      inclusion_gap_mm=2.5, inclusion_offset_mm=(1.0, -1.0))
-    r = fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics", d / "optics.json",
-             "--yield", "7:0.0026", "--accuracy", "fast", "--out", d / "acq", "--json")
-    assert r.returncode == 0, r.stderr
-    return d, sc, json.loads(r.stdout)
+def small(own_scene):
+    """The shared own scene and its acquisition (conftest.py: fast settings)."""
+    return own_scene.dir, own_scene.sc, own_scene.simulated
 
 
 def test_simulate_writes_a_folder_a_person_can_read(small):
@@ -161,7 +146,7 @@ def _check(sc, summary, yield_file, method, tol):
 @pytest.fixture(scope="module")
 def issue_scene(tmp_path_factory, fluo):
     d = tmp_path_factory.mktemp("issue")
-    sc = _write_scene(d)                 # 0.5 x 0.6 x 0.7 mm, diag(-1,-1,1), origin (120,-80,340)
+    sc = write_scene(d)                 # 0.5 x 0.6 x 0.7 mm, diag(-1,-1,1), origin (120,-80,340)
     r = fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics", d / "optics.json",
              "--yield", "7:0.0026", "--noise-pct", "1", "--seed", "4", "--accuracy", "fine",
              "--out", d / "acq", "--json")
@@ -290,7 +275,7 @@ def test_mesh_fast_reports_region_volumes_and_warns(tmp_path, fluo):
     """``fluo mesh --fast`` on a flipped, anisotropic label map: region volumes
     against the label map within 1 %; a region too small for the cells is in
     the JSON's warnings."""
-    sc = _write_scene(tmp_path, semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0))
+    sc = write_scene(tmp_path, semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0))
     r = fluo("mesh", tmp_path / "labels.nrrd", "--fast", "--size", "1.0", "--out",
              tmp_path / "m.vtu", "--json")
     assert r.returncode == 0, r.stderr

@@ -235,32 +235,20 @@ def test_quality_mesher_from_the_panel(app):
     app.state.tomo_mesh_roi = ""
 
 
-def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, tmp_path):
+def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, own_scene):
     """The user's own scene in the panel: a label map file (not the tube, any
     direction), optics.json and an acquisition folder; the mesh built in step
     3 is the reconstruction's (its node count is the result's), region volumes
     are shown, and the yield overlay peaks in the inclusion."""
-    import json
-    import subprocess
-    import sys
+    import shutil
 
-    from fluoguide.labelmap_io import write_volume_nrrd
-    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
-
-    sc = ellipsoid_inclusion_labelmap(semi_axes_mm=(14.0, 12.0, 8.0), spacing_mm=(0.8, 0.9, 1.0),
-                                      inclusion_gap_mm=2.5, inclusion_offset_mm=(1.0, -1.0))
+    sc = own_scene.sc
     # the UI takes paths inside its workspace (issue #21)
     tmp_path = app.workspace.root / "own"
     tmp_path.mkdir(exist_ok=True)
-    write_volume_nrrd(tmp_path / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"],
-                      sc["origin_mm"], sc["direction"])
-    optics = ellipsoid_inclusion_optics()
-    (tmp_path / "optics.json").write_text(json.dumps(optics))
-    r = subprocess.run([sys.executable, "-m", "fluoapp", "tomo", "simulate", "--labels",
-                        str(tmp_path / "labels.nrrd"), "--optics", str(tmp_path / "optics.json"),
-                        "--yield", "7:0.0026", "--accuracy", "fast", "--out",
-                        str(tmp_path / "acq")], capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr
+    for f in ("labels.nrrd", "optics.json"):
+        shutil.copy(own_scene.dir / f, tmp_path / f)
+    shutil.copytree(own_scene.acq, tmp_path / "acq", dirs_exist_ok=True)
     s = app.state
     s.tomo_own_labels = "own/missing.nrrd"
     s.tomo_own_optics = "own/optics.json"

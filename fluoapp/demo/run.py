@@ -72,6 +72,9 @@ class DemoContext:
     executor: object = None
     threads: int | None = None
     resume: bool = False
+    # options of the tube cases (FluoTomoLib.pipelines.cases.tube_case) over the
+    # mode's own: a test's coarser tube, say
+    case_options: dict = field(default_factory=dict)
 
     def figure(self, stage, name, caption):
         self.figures.append((stage, name, caption))
@@ -93,7 +96,7 @@ def _stages():
 
 
 def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None,
-             executor=None, threads=None, resume=False):
+             executor=None, threads=None, resume=False, case_options=None):
     """Run the demo stages into ``out_dir``; returns the metrics dict.
 
     ``only``: stage names (:data:`STAGE_NAMES`) to run, with the stages they need.
@@ -101,11 +104,18 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     ``fluoguide.runs`` task per tube depth and one for the oral cavity; default
     serial in this process) and the library threads of each; ``resume``: reuse
     the cases an earlier (killed) demo finished in ``out_dir/runs``.
+    ``case_options``: options of the tube cases over the mode's own
+    (``FluoTomoLib.pipelines.cases.tube_case``: ``fine_mm``, ``n_sources``, ...;
+    a test's coarser tube); an unknown one is a FluoInputError before any work.
     Raises FluoInputError for an unknown stage name (before anything is
     written) and FluoError (after writing metrics.json and report.html) when a
     stage fails; the message names the stage.
     """
     names = stages_to_run(only)
+    if case_options:
+        from FluoTomoLib.pipelines.cases import case_tasks
+
+        case_tasks((), tube_options=dict(case_options))   # checks the option names
     out = Path(out_dir).resolve()
     check_number("seed", seed, 0, 2**32 - 1, integer=True)
     try:
@@ -116,7 +126,7 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     except OSError as exc:
         raise FluoInputError(f"output folder is not writable ({exc.strerror})", file=out) from None
     ctx = DemoContext(out=out, quick=quick, seed=seed, cancel=cancel, executor=executor,
-                      threads=threads, resume=bool(resume))
+                      threads=threads, resume=bool(resume), case_options=dict(case_options or {}))
     stages = [s for s in _stages() if s[0] in names]
     ctx.metrics = {"quick": quick, "seed": seed, "stage_seconds": {}, "stages_completed": [],
                    "stages_failed": {}}

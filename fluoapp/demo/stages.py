@@ -243,7 +243,8 @@ def stage_tomography(ctx):
     # Dask workers side by side (about 10 GB each in quick mode).
     depths = sorted(ctx.state["tube_phantoms"])
     tasks = case_tasks(depths, seed=ctx.seed,
-                       tube_options={"accuracy": "fast" if ctx.quick else "balanced"})
+                       tube_options={"accuracy": "fast" if ctx.quick else "balanced",
+                                     **ctx.case_options})
     runs = dict(zip(depths, _run_cases(ctx, "tomography", tasks)))
     methods = ["NP", "SP", "HP"]
     ctx.metrics["yield_error_pct"] = {m: [runs[d]["results"][m]["peak_error_pct"] for d in depths]

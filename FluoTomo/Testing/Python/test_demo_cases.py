@@ -15,12 +15,12 @@ from pathlib import Path
 import forkserver
 import numpy as np
 import pytest
+from small_cases import SMALL_TUBE
 
 from fluoguide.errors import FluoInputError
 
 ROOT = Path(__file__).resolve().parents[3]
-SMALL = {"fine_mm": 1.2, "simulate_coarse_mm": 3.0, "n_sources": 6, "accuracy": "fast",
-         "coarse_mm": 2.0}
+SMALL = SMALL_TUBE          # the demo's tube at coarser settings (small_cases.py)
 
 
 def _untimed(value):
