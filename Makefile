@@ -30,7 +30,7 @@ TEST_THREADS := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA
 # workers, fork-server children, subprocesses) and for the next run
 NUMBA_CACHE := NUMBA_CACHE_DIR=$(CURDIR)/$(VENV)/numba-cache
 # test processes side by side (pytest-xdist, work stealing): 2 measured fastest on
-# the 2-core machine (docs/testing.md); JOBS=1 runs them in one process
+# the 2-core machine (docs/DEVELOPING.md, "The test suite"); JOBS=1 runs them in one process
 JOBS ?= 2
 XDIST = $(if $(filter 1,$(JOBS)),-p no:xdist,-n $(JOBS) --dist worksteal)
 

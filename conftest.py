@@ -12,7 +12,11 @@
 - Order: slow and browser tests first, so that with ``pytest -n 2`` the long
   tests start at once and the short ones fill the gaps (xdist's work stealing).
 - ``heavy``: tests that need many GB hold a lock shared by the xdist workers,
-  so two of them never run side by side on a small machine.
+  so two of them never run side by side on a small machine. The memory guard:
+  a test not marked heavy whose process tree (the test process, the fork
+  server's children, subprocesses) grows by more than ``LIGHT_TEST_LIMIT_GB``
+  (resident, sampled every 0.2 s) fails, so the lock knows every big test.
+  ``FLUO_TEST_MEMORY_REPORT=FILE`` appends each test's seconds and peak to FILE.
 """
 
 import fcntl
@@ -38,12 +42,6 @@ sys.path.insert(0, str(_ROOT / "Testing" / "Python"))
 FAST_TEST_LIMIT_S = float(os.environ.get("FLUO_FAST_TEST_LIMIT_S", "20"))
 
 
-def pytest_configure(config):
-    config.addinivalue_line(
-        "markers", "heavy: peaks at many GB of memory; never runs beside another heavy test "
-                   "(a lock shared by the xdist workers)")
-
-
 def pytest_collection_modifyitems(session, config, items):
     """Slow and browser tests first (stable otherwise): the longest work starts first."""
     def rank(item):
@@ -56,7 +54,13 @@ def pytest_collection_modifyitems(session, config, items):
     items[:] = sorted(items, key=rank)
 
 
+# A test not marked heavy may grow its process tree's resident memory by this
+# much: with two workers, one heavy test (the quick demo, ~12 GB) beside a light
+# one then fits the 24 GB machine with room for the workers themselves.
+LIGHT_TEST_LIMIT_GB = float(os.environ.get("FLUO_LIGHT_TEST_LIMIT_GB", "4"))
+
 _SPENT = pytest.StashKey[float]()   # seconds of a test's phases so far
+_MEMORY = pytest.StashKey[dict]()   # the memory sampler's findings
 
 
 @pytest.hookimpl(wrapper=True)
@@ -72,6 +76,61 @@ def pytest_runtest_makereport(item, call):
                            f"the {FAST_TEST_LIMIT_S:.0f} s allowed a test not marked slow: make "
                            "it faster, or mark it @pytest.mark.slow (conftest.py)")
     return report
+
+
+def _tree_rss_bytes(proc):
+    """Resident size of ``proc`` and every process below it (bytes)."""
+    import psutil
+
+    total = 0
+    for p in [proc, *proc.children(recursive=True)]:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            pass
+    return total
+
+
+@pytest.fixture(autouse=True)
+def _memory_watch(request):
+    """Sample the test's process tree every 0.2 s; fail a light test that grew
+    by more than ``LIGHT_TEST_LIMIT_GB``; report to ``FLUO_TEST_MEMORY_REPORT``."""
+    import threading
+    import time
+
+    import psutil
+
+    proc = psutil.Process()
+    start = _tree_rss_bytes(proc)
+    found = {"peak": start}
+    stop = threading.Event()
+
+    def sample():
+        while not stop.wait(0.2):
+            found["peak"] = max(found["peak"], _tree_rss_bytes(proc))
+
+    t0 = time.monotonic()
+    thread = threading.Thread(target=sample, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+    grew_gb = (found["peak"] - start) / 2**30
+    report = os.environ.get("FLUO_TEST_MEMORY_REPORT")
+    if report:
+        import json
+
+        with open(report, "a") as fh:
+            fh.write(json.dumps({"test": request.node.nodeid, "seconds": time.monotonic() - t0,
+                                 "grew_gb": round(grew_gb, 3),
+                                 "peak_gb": round(found["peak"] / 2**30, 3)}) + "\n")
+    if request.node.get_closest_marker("heavy") is None and grew_gb > LIGHT_TEST_LIMIT_GB:
+        pytest.fail(f"{request.node.nodeid} grew its processes' resident memory by "
+                    f"{grew_gb:.1f} GB, over the {LIGHT_TEST_LIMIT_GB:g} GB of a test not "
+                    "marked heavy: make it smaller, or mark it @pytest.mark.heavy (conftest.py)",
+                    pytrace=False)
 
 
 @pytest.fixture(autouse=True)
@@ -121,3 +180,25 @@ def own_scene(tmp_path_factory):
     assert r.returncode == 0, r.stderr
     return SimpleNamespace(dir=d, labels=d / "labels.nrrd", optics=d / "optics.json",
                            acq=d / "acq", sc=sc, simulated=json.loads(r.stdout))
+
+
+@pytest.fixture(scope="session")
+def issue_acquisition(tmp_path_factory):
+    """Issue #17's own scene at full resolution (``small_cases.write_scene()``'s
+    defaults: 0.5 x 0.6 x 0.7 mm voxels, direction diag(-1, -1, 1), origin
+    (120, -80, 340)) and an acquisition simulated at the ``fine`` level (1 %
+    noise, seed 4): the accuracy tests of the CLI, the logic and the browser
+    share it. A namespace like ``own_scene``'s (no ``simulated``). Read-only."""
+    from types import SimpleNamespace
+
+    import forkserver
+    from small_cases import TRUE_YIELD, write_scene
+
+    d = tmp_path_factory.mktemp("issue_scene")
+    sc = write_scene(d)
+    r = forkserver.fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics",
+                        d / "optics.json", "--yield", f"7:{TRUE_YIELD}", "--noise-pct", "1",
+                        "--seed", "4", "--accuracy", "fine", "--out", d / "acq", timeout=1800)
+    assert r.returncode == 0, r.stderr
+    return SimpleNamespace(dir=d, labels=d / "labels.nrrd", optics=d / "optics.json",
+                           acq=d / "acq", sc=sc)

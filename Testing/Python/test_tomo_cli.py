@@ -144,16 +144,12 @@ def _check(sc, summary, yield_file, method, tol):
 
 
 @pytest.fixture(scope="module")
-def issue_scene(tmp_path_factory, fluo):
-    d = tmp_path_factory.mktemp("issue")
-    sc = write_scene(d)                 # 0.5 x 0.6 x 0.7 mm, diag(-1,-1,1), origin (120,-80,340)
-    r = fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics", d / "optics.json",
-             "--yield", "7:0.0026", "--noise-pct", "1", "--seed", "4", "--accuracy", "fine",
-             "--out", d / "acq", "--json")
-    assert r.returncode == 0, r.stderr
-    return d, sc
+def issue_scene(issue_acquisition):
+    """Issue #17's scene at full resolution and its 'fine' acquisition (conftest.py)."""
+    return issue_acquisition.dir, issue_acquisition.sc
 
 
+@pytest.mark.heavy     # SP at the balanced level on issue #17's full-resolution scene: 8.5 GB
 @pytest.mark.slow
 def test_issue_scene_through_the_cli(issue_scene, fluo):
     """HP within 15 %, SP within 30 %, the half-maximum centroid within 1 mm of
@@ -175,6 +171,7 @@ def test_issue_scene_through_the_cli(issue_scene, fluo):
     print("issue scene, CLI:", {m: f"{100 * e:+.1f} %" for m, e in errors.items()})
 
 
+@pytest.mark.heavy     # the same reconstructions as the CLI test: 8.5 GB
 @pytest.mark.slow
 def test_issue_scene_through_the_logic(issue_scene):
     """The same through FluoTomoLogic with node objects; a second run gets its

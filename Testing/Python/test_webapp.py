@@ -130,6 +130,7 @@ def test_tomo_workflow_segment_label_mesh_in_the_app_scene(app):
     assert mrml_io.get_node(app.scene, "FluoTomoMeshSurface") is not None
 
 
+@pytest.mark.heavy     # the tube phantom reconstructed by the app (fast level)
 @pytest.mark.slow
 def test_tomo_reconstruction_job_overlays_the_result(app):
     tomo = _panel(app, "FluoTomo")

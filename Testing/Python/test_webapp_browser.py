@@ -126,6 +126,7 @@ def _hot_pixels(img):
     return int(np.count_nonzero((r > 140) & (r - b > 80) & (r >= g)))
 
 
+@pytest.mark.heavy     # the tube phantom reconstructed by the app (fast level)
 def test_fluotomo_workflow_in_the_browser(page):
     pg = page
     idle = [_ping_ms(pg) for _ in range(5)]
@@ -175,29 +176,22 @@ def test_fluotomo_workflow_in_the_browser(page):
     assert "HP" in result
 
 
-def test_own_label_map_from_files_in_the_browser(page, tmp_path_factory):
+@pytest.mark.heavy     # HP and SP on issue #17's full-resolution scene
+def test_own_label_map_from_files_in_the_browser(page, issue_acquisition):
     """Issue #17's scene through the web app: a label map file unlike the tube
     (ellipsoidal body, 6 mm inclusion 4 mm under the curved top, anisotropic
     voxels, direction diag(-1, -1, 1), origin far from zero), optics.json and an
     acquisition folder simulated by ``fluo tomo simulate`` (its own whole-map
-    mesh); loaded, meshed and reconstructed by clicks: HP within 15 %, SP within
-    30 %, the half-maximum centroid within 1 mm of the inclusion's centre and
-    the peak inside it, in RAS."""
-    from fluoguide.labelmap_io import write_volume_nrrd
-    from fluoguide.phantoms import ellipsoid_inclusion_labelmap, ellipsoid_inclusion_optics
-
-    d = WORKSPACE["root"] / "own"
+    mesh at 'fine': the acquisition the CLI and logic tests grade, conftest.py);
+    loaded, meshed and reconstructed by clicks: HP within 15 %, SP within 30 %,
+    the half-maximum centroid within 1 mm of the inclusion's centre and the peak
+    inside it, in RAS."""
+    d = WORKSPACE["root"] / "own"      # the UI takes paths inside its workspace
     d.mkdir(exist_ok=True)
-    sc = ellipsoid_inclusion_labelmap()
-    write_volume_nrrd(d / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"], sc["origin_mm"],
-                      sc["direction"])
-    optics = ellipsoid_inclusion_optics()
-    (d / "optics.json").write_text(json.dumps(optics))
-    r = subprocess.run([sys.executable, "-m", "fluoapp", "tomo", "simulate", "--labels",
-                        str(d / "labels.nrrd"), "--optics", str(d / "optics.json"), "--yield",
-                        "7:0.0026", "--seed", "5", "--out", str(d / "acq")],
-                       capture_output=True, text=True, timeout=900)
-    assert r.returncode == 0, r.stderr
+    for f in ("labels.nrrd", "optics.json"):
+        shutil.copy(issue_acquisition.dir / f, d / f)
+    shutil.copytree(issue_acquisition.acq, d / "acq", dirs_exist_ok=True)
+    sc = issue_acquisition.sc
     pg = page
     pg.click("#tool-FluoTomo") if not pg.is_visible("#tomo-own-load") else None
     pg.fill("#tomo-own-labels", "own/labels.nrrd")
