@@ -29,10 +29,11 @@ TEST_THREADS := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA
 # numba's compiled kernels, cached once for every process of a run (test
 # workers, fork-server children, subprocesses) and for the next run
 NUMBA_CACHE := NUMBA_CACHE_DIR=$(CURDIR)/$(VENV)/numba-cache
-# test processes side by side (pytest-xdist, work stealing): 2 measured fastest on
-# the 2-core machine (docs/DEVELOPING.md, "The test suite"); JOBS=1 runs them in one process
+# test processes side by side (pytest-xdist), whole files each, in conftest.py's
+# order (heavy and slow files first; docs/DEVELOPING.md, "The test suite");
+# JOBS=1 runs them in one process
 JOBS ?= 2
-XDIST = $(if $(filter 1,$(JOBS)),-p no:xdist,-n $(JOBS) --dist worksteal)
+XDIST = $(if $(filter 1,$(JOBS)),-p no:xdist,-n $(JOBS) --dist loadfile --no-loadscope-reorder)
 
 # Debian packages the tests need (Chromium, cmake, pocl, Qt's offscreen libraries):
 # installed when missing, or one line naming the command that installs them

@@ -6,23 +6,32 @@
 - ``fluo``: a session fixture that runs ``fluo`` commands as children forked
   from one process that imported the stack once (``Testing/Python/forkserver.py``):
   the exit code, stdout and stderr of a real process without its start-up.
+- Shared small inputs: ``own_scene`` and ``issue_acquisition`` (built once per
+  test process; ``Testing/Python/small_cases.py``).
 - The time guard: a test not marked ``slow`` that takes longer than
   ``FAST_TEST_LIMIT_S`` (set-up, call and tear-down together) fails, so the
   fast suite stays fast and CI's budget is spent where it is declared.
-- Order: slow and browser tests first, so that with ``pytest -n 2`` the long
-  tests start at once and the short ones fill the gaps (xdist's work stealing).
-- ``heavy``: tests that need many GB hold a lock shared by the xdist workers,
-  so two of them never run side by side on a small machine. The memory guard:
-  a test not marked heavy whose process tree (the test process, the fork
-  server's children, subprocesses) grows by more than ``LIGHT_TEST_LIMIT_GB``
-  (resident, sampled every 0.2 s) fails, so the lock knows every big test.
-  ``FLUO_TEST_MEMORY_REPORT=FILE`` appends each test's seconds and peak to FILE.
+- The memory guard and budget: every test's process tree (the test process,
+  the fork server and its children, subprocesses) is sampled every 0.2 s. A
+  test marked ``@pytest.mark.heavy(gb=G)`` reserves G GB of a budget shared by
+  every test process of the machine (``heavy_budget_gb``) before it starts, and
+  waits while the reservations would exceed it; a test that grows by more than
+  its G (``LIGHT_TEST_LIMIT_GB`` without the mark) fails, so the reservations
+  stay honest. ``FLUO_TEST_MEMORY_REPORT=FILE`` appends each test's seconds and
+  peak to FILE.
+- Order: whole files (``make test`` distributes files, ``--dist loadfile``): the
+  largest heavy test's first, then files with slow tests, then the other heavy
+  files, then the rest, so long work starts at once, the other worker is not
+  left waiting for memory, and the short files fill the gaps.
 """
 
 import fcntl
+import json
 import os
 import sys
 import tempfile
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -41,26 +50,55 @@ sys.path.insert(0, str(_ROOT / "Testing" / "Python"))
 # (a profiling run on a loaded machine, say).
 FAST_TEST_LIMIT_S = float(os.environ.get("FLUO_FAST_TEST_LIMIT_S", "20"))
 
-
-def pytest_collection_modifyitems(session, config, items):
-    """Slow and browser tests first (stable otherwise): the longest work starts first."""
-    def rank(item):
-        if item.get_closest_marker("heavy"):
-            return 0
-        if item.get_closest_marker("slow") or item.get_closest_marker("browser"):
-            return 1
-        return 2
-
-    items[:] = sorted(items, key=rank)
-
-
 # A test not marked heavy may grow its process tree's resident memory by this
-# much: with two workers, one heavy test (the quick demo, ~12 GB) beside a light
-# one then fits the 24 GB machine with room for the workers themselves.
+# much: two light tests, or a light one beside the heavy reservations, fit.
 LIGHT_TEST_LIMIT_GB = float(os.environ.get("FLUO_LIGHT_TEST_LIMIT_GB", "4"))
 
 _SPENT = pytest.StashKey[float]()   # seconds of a test's phases so far
-_MEMORY = pytest.StashKey[dict]()   # the memory sampler's findings
+
+
+def heavy_budget_gb():
+    """GB that heavy tests may hold at once on this machine: its memory less 8 GB
+    for the test processes themselves and the light tests beside them (24 GB: 16);
+    ``FLUO_HEAVY_BUDGET_GB`` overrides. One heavy test always may run."""
+    if os.environ.get("FLUO_HEAVY_BUDGET_GB"):
+        return float(os.environ["FLUO_HEAVY_BUDGET_GB"])
+    with open("/proc/meminfo") as fh:
+        total_kb = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal:"))
+    return max(0.0, total_kb / 2**20 - 8.0)
+
+
+def _heavy_gb(item):
+    """The GB a heavy test declares (``@pytest.mark.heavy(gb=G)``), else None."""
+    mark = item.get_closest_marker("heavy")
+    if mark is None:
+        return None
+    gb = mark.kwargs.get("gb", mark.args[0] if mark.args else None)
+    if not isinstance(gb, (int, float)) or gb <= 0:
+        raise pytest.UsageError(f"{item.nodeid}: @pytest.mark.heavy needs gb=<its peak in GB>")
+    return float(gb)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Order whole files (a file's tests keep their order: some share state through
+    module fixtures, the browser's page): the file of the largest heavy test first,
+    then files with slow or browser tests, then the other heavy files, then the
+    rest. While the largest reservation runs, the other worker has long light
+    work to do instead of waiting for memory."""
+    files = {}
+    for k, item in enumerate(items):
+        f = files.setdefault(str(item.path), {"first": k, "gb": 0.0, "slow": False})
+        f["gb"] = max(f["gb"], _heavy_gb(item) or 0.0)       # a bad mark: refused here
+        f["slow"] |= bool(item.get_closest_marker("slow") or item.get_closest_marker("browser"))
+    largest = max(files.values(), key=lambda f: f["gb"])
+
+    def rank(f):
+        if f["gb"] > 0:
+            return (0, 0) if f is largest else (2, -f["gb"])
+        return (1, 0) if f["slow"] else (3, 0)
+
+    items[:] = sorted(items, key=lambda it: (*rank(files[str(it.path)]),
+                                             files[str(it.path)]["first"]))
 
 
 @pytest.hookimpl(wrapper=True)
@@ -78,6 +116,7 @@ def pytest_runtest_makereport(item, call):
     return report
 
 
+# ----------------------------------------------------------------- memory
 def _tree_rss_bytes(proc):
     """Resident size of ``proc`` and every process below it (bytes)."""
     import psutil
@@ -91,15 +130,68 @@ def _tree_rss_bytes(proc):
     return total
 
 
-@pytest.fixture(autouse=True)
-def _memory_watch(request):
-    """Sample the test's process tree every 0.2 s; fail a light test that grew
-    by more than ``LIGHT_TEST_LIMIT_GB``; report to ``FLUO_TEST_MEMORY_REPORT``."""
-    import threading
-    import time
+class _Reservations:
+    """The heavy tests' reservations of every test process on this machine: a
+    JSON file {pid: GB} under an exclusive lock (a crashed process's entry is
+    dropped, its pid gone)."""
 
+    def __init__(self):
+        tmp = Path(tempfile.gettempdir())
+        self.path = tmp / f"fluo-heavy-{os.getuid()}.json"
+        self.lock = tmp / f"fluo-heavy-{os.getuid()}.lock"
+
+    def _update(self, change):
+        with open(self.lock, "a") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                try:
+                    held = json.loads(self.path.read_text())
+                except (OSError, ValueError):
+                    held = {}
+                held = {pid: gb for pid, gb in held.items() if _alive(int(pid))}
+                ok = change(held)
+                self.path.write_text(json.dumps(held))
+                return ok
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+
+    def acquire(self, gb, budget):
+        me = str(os.getpid())
+
+        def take(held):
+            if not held or sum(held.values()) + gb <= budget:
+                held[me] = gb
+                return True
+            return False
+
+        while not self._update(take):
+            time.sleep(0.5)
+
+    def release(self):
+        self._update(lambda held: held.pop(str(os.getpid()), None))
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@pytest.fixture(autouse=True)
+def _memory(request):
+    """Reserve a heavy test's GB; sample the test's process tree every 0.2 s; fail
+    a test that grew by more than it declared (``LIGHT_TEST_LIMIT_GB`` if light);
+    report to ``FLUO_TEST_MEMORY_REPORT``."""
     import psutil
 
+    gb = _heavy_gb(request.node)
+    reservations = _Reservations() if gb is not None else None
+    if reservations is not None:
+        reservations.acquire(gb, heavy_budget_gb())
     proc = psutil.Process()
     start = _tree_rss_bytes(proc)
     found = {"peak": start}
@@ -117,37 +209,25 @@ def _memory_watch(request):
     finally:
         stop.set()
         thread.join()
+        if reservations is not None:
+            reservations.release()
     grew_gb = (found["peak"] - start) / 2**30
     report = os.environ.get("FLUO_TEST_MEMORY_REPORT")
     if report:
-        import json
-
         with open(report, "a") as fh:
             fh.write(json.dumps({"test": request.node.nodeid, "seconds": time.monotonic() - t0,
-                                 "grew_gb": round(grew_gb, 3),
+                                 "declared_gb": gb, "grew_gb": round(grew_gb, 3),
                                  "peak_gb": round(found["peak"] / 2**30, 3)}) + "\n")
-    if request.node.get_closest_marker("heavy") is None and grew_gb > LIGHT_TEST_LIMIT_GB:
+    allowed = LIGHT_TEST_LIMIT_GB if gb is None else gb
+    if grew_gb > allowed:
+        fix = ("make it smaller, or mark it @pytest.mark.heavy(gb=...)" if gb is None
+               else "raise its @pytest.mark.heavy(gb=...) or make it smaller")
         pytest.fail(f"{request.node.nodeid} grew its processes' resident memory by "
-                    f"{grew_gb:.1f} GB, over the {LIGHT_TEST_LIMIT_GB:g} GB of a test not "
-                    "marked heavy: make it smaller, or mark it @pytest.mark.heavy (conftest.py)",
+                    f"{grew_gb:.1f} GB, over the {allowed:g} GB it may: {fix} (conftest.py)",
                     pytrace=False)
 
 
-@pytest.fixture(autouse=True)
-def _heavy_lock(request):
-    """One heavy test at a time across xdist workers (an exclusive file lock)."""
-    if request.node.get_closest_marker("heavy") is None:
-        yield
-        return
-    lock = Path(tempfile.gettempdir()) / f"fluo-heavy-{os.getuid()}.lock"
-    with open(lock, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-
-
+# ----------------------------------------------------------------- shared inputs
 @pytest.fixture(scope="session")
 def fluo():
     """``fluo(*args, cwd=None, env=None, timeout=600)`` -> result with
@@ -166,7 +246,6 @@ def own_scene(tmp_path_factory):
     ``small_cases.TRUE_YIELD``). A namespace: ``dir``, ``labels``, ``optics``,
     ``acq`` (paths), ``sc`` (the scene dict with its truth), ``simulated`` (the
     command's JSON). Read-only: a test that changes a file copies it first."""
-    import json
     from types import SimpleNamespace
 
     import forkserver
@@ -187,8 +266,8 @@ def issue_acquisition(tmp_path_factory):
     """Issue #17's own scene at full resolution (``small_cases.write_scene()``'s
     defaults: 0.5 x 0.6 x 0.7 mm voxels, direction diag(-1, -1, 1), origin
     (120, -80, 340)) and an acquisition simulated at the ``fine`` level (1 %
-    noise, seed 4): the accuracy tests of the CLI, the logic and the browser
-    share it. A namespace like ``own_scene``'s (no ``simulated``). Read-only."""
+    noise, seed 4; 2 GB, 14 s): the accuracy tests of the CLI, the logic and the
+    browser share it. A namespace like ``own_scene``'s (no ``simulated``). Read-only."""
     from types import SimpleNamespace
 
     import forkserver

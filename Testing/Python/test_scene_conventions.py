@@ -152,3 +152,8 @@ def test_tomography_results_are_documented_and_saved(tmp_path, own_scene):
                                       "FluoTomo.Reconstruction")
     assert info["method"] == "HP" and info["solver"]["iterations"] >= 1
     assert info["method"] == summary["method"] and node.GetName() == "FluoTomoYieldHP"
+    # a second run gets its own output node (the first is kept)
+    _, node2 = logic.reconstruct(lab, own_scene.optics, own_scene.acq, method="HP",
+                                 accuracy="fast")
+    assert node2.GetID() != node.GetID() and node2.GetName() == "FluoTomoYieldHP_1"
+    assert mrml_io.get_node(scene, "FluoTomoYieldHP").GetID() == node.GetID()

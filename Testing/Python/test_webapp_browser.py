@@ -126,7 +126,7 @@ def _hot_pixels(img):
     return int(np.count_nonzero((r > 140) & (r - b > 80) & (r >= g)))
 
 
-@pytest.mark.heavy     # the tube phantom reconstructed by the app (fast level)
+@pytest.mark.heavy(gb=8)     # the tube phantom reconstructed by the app (fast): 7.0 GB measured
 def test_fluotomo_workflow_in_the_browser(page):
     pg = page
     idle = [_ping_ms(pg) for _ in range(5)]
@@ -176,7 +176,7 @@ def test_fluotomo_workflow_in_the_browser(page):
     assert "HP" in result
 
 
-@pytest.mark.heavy     # HP and SP on issue #17's full-resolution scene
+@pytest.mark.heavy(gb=10)     # HP and SP on issue #17's scene: 9.1 GB measured
 def test_own_label_map_from_files_in_the_browser(page, issue_acquisition):
     """Issue #17's scene through the web app: a label map file unlike the tube
     (ellipsoidal body, 6 mm inclusion 4 mm under the curved top, anisotropic

@@ -342,8 +342,12 @@ class TomoPanel:
             glyph_points_model(self.app.scene, "FluoTomoDetectors", result["detectors_ras_mm"],
                                radius_mm=0.35, color=(0.2, 0.9, 0.3))
             self._show_yield()
+            # a result with warnings is shown as one (it read "success" before)
+            warnings = list(sm["warnings"])
             self.app.notify(f"{method}: label {tgt} yield {s.tomo_own_result['yield']} /mm, peak "
-                            f"in label {sm['peak_label']}, {sm['seconds']:.1f} s", "success")
+                            f"in label {sm['peak_label']}, {sm['seconds']:.1f} s"
+                            + "".join(f"; warning: {w}" for w in warnings),
+                            "warning" if warnings else "success")
 
         self.app.start_job(f"reconstruction {method}", job, on_done=done)
 
