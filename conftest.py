@@ -20,9 +20,10 @@
   stay honest. ``FLUO_TEST_MEMORY_REPORT=FILE`` appends each test's seconds and
   peak to FILE.
 - Order: whole files (``make test`` distributes files, ``--dist loadfile``): the
-  largest heavy test's first, then files with slow tests, then the other heavy
-  files, then the rest, so long work starts at once, the other worker is not
-  left waiting for memory, and the short files fill the gaps.
+  largest heavy test's first, then heavy files that fit beside it, then files
+  with slow tests, then the other heavy files, then the rest, so long work
+  starts at once, the other worker is not left waiting for memory, and the
+  short files fill the gaps.
 """
 
 import fcntl
@@ -58,14 +59,15 @@ _SPENT = pytest.StashKey[float]()   # seconds of a test's phases so far
 
 
 def heavy_budget_gb():
-    """GB that heavy tests may hold at once on this machine: its memory less 8 GB
-    for the test processes themselves and the light tests beside them (24 GB: 16);
-    ``FLUO_HEAVY_BUDGET_GB`` overrides. One heavy test always may run."""
+    """GB that heavy tests may hold at once on this machine: its memory less 7 GB
+    for the test processes themselves (about 1.5 GB each with its fork server) and
+    a light test beside them (24 GB: 17); ``FLUO_HEAVY_BUDGET_GB`` overrides. One
+    heavy test always may run."""
     if os.environ.get("FLUO_HEAVY_BUDGET_GB"):
         return float(os.environ["FLUO_HEAVY_BUDGET_GB"])
     with open("/proc/meminfo") as fh:
         total_kb = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal:"))
-    return max(0.0, total_kb / 2**20 - 8.0)
+    return max(0.0, total_kb / 2**20 - 7.0)
 
 
 def _heavy_gb(item):
@@ -81,21 +83,25 @@ def _heavy_gb(item):
 
 def pytest_collection_modifyitems(session, config, items):
     """Order whole files (a file's tests keep their order: some share state through
-    module fixtures, the browser's page): the file of the largest heavy test first,
-    then files with slow or browser tests, then the other heavy files, then the
-    rest. While the largest reservation runs, the other worker has long light
-    work to do instead of waiting for memory."""
+    module fixtures, the browser's page): the file of the largest heavy test first;
+    then heavy files that fit beside it in the memory budget; then files with slow
+    or browser tests; then the other heavy files, largest first; then the rest.
+    While the largest reservation runs, the other worker has long work that fits
+    beside it instead of waiting for memory."""
     files = {}
     for k, item in enumerate(items):
         f = files.setdefault(str(item.path), {"first": k, "gb": 0.0, "slow": False})
         f["gb"] = max(f["gb"], _heavy_gb(item) or 0.0)       # a bad mark: refused here
         f["slow"] |= bool(item.get_closest_marker("slow") or item.get_closest_marker("browser"))
     largest = max(files.values(), key=lambda f: f["gb"])
+    room = heavy_budget_gb() - largest["gb"]
 
     def rank(f):
+        if f is largest and f["gb"] > 0:
+            return (0, 0.0)
         if f["gb"] > 0:
-            return (0, 0) if f is largest else (2, -f["gb"])
-        return (1, 0) if f["slow"] else (3, 0)
+            return (1, -f["gb"]) if f["gb"] <= room else (3, -f["gb"])
+        return (2, 0.0) if f["slow"] else (4, 0.0)
 
     items[:] = sorted(items, key=lambda it: (*rank(files[str(it.path)]),
                                              files[str(it.path)]["first"]))

@@ -52,6 +52,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -685,8 +686,25 @@ def run(only=None, jobs=2, work=None, progress=None):
     cases = make_cases(only)
     todo = [c for c in cases if c.argv is not None]
 
+    # the cases running at once share jobs x MEMORY_BUDGET_MB (each counts its
+    # command's budget): with two jobs, two ordinary cases side by side and a
+    # 2.8 GB one alone, so the whole run stays a light test of the suite
+    # (conftest.py: under 4 GB)
+    total_mb = jobs * MEMORY_BUDGET_MB
+    room = {"mb": total_mb}
+    cond = threading.Condition()
+
     def one(c):
-        run_case(c, fx, work, server)
+        need = min(total_mb, MEMORY_BUDGET_BY_COMMAND.get(tuple(c.command), MEMORY_BUDGET_MB))
+        with cond:
+            cond.wait_for(lambda: room["mb"] >= need)
+            room["mb"] -= need
+        try:
+            run_case(c, fx, work, server)
+        finally:
+            with cond:
+                room["mb"] += need
+                cond.notify_all()
         if progress:
             progress(c)
         return c
