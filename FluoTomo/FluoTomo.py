@@ -777,7 +777,8 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             y = ndimage.map_coordinates(arr, ijk[:, ::-1].T, order=1, mode="nearest")
         px, pm = optics.nodal(labs, F, yield_nodes=y)
         fm = FluorescenceModel(mesh, px, pm, src, det,
-                               source_normals=lm.surface().closest(src)[1])
+                               source_normals=lm.surface().closest(src)[1],
+                               cut_facets=lm.cut_facets(mesh))
         return {"excitation": fm.excitation_data(),
                 "fluorescence": None if y is None else fm.emission_data(y),
                 "mesh_nodes": mesh.n_nodes}

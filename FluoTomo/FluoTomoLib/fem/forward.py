@@ -82,18 +82,21 @@ class FluorescenceModel:
     solver : see DiffusionOperator
     source_normals : (S, d) outward unit normals of the true surface at the
         sources, to bury them along (default: the nearest facet's normal)
+    cut_facets : bool mask over ``mesh.boundary_facets`` where the tissue goes on
+        beyond the mesh (DiffusionOperator); default none
     """
 
     def __init__(self, mesh, props_x, props_m, sources_mm, detectors_mm, solver="auto",
-                 max_snap_mm=5.0, source_normals=None):
+                 max_snap_mm=5.0, source_normals=None, cut_facets=None):
         t0 = time.perf_counter()
         mua_x, musp_x, n_x = _props(mesh, props_x, "props_x")
         mua_m, musp_m, n_m = _props(mesh, props_m, "props_m")
         # the boundary constant's method (optics.robin_A), "boundary" in either dict
         self.boundary = props_x.get("boundary", props_m.get("boundary"))
         self.mesh = mesh
+        self.cut_facets = cut_facets
         self.op_x = DiffusionOperator(mesh, mua_x, musp_x, n_x, solver, name="excitation",
-                                      boundary=self.boundary)
+                                      boundary=self.boundary, cut_facets=cut_facets)
         # The emission operator is assembled on first use: excitation-only work
         # (mua Jacobians, reflectance) never pays for it.
         check_properties(_nodal(mesh, mua_m, "emission.mua_per_mm"),
@@ -122,7 +125,7 @@ class FluorescenceModel:
         if self._op_m is None:
             mesh, mua_m, musp_m, n_m, solver = self._op_m_args
             self._op_m = DiffusionOperator(mesh, mua_m, musp_m, n_m, solver, name="emission",
-                                           boundary=self.boundary)
+                                           boundary=self.boundary, cut_facets=self.cut_facets)
             self.timings["assembly"] += self._op_m.assembly_seconds
         return self._op_m
 

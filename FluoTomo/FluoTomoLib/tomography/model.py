@@ -239,6 +239,8 @@ class TissueModel:
     mask : (S, D) bool, the pairs measured
     source_normals : (S, 3) outward normals of the tissue surface at the
         sources (they are buried along them; default: the facets')
+    cut_facets : bool mask over the mesh's boundary facets on a cut face of the
+        label map, where the tissue goes on (``LabelMap.cut_facets``); default none
 
     Attributes
     ----------
@@ -250,7 +252,8 @@ class TissueModel:
     """
 
     def __init__(self, mesh, labels_kji, spacing_mm, optics, sources_mm, detectors_mm, mask,
-                 origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None):
+                 origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None,
+                 cut_facets=None):
         from FluoTomoLib.fem.forward import FluorescenceModel
         from FluoTomoLib.meshing.voxel import node_regions_volume_preserving
         from FluoTomoLib.recon.partial_volume import PartialVolumePrior
@@ -263,6 +266,7 @@ class TissueModel:
         self.sources_mm = np.asarray(sources_mm, float)
         self.detectors_mm = np.asarray(detectors_mm, float)
         self.source_normals = source_normals
+        self.cut_facets = cut_facets
         labels = np.asarray(labels_kji)
         self.region_labels, self.fractions = membership(mesh, labels, spacing_mm, origin_mm)
         optics.check_labels(self.region_labels)
@@ -275,7 +279,8 @@ class TissueModel:
         timings["prior"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         self.model = FluorescenceModel(mesh, self.props_x, self.props_m, self.sources_mm,
-                                       self.detectors_mm, source_normals=source_normals)
+                                       self.detectors_mm, source_normals=source_normals,
+                                       cut_facets=cut_facets)
         self.J = self.model.jacobian_yield()[self.mask.ravel()]
         timings["jacobian"] = time.perf_counter() - t0
 
@@ -287,7 +292,7 @@ class TissueModel:
         px = dict(self.props_x, mua_per_mm=self.props_x["mua_per_mm"] + dye_mua_x_nodes)
         pm = dict(self.props_m, mua_per_mm=self.props_m["mua_per_mm"] + dye_mua_m_nodes)
         return FluorescenceModel(self.mesh, px, pm, self.sources_mm, self.detectors_mm,
-                                 source_normals=self.source_normals)
+                                 source_normals=self.source_normals, cut_facets=self.cut_facets)
 
     def solve(self, y, method="HP", lam=10.0, self_absorption=("HP",), log_data=False,
               cancel=None):

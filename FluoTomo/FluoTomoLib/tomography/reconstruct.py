@@ -126,7 +126,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
     from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
                                               reconstruction_mesh)
-    from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
+    from FluoTomoLib.tomography.roi import choose_roi, label_map_cut, roi_from_ras
 
     t_all = time.perf_counter()
     timings = {}
@@ -163,6 +163,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         if moved > 0.5:
             notes.append(f"optodes were moved up to {moved:.2f} mm onto the tissue surface")
         check_cancel(cancel)
+        cut_info = label_map_cut(lm, optics, src, det, acquisition.mask, cancel=cancel)
+        notes.extend(cut_info.pop("warnings"))
         h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
         if h < settings["recon_mm"]:
             notes.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
@@ -212,7 +214,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                               f"{acquisition.n_measurements} measurements)")
         tm = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det,
                          acquisition.mask, source_normals=lm.surface().closest(src)[1],
-                         timings=timings)
+                         timings=timings, cut_facets=lm.cut_facets(mesh))
         _, prior_notes = check_prior_volumes(tm.prior, mesh,
                                              mesh.meta.get("labelmap_volumes_mm3", {}))
         notes.extend(prior_notes)
@@ -234,6 +236,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                               target, data_model, settings, h, roi_info, list(notes),
                               dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
                               t_common + res.seconds)
+        out[method]["summary"]["label_map_cut"] = cut_info
     report(progress, 1.0, "done")
     return out
 
