@@ -151,7 +151,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                              field="target", value=int(target))
     if data_model == "log":
         acquisition.check_for_log()
-    notes = []
+    notes = []          # warnings: what may make the result wrong
+    remarks = []        # notes: what was done differently from the request, harmlessly
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         report(progress, 0.01, "optodes onto the tissue surface")
@@ -167,8 +168,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         notes.extend(cut_info.pop("warnings"))
         h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
         if h < settings["recon_mm"]:
-            notes.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
-                         f"(asked for {settings['recon_mm']:g} mm)")
+            remarks.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
+                           f"(asked for {settings['recon_mm']:g} mm)")
         if mesh is None:
             t0 = time.perf_counter()
             if roi_ras is not None:
@@ -225,8 +226,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
             report(progress, 0.6 + 0.3 * i / len(methods), f"reconstruction {method}")
             solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
                                       cancel)
-    for w in caught:
-        text = str(w.message)
+    for text in _once(str(w.message) for w in caught):
         if text not in notes:
             notes.append(text)
     t_common = time.perf_counter() - t_all - sum(r.seconds for r, _ in solved.values())
@@ -237,8 +237,28 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                               dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
                               t_common + res.seconds)
         out[method]["summary"]["label_map_cut"] = cut_info
+        out[method]["summary"]["notes"] = list(remarks)
     report(progress, 1.0, "done")
     return out
+
+
+def _once(texts):
+    """Warnings caught during a reconstruction, each said once: the diffusion
+    validity warning of each wavelength comes from every model the passes build
+    (self-absorption feedback), so only its lowest musp/mua is kept."""
+    import re
+
+    out, worst = [], {}
+    for text in texts:
+        m = re.match(r"^(\w+): musp/mua = ([0-9.eE+-]+) < 10", text)
+        if m:
+            key, ratio = m.group(1), float(m.group(2))
+            if key not in worst or ratio < worst[key][0]:
+                worst[key] = (ratio, text)
+            continue
+        if text not in out:
+            out.append(text)
+    return [t for _, t in worst.values()] + out
 
 
 def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target, data_model,
@@ -247,7 +267,9 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
     from FluoTomoLib.tomography.model import nodal_volumes
 
     vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
-    if "diverged" in res.stop_reason:
+    # a diverged run says so once: the solver's own warning repeats the stop reason
+    if "diverged" in res.stop_reason and not any(w.startswith(res.stop_reason)
+                                                 for w in res.warnings):
         notes.append(res.stop_reason)
     # the solver's own diagnostics (under-determination, fit, damping): a
     # result it warns about may be far from the truth, for the reasons given
