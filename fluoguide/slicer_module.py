@@ -291,9 +291,15 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
             node.EndModify(was)
 
     # -- long work, errors -----------------------------------------------------------
-    def runWithProgress(self, title, work):
-        """Run ``work(progress, cancel)`` with a modal progress dialog; its Cancel
-        button sets the cancel token, which the Lib checks between steps.
+    def runWithProgress(self, title, work, background=False):
+        """Run ``work(progress, cancel)`` with a progress dialog; its Cancel button
+        sets the cancel token, which the Lib checks between steps.
+
+        ``background``: the work is pure computation (a logic's ``prepare*`` job:
+        no MRML, no Qt) and runs on a worker thread (``fluoguide.jobs``) while
+        Slicer's event loop keeps running: the application repaints, the dialog
+        shows each step and how long it has run, and Cancel answers at once.
+        Otherwise the work runs here and Slicer answers only when it reports.
 
         Returns the result, or None when the work failed (the error is shown)
         or was cancelled (said in the status bar). Headless: no dialog, no
@@ -316,6 +322,8 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         dialog = slicer.util.createProgressDialog(parent=self.parent, value=0, maximum=100,
                                                   labelText=title, windowTitle=title)
         dialog.setWindowModality(qt.Qt.WindowModal)
+        if background:
+            return self._runInBackground(title, work, dialog)
         token = CancelToken()
         dialog.connect("canceled()", token.cancel)
 
@@ -335,6 +343,44 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
             return None
         finally:
             dialog.close()
+
+    def _runInBackground(self, title, work, dialog):
+        """``runWithProgress(background=True)``: the job on its thread, this thread in a
+        local event loop that a 100 ms timer updates and ends."""
+        import qt
+        import slicer
+
+        from fluoguide.jobs import BackgroundJob
+
+        job = BackgroundJob(work, name=title).start()
+        dialog.connect("canceled()", job.cancel)
+        loop = qt.QEventLoop()
+        timer = qt.QTimer()
+        timer.setInterval(100)
+
+        def tick():
+            state = job.poll()
+            dialog.setValue(int(round(100.0 * state.fraction)))
+            step = f" ({state.step_seconds:.0f} s)" if state.step_seconds >= 2 else ""
+            dialog.setLabelText(f"{title}: {state.message or 'starting'}{step}")
+            if state.finished:
+                loop.quit()
+
+        timer.connect("timeout()", tick)
+        timer.start()
+        try:
+            loop.exec_()
+        finally:
+            timer.stop()
+            dialog.close()
+        state = job.poll()
+        if state.status == "done":
+            return state.result
+        if state.status == "cancelled":
+            slicer.util.showStatusMessage(f"{title}: cancelled", 5000)
+            return None
+        self.showError(title, state.error)
+        return None
 
     def showError(self, title, exc):
         """Bad input and device errors as their one-line message; anything else with

@@ -241,6 +241,8 @@ class TissueModel:
         sources (they are buried along them; default: the facets')
     cut_facets : bool mask over the mesh's boundary facets on a cut face of the
         label map, where the tissue goes on (``LabelMap.cut_facets``); default none
+    progress : progress(fraction, message) of building the Jacobian (each step:
+        factorisation and solves of either wavelength, the kernel)
 
     Attributes
     ----------
@@ -253,7 +255,7 @@ class TissueModel:
 
     def __init__(self, mesh, labels_kji, spacing_mm, optics, sources_mm, detectors_mm, mask,
                  origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None,
-                 cut_facets=None):
+                 cut_facets=None, progress=None):
         from FluoTomoLib.fem.forward import FluorescenceModel
         from FluoTomoLib.meshing.voxel import node_regions_volume_preserving
         from FluoTomoLib.recon.partial_volume import PartialVolumePrior
@@ -281,6 +283,7 @@ class TissueModel:
         self.model = FluorescenceModel(mesh, self.props_x, self.props_m, self.sources_mm,
                                        self.detectors_mm, source_normals=source_normals,
                                        cut_facets=cut_facets)
+        self.model.progress = progress
         self.J = self.model.jacobian_yield()[self.mask.ravel()]
         timings["jacobian"] = time.perf_counter() - t0
 
@@ -295,7 +298,7 @@ class TissueModel:
                                  source_normals=self.source_normals, cut_facets=self.cut_facets)
 
     def solve(self, y, method="HP", lam=10.0, self_absorption=("HP",), log_data=False,
-              cancel=None):
+              cancel=None, progress=None):
         """NP / SP / HP of the used data ``y``; the methods in ``self_absorption``
         (HP by default: it took the tube's HP from 23 % to 5 % mean error, SP from
         10.5 % to 13.7 %) feed the fluorophore's absorption back when the optics
@@ -311,10 +314,10 @@ class TissueModel:
         if feed:
             res, passes = reconstruct_self_absorbing(
                 method, self.J, y, self.mask, self.prior, self.make_model, (0.0, 0.0), 0.0,
-                slopes, lam=lam, cancel=cancel)
+                slopes, lam=lam, cancel=cancel, progress=progress)
         else:
             res = reconstruct(self.J, y, method=method, lam=lam, prior=self.prior,
-                              log_data=log_data, cancel=cancel)
+                              log_data=log_data, cancel=cancel, progress=progress)
             passes = []
         res.seconds = time.perf_counter() - t0
         return res, passes

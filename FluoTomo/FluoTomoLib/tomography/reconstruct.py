@@ -25,7 +25,7 @@ import warnings
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 
@@ -215,7 +215,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                               f"{acquisition.n_measurements} measurements)")
         tm = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det,
                          acquisition.mask, source_normals=lm.surface().closest(src)[1],
-                         timings=timings, cut_facets=lm.cut_facets(mesh))
+                         timings=timings, cut_facets=lm.cut_facets(mesh),
+                         progress=scaled(progress, 0.3, 0.6, "Jacobian"))
         _, prior_notes = check_prior_volumes(tm.prior, mesh,
                                              mesh.meta.get("labelmap_volumes_mm3", {}))
         notes.extend(prior_notes)
@@ -223,9 +224,11 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         solved = {}
         for i, method in enumerate(methods):
             check_cancel(cancel)
-            report(progress, 0.6 + 0.3 * i / len(methods), f"reconstruction {method}")
+            part = scaled(progress, 0.6 + 0.38 * i / len(methods),
+                          0.6 + 0.38 * (i + 1) / len(methods), f"reconstruction {method}")
+            report(part, 0.0, "start")
             solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
-                                      cancel)
+                                      cancel, progress=part)
     for text in _once(str(w.message) for w in caught):
         if text not in notes:
             notes.append(text)
