@@ -413,3 +413,30 @@ def test_the_shipped_files_use_nothing_python_312_removed():
     # and the oldest syntax they may rely on parses (Slicer's previous Python)
     for path in _shipped_sources():
         ast.parse(path.read_text(), filename=str(path), feature_version=(3, 9))
+
+
+def test_sample_data_sources_are_scenes_in_the_cache_that_download_sample_loads(tmp_path):
+    """``SampleData.downloadSample(name)`` goes through ``downloadFromSource``, which
+    ignores a custom downloader: each phantom is a scene file already in Slicer's
+    download cache (written once), found there under its file name and loaded as a
+    scene, truth and all."""
+    from fluoguide import mrml_io
+    from fluoguide.slicer_samples import SAMPLES, sample_sources
+
+    cache = tmp_path / "cache"
+    sources = sample_sources(cache)
+    assert [s["sampleName"] for s in sources] == list(SAMPLES)
+    for s in sources:
+        assert "customDownloader" not in s and s["loadFileTypes"] == "SceneFile"
+        assert s["loadFiles"] is True
+        # what downloadFileIntoCache finds (no checksum: an existing file is used)
+        path = cache / s["fileNames"]
+        assert path.is_file() and s["uris"] == path.as_uri()
+        scene = mrml_io.load_scene(path)                 # what slicer.util.loadScene does
+        phantom = SAMPLES[s["sampleName"]][0]
+        for name in ("CBCT", "CBCTLabels"):
+            truth = mrml_io.get_json_attribute(mrml_io.get_node(scene, name), "FluoGuide.Truth")
+            assert truth["phantom"] == phantom, name
+    mtime = (cache / sources[0]["fileNames"]).stat().st_mtime_ns
+    sample_sources(cache)                                     # the next start: reused
+    assert (cache / sources[0]["fileNames"]).stat().st_mtime_ns == mtime
