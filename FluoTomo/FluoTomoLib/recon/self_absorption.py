@@ -64,7 +64,7 @@ def _aitken(v0, v1, v2, max_ratio=0.9):
 
 def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
                                mua_per_yield, lam=10.0, passes=None, rel_tol=0.02,
-                               cancel=None, progress=None):
+                               cancel=None, progress=None, region_weights=None):
     """Reconstruct with the fluorophore's absorption fed back into the model.
 
     Parameters
@@ -85,6 +85,7 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
         largest
     progress : progress(fraction, message): each pass, and the solver's
         iterations inside it
+    region_weights : SP's region means (``reconstruct``'s), passed on
 
     Returns (ReconResult of the last pass with ``yield_per_mm`` nodal, list of
     the largest nodal yield after each pass).
@@ -99,7 +100,8 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
         return scaled(progress, k * share, (k + 1) * share, f"{method} {what}")
 
     if method != "HP":
-        res = reconstruct(J, y, method, lam=lam, prior=prior, progress=step(0, "first solve"))
+        res = reconstruct(J, y, method, lam=lam, prior=prior, progress=step(0, "first solve"),
+                          region_weights=region_weights)
         history = [float(np.max(res.yield_per_mm))]
         for k in range(passes):
             check_cancel(cancel)
@@ -109,7 +111,8 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
             model = make_model(absorbing_mua(mua_bg[0], x, yield_bg, mua_per_yield[0]),
                                absorbing_mua(mua_bg[1], x, yield_bg, mua_per_yield[1]))
             res = reconstruct(model.jacobian_yield()[mask.ravel()], y, method, lam=lam,
-                              prior=prior, progress=step(k + 1, f"self-absorption pass {k + 1}"))
+                              prior=prior, progress=step(k + 1, f"self-absorption pass {k + 1}"),
+                              region_weights=region_weights)
             history.append(float(np.max(res.yield_per_mm)))
         return res, history
 

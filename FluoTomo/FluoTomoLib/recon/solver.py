@@ -245,7 +245,8 @@ def _inverse_regulariser(method, prior, Jm, lam_k):
 
 def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
                 nonneg=True, lambda_decay=None, log_data=False, normalise=False,
-                region_jacobian=None, progress=None, cancel=None, noise_sd=None, noise_rel=None):
+                region_jacobian=None, progress=None, cancel=None, noise_sd=None, noise_rel=None,
+                region_weights=None):
     """Reconstruct nodal yield from data ``y`` with sensitivity ``J``.
 
     Parameters
@@ -277,6 +278,11 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         per measurement, ``noise_sd`` in the data's units (scalar or (M,)),
         ``noise_rel`` a fraction (0.01 = 1 %).  Without them the goodness of fit
         is judged from the residual alone (:func:`diagnose`).
+    region_weights : {label: (N,) nodal weights summing to 1}, NP and SP: each
+        region's mean (``region_confidence``) is this weighted mean of the nodal
+        yield and its standard deviation that of the same functional (the label
+        map path: the volume-weighted mean over the label's voxels). Default: the
+        mean over the prior's node region. HP's region means are its unknowns.
 
     Returns
     -------
@@ -407,7 +413,8 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     conf = _region_confidence(Jc, Rinv, ds, resid, prior, x_nodes, method, col,
                               diag["residual_dof"], diag.get("noise_variance_fit"),
                               undetermined=diag["underdetermined"],
-                              x_scale=2.0 ** (-x_exp))
+                              x_scale=2.0 ** (-x_exp), region_weights=region_weights,
+                              region_values=x if K is not None else None)
     diag.pop("noise_variance_fit", None)
     history = [float(np.ldexp(h, 2 * b_exp)) for h in history]    # in the data's units
     return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
@@ -825,7 +832,8 @@ def _region_matrix(J, K, region_jacobian, prior):
 
 
 def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof=None,
-                       noise_var=None, undetermined=False, x_scale=1.0):
+                       noise_var=None, undetermined=False, x_scale=1.0, region_weights=None,
+                       region_values=None):
     """Per-region mean yield and its standard deviation from the regularised
     Hessian H = J^T J + R:  var(w^T x) = sigma^2 w^T H^-1 w, w = region-averaging
     weights, sigma^2 the residual variance rss / (M - p) with p the effective
@@ -834,7 +842,11 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
     ``col``: the column scaling of a normalised Jacobian (the unknowns are
     x / col, so the weights become w * col).  ``undetermined``: no standard
     deviation can be given (inf, null in JSON).  ``x_scale``: the matrices
-    were built for the unknowns x / x_scale (reconstruct's exact rescaling)."""
+    were built for the unknowns x / x_scale (reconstruct's exact rescaling).
+    ``region_weights`` (NP, SP): {label: nodal weights} defining each region's
+    mean instead of the node region's plain mean; the SD is of that mean. With
+    them, HP's region means are its unknowns (``region_values``, 1/mm): the
+    volume-weighted mean over each label of the partial-volume model's yield."""
     if prior is None:
         return {}
     rss = float(resid @ resid)
@@ -845,14 +857,22 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
         sigma2 = max(sigma2, noise_var) if np.isfinite(sigma2) else noise_var
     out = {}
     means = prior.region_mean(x_nodes)
+    weighted = region_weights is not None and method != "HP"
     for r, lab in enumerate(prior.labels):
         mean = float(means[r])
+        if region_weights is not None and method == "HP" and region_values is not None:
+            mean = float(region_values[r])
+        if weighted:
+            w_lab = np.asarray(region_weights.get(int(lab), np.zeros(A.shape[1])), float)
+            mean = float(w_lab @ x_nodes)
         if undetermined or not np.isfinite(sigma2):
             sd = float("inf")
         else:
             if method == "HP":
                 w = np.zeros(A.shape[1])
                 w[r] = 1.0
+            elif weighted:
+                w = w_lab
             else:
                 w = (prior.index == r).astype(float) / prior.counts[r]
             if col is not None:

@@ -227,6 +227,33 @@ def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
     return out, notes
 
 
+def label_mean_weights(mesh, labels_kji, spacing_mm, origin_mm, region_labels):
+    """{label: (N,) nodal weights}: the mean over a label's voxels (those inside
+    the mesh) of a P1 field sampled at the voxel centres, as weights on its nodal
+    values: a region's yield is this volume-weighted mean over the label (equal
+    voxels), the same number as the yield volume's mean over the label, and its
+    standard deviation is that of the same functional (docs/tomography-own-scene.md,
+    "Region yields")."""
+    from FluoTomoLib.fem.locate import locator
+
+    labels = np.asarray(labels_kji)
+    k, j, i = np.indices(labels.shape)
+    pts = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * np.asarray(spacing_mm, float) \
+        + np.asarray(origin_mm, float)
+    lo, hi = mesh.bounds()
+    flat = labels.ravel()
+    out = {}
+    loc = locator(mesh)
+    for lab in region_labels:
+        sel = (flat == int(lab)) & np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
+        if not sel.any():
+            continue
+        P = loc.interpolation_matrix(pts[sel], outside="zero")
+        w = np.asarray(P.sum(axis=0)).ravel() / float(sel.sum())
+        out[int(lab)] = w
+    return out
+
+
 class TissueModel:
     """Everything a reconstruction needs on its mesh.
 
@@ -278,6 +305,8 @@ class TissueModel:
         node_region = node_regions_volume_preserving(mesh, labels, spacing_mm, origin_mm,
                                                      background=background)
         self.prior = PartialVolumePrior(node_region, self.region_labels, self.fractions)
+        self.region_weights = label_mean_weights(mesh, labels, spacing_mm, origin_mm,
+                                                 self.region_labels)
         timings["prior"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         self.model = FluorescenceModel(mesh, self.props_x, self.props_m, self.sources_mm,
@@ -314,10 +343,12 @@ class TissueModel:
         if feed:
             res, passes = reconstruct_self_absorbing(
                 method, self.J, y, self.mask, self.prior, self.make_model, (0.0, 0.0), 0.0,
-                slopes, lam=lam, cancel=cancel, progress=progress)
+                slopes, lam=lam, cancel=cancel, progress=progress,
+                region_weights=self.region_weights)
         else:
             res = reconstruct(self.J, y, method=method, lam=lam, prior=self.prior,
-                              log_data=log_data, cancel=cancel, progress=progress)
+                              log_data=log_data, cancel=cancel, progress=progress,
+                              region_weights=self.region_weights)
             passes = []
         res.seconds = time.perf_counter() - t0
         return res, passes

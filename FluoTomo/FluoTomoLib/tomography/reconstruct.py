@@ -267,8 +267,6 @@ def _once(texts):
 def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target, data_model,
             settings, h, roi_info, notes, timings, src, det, d_src, d_det, seconds):
     """The summary and volumes of one method's solution."""
-    from FluoTomoLib.tomography.model import nodal_volumes
-
     vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
     # a diverged run says so once: the solver's own warning repeats the stop reason
     if "diverged" in res.stop_reason and not any(w.startswith(res.stop_reason)
@@ -279,23 +277,22 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
     for w in res.warnings:
         if w not in notes:
             notes.append(w)
-    # region yields: nodes wholly inside each region (partial volume >= 0.99; a
-    # rim node carries its neighbours' share whatever the method)
-    v = nodal_volumes(mesh)
-    F = tm.fractions
-    regions = {}
+    # One definition of a region's yield: the volume-weighted mean over the label
+    # (its voxels inside the reconstruction's region) of the reconstructed yield:
+    # for HP its region value (the partial-volume model is that value over the
+    # label), for NP and SP the yield volume's mean over the label; the SD is of
+    # that same number (TissueModel.region_weights). The volume itself is the P1
+    # field at the voxel centres: for HP its mean over a small label is lower (the
+    # rim is shared with the neighbours), so the summary names both.
     conf = res.region_confidence
-    for r, lab in enumerate(tm.region_labels):
-        sel = F[:, r] >= 0.99
-        if not np.any(sel):
-            sel = F[:, r] >= F[:, r].max() - 1e-9
-        mean = float(np.sum(res.yield_per_mm[sel] * v[sel]) / np.sum(v[sel]))
+    regions = {}
+    for lab in tm.region_labels:
         vox = lm.labels_kji == lab
         c = conf.get(int(lab), {})
         regions[str(int(lab))] = {
-            "yield_per_mm": mean,
+            "yield_per_mm": c.get("mean_yield_per_mm"),
             "sd_per_mm": c.get("sd_yield_per_mm"),
-            "voxel_mean_per_mm": float(vol[vox].mean()) if vox.any() else None,
+            "volume_mean_per_mm": float(vol[vox].mean()) if vox.any() else None,
             "name": optics.names.get(int(lab)),
         }
     k, j, i = np.unravel_index(int(np.argmax(vol)), vol.shape)
@@ -305,6 +302,11 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         "method": method, "lambda": lam, "data_model": data_model,
         "target": target,
         "regions": regions,
+        "regions_note": ("yield_per_mm: the region's yield, the volume-weighted mean over its "
+                         "label (HP: the region's value), and sd_per_mm its standard deviation; "
+                         "volume_mean_per_mm: the yield volume's mean over the label (the P1 "
+                         "field at voxel centres; for HP lower than the region's value where "
+                         "the label is small: quote yield_per_mm)"),
         "peak_yield_per_mm": float(vol.max()),
         "peak_ras_mm": lm.to_ras(peak_local)[0].tolist(),
         "peak_label": int(lm.labels_kji[k, j, i]),
