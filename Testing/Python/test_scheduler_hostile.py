@@ -7,15 +7,13 @@ within its time limit ($FLUO_SCHEDULER_TIMEOUT, short here) with one line
 import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
 
 import forkserver
+from dask_processes import DaskProcesses
 from hostile_peers import TCPPeer, close_at_once, random_bytes, silent
 
 LIMIT_S = 2.0        # $FLUO_SCHEDULER_TIMEOUT in these tests [s]
@@ -90,35 +88,6 @@ def test_a_bad_scheduler_time_limit_is_refused_before_any_work(value, tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def _start_dask(tmp_path, nworkers=1):
-    """``dask scheduler`` and ``dask worker`` as processes of their own sessions."""
-    sfile = tmp_path / "scheduler.json"
-    log = open(tmp_path / "dask.log", "w")
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host",
-                              "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
-                              str(sfile)], stdout=log, stderr=subprocess.STDOUT,
-                             start_new_session=True)
-    deadline = time.monotonic() + 60
-    while not sfile.exists() or not sfile.read_text().strip():
-        assert sched.poll() is None and time.monotonic() < deadline, \
-            (tmp_path / "dask.log").read_text()
-        time.sleep(0.05)
-    address = json.loads(sfile.read_text())["address"]
-    workers = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
-                                "--nworkers", str(nworkers), "--nthreads", "1", "--no-dashboard",
-                                "--host", "127.0.0.1"], stdout=log, stderr=subprocess.STDOUT,
-                               start_new_session=True)
-    return address, sched, workers, log
-
-
-def _kill(p):
-    with_group = os.getpgid(p.pid) if p.poll() is None else None
-    if with_group is not None:
-        os.killpg(with_group, signal.SIGCONT)
-        os.killpg(with_group, signal.SIGKILL)
-    p.wait(10)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL], ids=["stopped", "killed"])
 def test_a_scheduler_that_stops_answering_mid_run_ends_the_run(sig, tmp_path):
@@ -127,28 +96,24 @@ def test_a_scheduler_that_stops_answering_mid_run_ends_the_run(sig, tmp_path):
     killed (its connections close). The run ends with one line naming the address
     and the tasks not done, in a few limits; the finished task stays in the run
     folder for --resume."""
-    address, sched, workers, log = _start_dask(tmp_path)
     out = tmp_path / "run"
     box = {}
-    try:
-        # 6 targets x 3 lambdas: far more tasks than finish before the stop
+    with DaskProcesses(tmp_path, nworkers=1) as dask:
+        address = dask.address
+        # nine tasks (three lambdas): far more than finish before the stop
         argv = ("study", "A", "--sweep", "lambda", "--values", "0.1,1,10", "--scheduler",
                 address, "--out", out, "--json")
         t = threading.Thread(target=lambda: box.update(
             r=forkserver.fluo(*argv, env=ENV, timeout=240)), daemon=True)
         t.start()
         deadline = time.monotonic() + 180
-        while not list((out / "tasks").glob("*.json")) if (out / "tasks").is_dir() else True:
+        while not (out / "tasks").is_dir() or not list((out / "tasks").glob("*.json")):
             assert t.is_alive() and time.monotonic() < deadline, box
             time.sleep(0.02)
-        os.kill(sched.pid, sig)
+        os.kill(dask.scheduler.pid, sig)
         stopped = time.monotonic()
         t.join(120)
         took = time.monotonic() - stopped
-    finally:
-        for p in (workers, sched):
-            _kill(p)
-        log.close()
     r = box["r"]
     line = _one_line(r, alone=False)
     assert address in line and "during the run" in line and "tasks not done" in line, line

@@ -244,12 +244,19 @@ class OneDuplicate(NDISimulator):
                 super()._send(reply, name)
 
 
-def test_one_duplicate_reply_is_resynchronised_and_tracking_goes_on():
-    with OneDuplicate() as dev:
+def _track_for(device_class, seconds):
+    """Set up a client on a ``device_class`` simulator, track for ``seconds``; the stats
+    after the client closed (its open segment closed too)."""
+    with device_class() as dev:
         with NDIClient(dev.port) as client:
             client.initialize([b"rom" * 30])
             client.start()
-            stats = client.track(1.0)
+            client.track(seconds)
+    return client.stats
+
+
+def test_one_duplicate_reply_is_resynchronised_and_tracking_goes_on():
+    stats = _track_for(OneDuplicate, 1.0)
     assert stats.duplicate_replies == 1 and stats.frames > 20
     assert stats.lost_unreported() == 0 and stats.counter_jumps == 0
 
@@ -271,11 +278,7 @@ class CounterJump(NDISimulator):
 
 
 def test_one_counter_jump_is_counted_not_two_billion_missing_frames():
-    with CounterJump() as dev:
-        with NDIClient(dev.port) as client:
-            client.initialize([b"rom" * 30])
-            client.start()
-            stats = client.track(1.0)
+    stats = _track_for(CounterJump, 1.0)
     assert stats.counter_jumps == 1 and stats.missing < 100
     # two segments (closed with the client): before the jump and after it
     assert stats.lost_unreported() == 0 and len(stats.segments) == 2
