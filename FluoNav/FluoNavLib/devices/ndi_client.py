@@ -146,7 +146,7 @@ class NDIClient:
     def __exit__(self, *exc):
         self.close()
 
-    def _note(self, kind, message, *args, level=logging.INFO):
+    def _note(self, kind, message, *args):
         """Log a fault of ``kind``: at most one line per kind every LOG_EVERY_S seconds,
         with the number not logged since (the counts are in ``stats``)."""
         now = time.monotonic()
@@ -157,7 +157,7 @@ class NDIClient:
         if skipped:
             message += f" ({skipped} more like it not logged)"
         self._logged[kind] = (now, 0)
-        log.log(level, message, *args)
+        log.info(message, *args)
 
     def _drain(self):
         """Read and drop bytes until the line is quiet for RESYNC_QUIET_S; the number of
