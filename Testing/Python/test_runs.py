@@ -7,7 +7,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
@@ -172,7 +171,7 @@ def test_a_sweep_on_a_dask_scheduler_and_workers_started_as_processes(tmp_path):
         assert r.returncode == 0, r.stderr
         doc = json.loads(r.stdout)
         assert doc["executor"] == "dask (scheduler)" and doc["workers"] == 2
-        assert doc["scheduler"] == address and f"dask: 2 workers" in r.stderr
+        assert doc["scheduler"] == address and "dask: 2 workers" in r.stderr
         assert doc["tasks"] == 6 and doc["failures"] == 0 and doc["shared_inputs"] == 2
         ran_on = {row["worker"] for row in doc["rows"]}
         assert len(ran_on) == 2 and all(w.split(":")[1] != "" for w in ran_on)

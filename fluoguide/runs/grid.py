@@ -9,7 +9,6 @@ file, the field and the value.
 from __future__ import annotations
 
 import itertools
-import json
 import math
 from pathlib import Path
 
