@@ -210,6 +210,10 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                  f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
                                  "larger element size or fewer pairs", field="size_mm",
                                  value=h)
+        from FluoTomoLib.tomography.simulate import RECON_BYTES_PER_NODE, check_fem_memory
+
+        # and what this machine has left
+        check_fem_memory(mesh.n_nodes, n_bytes, h, per_node=RECON_BYTES_PER_NODE)
         check_cancel(cancel)
         report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
                               f"{acquisition.n_measurements} measurements)")
