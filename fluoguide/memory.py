@@ -26,21 +26,11 @@ from fluoguide.errors import FluoInputError
 GB = 1e9
 
 
-def _meminfo_bytes(key):
+def _proc_bytes(path, key):
+    """A size line of a ``/proc`` file (``MemAvailable`` of ``/proc/meminfo``,
+    ``VmData`` of ``/proc/self/status``; kB there) in bytes, or None."""
     try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def _status_bytes(key):
-    """A ``/proc/self/status`` size (``VmData``, ``VmSize``) in bytes, or None."""
-    try:
-        with open("/proc/self/status") as fh:
+        with open(path) as fh:
             for line in fh:
                 if line.startswith(key + ":"):
                     return int(line.split()[1]) * 1024
@@ -91,17 +81,11 @@ def available_bytes():
     -------
     int or None
         min(MemAvailable, cgroup limit - usage, RLIMIT_DATA - VmData,
-        RLIMIT_AS - VmSize) over the ones that exist.
+        RLIMIT_AS - VmSize) over the ones that exist (``/proc`` is Linux's:
+        on other systems nothing is known and nothing is refused).
     """
     room = []
-    avail = _meminfo_bytes("MemAvailable")
-    if avail is None:
-        try:
-            import psutil
-
-            avail = int(psutil.virtual_memory().available)
-        except (ImportError, OSError, AttributeError):
-            avail = None
+    avail = _proc_bytes("/proc/meminfo", "MemAvailable")           # Linux; elsewhere the limits alone
     if avail is not None:
         room.append(avail)
     cg = _cgroup_room()
@@ -109,7 +93,7 @@ def available_bytes():
         room.append(cg)
     for limit_id, key in ((resource.RLIMIT_DATA, "VmData"), (resource.RLIMIT_AS, "VmSize")):
         soft, _ = resource.getrlimit(limit_id)
-        used = _status_bytes(key)
+        used = _proc_bytes("/proc/self/status", key)
         if soft != resource.RLIM_INFINITY and used is not None:
             room.append(max(0, soft - used))
     return min(room) if room else None
@@ -141,7 +125,7 @@ def check_fits(need_bytes, what, hint, file=None, field=None, value=None):
     ------
     FluoInputError
         When ``need_bytes`` exceeds :func:`available_bytes`; nothing is checked
-        where that cannot be read (not Linux, no psutil).
+        where that cannot be read (not Linux).
     """
     if os.environ.get("FLUO_MEMORY_CHECK") == "0":
         return                  # an expert's override, e.g. for swap the kernel does not count

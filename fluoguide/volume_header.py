@@ -162,7 +162,11 @@ def _nrrd_header(p, field):
         key, sep, value = line.partition(": ")
         if not sep or ":=" in key:
             continue                        # "key:=value" pairs are metadata, not layout
-        fields[key.strip().lower()] = value.strip()
+        key = key.strip().lower()
+        if key in fields:                   # which one a reader takes is its own choice
+            raise FluoInputError("header field given twice", file=p,
+                                 field=f"{field}: {key}" if field else key, value=value.strip())
+        fields[key] = value.strip()
     return fields, offset
 
 
@@ -295,6 +299,12 @@ def _check_nrrd(p, field, copies):
 
 
 # ----------------------------------------------------------------- NIfTI
+#: header fields: (NIfTI-1 struct format, byte offset, NIfTI-2 format, offset)
+_NIFTI_FIELDS = {"dim": ("8h", 40, "8q", 16), "datatype": ("h", 70, "h", 12),
+                 "bitpix": ("h", 72, "h", 14), "pixdim": ("8f", 76, "8d", 104),
+                 "vox_offset": ("f", 108, "q", 168), "qform_code": ("h", 252, "i", 344),
+                 "sform_code": ("h", 254, "i", 348), "quatern": ("3f", 256, "3d", 352),
+                 "qoffset": ("3f", 268, "3d", 376), "srow": ("12f", 280, "12d", 400)}
 _NIFTI_BYTES = {2: 1, 4: 2, 8: 4, 16: 4, 32: 8, 64: 8, 128: 3, 256: 1, 512: 2, 768: 4,
                 1024: 8, 1280: 8, 1536: 16, 1792: 16, 2048: 32, 2304: 4}
 
@@ -327,26 +337,14 @@ def _check_nifti(p, field, copies):
                   struct.unpack_from("<i", head, 0)[0])
     if n == 540 and len(head) < 540:
         raise bad("NIfTI-2 header cut short", "sizeof_hdr", len(head))
-    if n == 348:
-        dim = struct.unpack_from(end + "8h", head, 40)
-        datatype, bitpix = struct.unpack_from(end + "2h", head, 70)
-        pixdim = struct.unpack_from(end + "8f", head, 76)
-        vox_offset = struct.unpack_from(end + "f", head, 108)[0]
-        qform_code, sform_code = struct.unpack_from(end + "2h", head, 252)
-        quatern = struct.unpack_from(end + "3f", head, 256)
-        qoffset = struct.unpack_from(end + "3f", head, 268)
-        srow = np.array(struct.unpack_from(end + "12f", head, 280), float).reshape(3, 4)
-        magic = head[344:347]
-    else:
-        datatype, bitpix = struct.unpack_from(end + "2h", head, 12)
-        dim = struct.unpack_from(end + "8q", head, 16)
-        pixdim = struct.unpack_from(end + "8d", head, 104)
-        vox_offset = struct.unpack_from(end + "q", head, 168)[0]
-        qform_code, sform_code = struct.unpack_from(end + "2i", head, 344)
-        quatern = struct.unpack_from(end + "3d", head, 352)
-        qoffset = struct.unpack_from(end + "3d", head, 376)
-        srow = np.array(struct.unpack_from(end + "12d", head, 400), float).reshape(3, 4)
-        magic = head[4:7]
+    version = 0 if n == 348 else 1
+    f = {name: struct.unpack_from(end + layout[2 * version], head, layout[2 * version + 1])
+         for name, layout in _NIFTI_FIELDS.items()}
+    dim, pixdim, quatern, qoffset = f["dim"], f["pixdim"], f["quatern"], f["qoffset"]
+    (datatype,), (bitpix,), (vox_offset,) = f["datatype"], f["bitpix"], f["vox_offset"]
+    (qform_code,), (sform_code,) = f["qform_code"], f["sform_code"]
+    srow = np.array(f["srow"], float).reshape(3, 4)
+    magic = head[344:347] if version == 0 else head[4:7]
     single = magic in (b"n+1", b"n+2")
     # an Analyze 7.5 header (no NIfTI magic) has other fields where the transforms are
     nifti = single or magic in (b"ni1", b"ni2")

@@ -87,6 +87,7 @@ BAD = {
     "origin_inf.nrrd": (lambda p: _nrrd(p, origin="(0,inf,0)"), "space origin"),
     "extra.nrrd": (lambda p: _nrrd(p, extra=b"\x01" * 50), "data"),
     "extra_gzip.nrrd": (lambda p: _nrrd(p, extra=b"\x01" * 50, encoding="gzip"), "data"),
+    "spacings_twice.nrrd": (lambda p: _nrrd(p, spacings="1 1 1\nspacings: 2 2 2"), "spacings"),
 }
 
 
@@ -182,3 +183,34 @@ def test_logic_load_label_map_and_a_scene_refuse_the_file(tmp_path):
         mrml_io.load_scene(tmp_path / "s" / "scene.mrml")
     assert str(e.value).startswith(f"{(tmp_path / 's' / 'CBCTLabels.nrrd').resolve()}: "
                                    "spacings: "), e.value
+
+
+def test_nifti2_headers_are_checked_too(tmp_path):
+    """NIfTI-2 (540-byte header, 64-bit sizes, double transforms), written by hand
+    (the field offsets agree with nibabel 5.4's NIfTI-2 writer; ITK 5.4 reads no
+    NIfTI-2, so the check guards the readers that will)."""
+    from fluoguide.volume_header import check_volume_file
+
+    def nifti2(pixdim1):
+        h = bytearray(544)
+        struct.pack_into("<i", h, 0, 540)
+        h[4:12] = b"n+2\0\r\n\x1a\n"
+        struct.pack_into("<hh", h, 12, 2, 8)                          # uint8, 8 bits
+        k, j, i = LABELS.shape
+        struct.pack_into("<8q", h, 16, 3, i, j, k, 1, 1, 1, 1)
+        struct.pack_into("<8d", h, 104, 1.0, pixdim1, 1.0, 1.0, 0, 0, 0, 0)
+        struct.pack_into("<q", h, 168, 544)                           # vox_offset
+        struct.pack_into("<ii", h, 344, 1, 1)                         # qform, sform codes
+        struct.pack_into("<12d", h, 400, pixdim1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0)
+        p = tmp_path / f"v2_{pixdim1}.nii"
+        p.write_bytes(bytes(h) + LABELS.tobytes())
+        return p
+
+    good = nifti2(1.0)
+    assert check_volume_file(good) == {"shape": [8, 7, 6], "bytes": LABELS.size}
+    with pytest.raises(FluoInputError, match=r"pixdim\[1\]: voxel size must be positive"):
+        check_volume_file(nifti2(float("nan")))
+    bad = good.read_bytes() + b"\x00" * 8
+    good.write_bytes(bad)
+    with pytest.raises(FluoInputError, match=r"data: more data than the header declares"):
+        check_volume_file(good)

@@ -164,15 +164,17 @@ def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, bur
 #: faster than the nodes), source and detector fields. Measured (``fluo tomo
 #: simulate``, /usr/bin/time -v, peak less the 0.43 GB of imports; a 50 x 40 x
 #: 24 mm ellipsoid at 0.5 mm voxels, accuracy fast, balanced and fine: 26,266,
-#: 58,918 and 101,675 nodes): 9.3, 10.1 and 11.3 kB a node; 14 kB is 1.24-1.5x
-#: (docs/reliability.md, "Memory estimates")
+#: 58,918 and 101,675 nodes; issue #17's scene at fine, 137,964 nodes): 9.3, 10.1,
+#: 11.3 and 12.3 kB a node; 14 kB is 1.14-1.51x (docs/reliability.md, "Memory
+#: estimates")
 FEM_BYTES_PER_NODE = 14e3
-#: the same for a reconstruction, besides its Jacobian (``_JACOBIAN_COPIES`` of
-#: measurements x nodes doubles): the tissue model, the prior and the solver's
-#: other arrays. Measured (``fluo tomo reconstruct --method HP``, the same
-#: ellipsoid, 684 measurements, accuracy fast and balanced: 78,454 and 101,970
-#: nodes): 1.90 and 2.60 GB above the imports, of which the Jacobians are 0.86
-#: and 1.12 GB; 20 kB a node plus the Jacobians is 1.28x and 1.21x
+#: the same for a reconstruction, besides its Jacobian-sized arrays
+#: (``reconstruct._PEAK_JACOBIAN_COPIES`` of measurements x nodes doubles): the
+#: tissue model, the prior and the solver's other arrays. Measured (``fluo tomo
+#: reconstruct``, the same ellipsoid, 684 measurements; HP at fast and balanced,
+#: 78,454 and 101,970 nodes: 1.90 and 2.60 GB above the imports, NP at fast 2.17,
+#: SP at fast 4.51; SP on issue #17's scene at balanced, 161,749 nodes: 10.0 GB);
+#: 20 kB a node plus the method's Jacobians is 1.12-1.28x the measured
 RECON_BYTES_PER_NODE = 20e3
 
 
