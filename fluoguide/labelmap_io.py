@@ -35,8 +35,10 @@ def read_labelmap(path, node_name="CBCTLabels"):
         node = mrml_io.get_node(mrml_io.load_scene(p), node_name, "vtkMRMLLabelMapVolumeNode")
         geo = mrml_io.volume_geometry(node)
         return mrml_io.volume_array(node).copy(), geo["spacing"], geo["origin"], geo["direction"]
+    import SimpleITK as sitk
+
     img = _read_image(p, "label map")
-    arr = _array(img)
+    arr = sitk.GetArrayFromImage(img)
     if "Segment0_ID" in img.GetMetaDataKeys():
         arr = _segments_to_labels(img, arr, p)
     if arr.ndim != 3 or not np.issubdtype(arr.dtype, np.integer):
@@ -67,12 +69,6 @@ def _read_image(p, what):
                              file=p) from None
 
 
-def _array(img):
-    import SimpleITK as sitk
-
-    return sitk.GetArrayFromImage(img)
-
-
 def _geometry(img, p):
     """(spacing, origin, direction) of an ITK image in RAS, checked: finite,
     positive and orthonormal (whatever the format: the header checks know NRRD
@@ -95,8 +91,10 @@ def read_volume_nrrd(path):
     p = Path(path)
     if not p.is_file():
         raise FluoInputError("volume file not found", file=p)
+    import SimpleITK as sitk
+
     img = _read_image(p, "volume")
-    arr = _array(img)
+    arr = sitk.GetArrayFromImage(img)
     if arr.ndim != 3:
         raise FluoInputError("volume must be 3D", file=p, value=arr.shape)
     return (arr,) + _geometry(img, p)
