@@ -173,3 +173,16 @@ def test_calib_register_refuses_absurd_coordinates_with_file_and_row(row, value,
     with pytest.raises(FluoInputError, match=r"moving_mm row 5: coordinates must be within "
                                              r"\+-100000 mm"):
         register_points(bad, pts)
+
+
+@pytest.mark.parametrize("argv", [["mesh", "{long}", "--out", "{tmp}/m.vtu", "--fast"],
+                                  ["phantom", "cylinder-tube", "--voxel-mm", "4", "--out",
+                                   "{tmp}/{name300}"]])
+def test_a_path_too_long_for_the_file_system_is_one_line_exit_2(argv, tmp_path, capsys):
+    """ENAMETOOLONG from any reader's ``is_file`` was ``fluo: internal error: OSError``."""
+    subs = {"long": "a" * 5000, "tmp": tmp_path, "name300": "b" * 300}
+    rc, out, lines = _run([a.format(**subs) for a in argv] + ["--json"], capsys)
+    assert rc == 2 and out == "" and len(lines) == 1, lines
+    assert lines[0].startswith("fluo: error: ") and lines[0].endswith(
+        "characters): name too long for the file system"), lines
+    assert len(lines[0]) < 200 and list(tmp_path.iterdir()) == []
