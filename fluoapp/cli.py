@@ -20,6 +20,7 @@ Conventions every subcommand follows:
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import sys
 
@@ -121,6 +122,15 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("fluo: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        if exc.errno != errno.ENAMETOOLONG:
+            return _internal_error(exc, args)
+        # a path typed too long for the file system (any reader's is_file or open):
+        # the user's to shorten; the web app refuses it earlier (paths.inside)
+        name = str(exc.filename or "")
+        shown = name if len(name) <= 80 else f"{name[:60]}... ({len(name)} characters)"
+        print(f"fluo: error: {shown}: name too long for the file system", file=sys.stderr)
+        return 2
     except Exception as exc:  # the last resort: a bug, not the user's input
         return _internal_error(exc, args)
     if result is None:

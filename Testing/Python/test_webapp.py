@@ -342,3 +342,27 @@ def test_ui_paths_stay_in_the_workspace_and_messages_show_no_server_path(app, tm
         assert str(ws) not in text and str(outside) not in text, text
     s.calib_images = "bundled:opencv_left/left*.jpg"
     assert len(app.workspace.glob(s.calib_images, "images")) >= 3
+
+
+def test_a_5000_character_path_is_a_message_not_a_traceback(app, caplog, capfd):
+    """Issue #34 item 5: pathlib's ``is_dir`` raises ENAMETOOLONG (it is not one
+    of the errors it swallows): the light-folder field put a traceback in the log."""
+    import logging
+
+    s = app.state
+    caplog.set_level(logging.DEBUG)
+    long = "a" * 5000
+    for field, value, call in (("calib_light_folder", long, app.ctrl.calib_light_run),
+                               ("calib_light_folder", "/".join(["b" * 200] * 25),
+                                app.ctrl.calib_light_run),
+                               ("calib_save_path", long + ".mrml", app.ctrl.calib_save)):
+        setattr(s, field, value)
+        call()
+        _wait(app.jobs)
+        app.poll()
+        assert "name too long" in s.fluo_message and s.fluo_message_color == "error", \
+            s.fluo_message
+        assert len(s.fluo_message) < 300, s.fluo_message
+    s.calib_light_folder, s.calib_save_path = "", "fluoguide-session/scene.mrml"
+    assert "Traceback" not in caplog.text and "Traceback" not in capfd.readouterr().err
+    assert not any(r.exc_info for r in caplog.records)

@@ -159,6 +159,17 @@ def stiffness(mesh, D_nodal):
 
 # ---------------------------------------------------------------- solver
 
+#: the linear solvers a DiffusionOperator knows (docs/fem.md)
+SOLVERS = ("auto", "pardiso", "splu", "amg")
+
+
+def check_solver(name, field="solver"):
+    """``name`` if it is one of :data:`SOLVERS`, else FluoInputError naming them."""
+    if name not in SOLVERS:
+        raise FluoInputError(f"unknown solver; use {', '.join(SOLVERS)}", field=field, value=name)
+    return name
+
+
 def _pardiso_available():
     return mkl_pardiso() is not None
 
@@ -250,7 +261,7 @@ class DiffusionOperator:
         self._K = None
         self.assembly_seconds = time.perf_counter() - t0
         self.factor_seconds = 0.0
-        self._solver_request = solver
+        self._solver_request = check_solver(solver)
         self._solve = None
         self.solver_name = None
         self.n_solves = 0
@@ -268,9 +279,6 @@ class DiffusionOperator:
             return self
         t0 = time.perf_counter()
         req = self._solver_request
-        if req not in ("auto", "pardiso", "splu", "amg"):
-            raise FluoInputError("unknown solver; use auto, pardiso, splu or amg", field="solver",
-                                 value=req)
         pardiso = req in ("auto", "pardiso") and _pardiso_available()
         if req == "pardiso" and not pardiso:
             raise FluoInputError("PARDISO (MKL) is not available", field="solver", value=req)

@@ -31,6 +31,13 @@ from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 
 #: Jacobian-sized arrays the solver holds at once (J and R^-1 J^T for NP / SP)
 _JACOBIAN_COPIES = 2
+#: Jacobian-sized arrays at the peak, per method, for the memory estimate: SP's
+#: R^-1 = (L^T L)^-1 applied to J^T makes several (N, M) temporaries. Measured
+#: (/usr/bin/time -v, peak less the 0.43 GB of imports, less RECON_BYTES_PER_NODE
+#: a node, over one Jacobian): SP 6.8 (78,454 nodes) and 7.7 (issue #17's scene
+#: at balanced, 161,749 nodes, 10.0 GB in all); HP 0.8-1.0 and NP 1.4 (78,454 nodes).
+#: The estimate is then 1.12-1.28x the measured peak (docs/reliability.md)
+_PEAK_JACOBIAN_COPIES = {"NP": 2, "HP": 2, "SP": 9}
 #: largest Jacobian memory [bytes] a reconstruction may take
 MAX_JACOBIAN_BYTES = 4e9
 #: largest regularisation lambda (docs/reconstruction.md's trade table ends at 1e3,
@@ -210,6 +217,12 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                  f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
                                  "larger element size or fewer pairs", field="size_mm",
                                  value=h)
+        from FluoTomoLib.tomography.simulate import RECON_BYTES_PER_NODE, check_fem_memory
+
+        # and what this machine has left, for the method that needs the most
+        copies = max(_PEAK_JACOBIAN_COPIES[m] for m in methods)
+        check_fem_memory(mesh.n_nodes, n_bytes / _JACOBIAN_COPIES * copies, h,
+                         per_node=RECON_BYTES_PER_NODE)
         check_cancel(cancel)
         report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
                               f"{acquisition.n_measurements} measurements)")

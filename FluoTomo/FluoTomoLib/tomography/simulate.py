@@ -159,6 +159,51 @@ def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, bur
     return fit_to_surface(mesh, lm.surface(), roi)
 
 
+#: the peak memory of the coupled excitation/emission FEM per mesh node [bytes]:
+#: assembly, the PARDISO factors of both operators (their fill grows a little
+#: faster than the nodes), source and detector fields. Measured (``fluo tomo
+#: simulate``, /usr/bin/time -v, peak less the 0.43 GB of imports; a 50 x 40 x
+#: 24 mm ellipsoid at 0.5 mm voxels, accuracy fast, balanced and fine: 26,266,
+#: 58,918 and 101,675 nodes; issue #17's scene at fine, 137,964 nodes): 9.3, 10.1,
+#: 11.3 and 12.3 kB a node; 14 kB is 1.14-1.51x (docs/reliability.md, "Memory
+#: estimates")
+FEM_BYTES_PER_NODE = 14e3
+#: the same for a reconstruction, besides its Jacobian-sized arrays
+#: (``reconstruct._PEAK_JACOBIAN_COPIES`` of measurements x nodes doubles): the
+#: tissue model, the prior and the solver's other arrays. Measured (``fluo tomo
+#: reconstruct``, the same ellipsoid, 684 measurements; HP at fast and balanced,
+#: 78,454 and 101,970 nodes: 1.90 and 2.60 GB above the imports, NP at fast 2.17,
+#: SP at fast 4.51; SP on issue #17's scene at balanced, 161,749 nodes: 10.0 GB);
+#: 20 kB a node plus the method's Jacobians is 1.12-1.28x the measured
+RECON_BYTES_PER_NODE = 20e3
+
+
+def check_fem_memory(n_nodes, jacobian_bytes, size_mm, per_node=FEM_BYTES_PER_NODE):
+    """Refuse a forward model (and a Jacobian of ``jacobian_bytes``) whose
+    estimated peak does not fit, once its mesh is known and before any solve.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Nodes of the mesh.
+    jacobian_bytes : float
+        The Jacobian arrays the solver will hold [bytes] (0 for a simulation).
+    size_mm : float
+        The element size, named in the message.
+    per_node : float
+        The estimate's bytes per node (:data:`FEM_BYTES_PER_NODE`, or
+        :data:`RECON_BYTES_PER_NODE` for a reconstruction).
+    """
+    from fluoguide.memory import check_fits
+
+    check_fits(per_node * n_nodes + jacobian_bytes,
+               f"the diffusion model on {n_nodes:,} nodes ({size_mm:.2g} mm elements)"
+               + (f" and its {jacobian_bytes / 1e9:.1f} GB Jacobian" if jacobian_bytes else ""),
+               "use accuracy 'fast' or a larger element size" +
+               (", or fewer source-detector pairs" if jacobian_bytes else ""),
+               field="size_mm", value=round(float(size_mm), 4))
+
+
 def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pct, seed,
                  settings, progress=None, cancel=None):
     """The FEM engine: emission boundary fluence per watt on a mesh of the whole
@@ -178,6 +223,7 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     h, mfp = cap_at_burial(settings["simulate_mm"], optics, lm.labels)
     mesh = simulation_mesh(lm, np.vstack([src, det]), target, h,
                            max(settings["simulate_coarse_mm"], h), margin, mfp, cancel)
+    check_fem_memory(mesh.n_nodes, 0, h)
     check_cancel(cancel)
     labs, F = membership(mesh, lm.labels_kji, lm.spacing_mm)
     y_nodes = F @ np.array([float(yield_by_label.get(int(v), 0.0)) for v in labs])
