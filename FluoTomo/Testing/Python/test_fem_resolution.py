@@ -93,16 +93,23 @@ def test_estimate_bounds_the_error_on_meshes_it_was_not_made_on(h_xy, mua, musp)
 
 
 def test_issue_case_negative_detectors_are_refused(tmp_path, capsys):
-    """mua 0.06, musp 10 on 1 mm Kuhn cubes (mueff h = 1.35): detectors 5-8 mm
-    away came out negative with exit 0 before; now exit 2 with the reason and
-    the element size that would do, or with --force the data and warnings."""
+    """The issue's case, mua 0.06, musp 10 /mm on 1 mm Kuhn cubes (mueff h = 1.35):
+    detectors 5-8 mm away came out negative with exit 0 before. musp 10 /mm is
+    now refused first as a likely 1/cm value; the same mueff h with tissue
+    optics in range (mua 0.15, musp 4 /mm: mueff h = 1.37) gives exit 2 with the
+    reason and the element size that would do, or with --force the data and
+    warnings."""
     m = box_mesh(np.arange(-15, 15.5, 1.0), np.arange(-15, 15.5, 1.0), np.arange(-12, 0.5, 1.0))
     write_vtu(m, tmp_path / "cubes.vtu")
     (tmp_path / "s.csv").write_text("x,y,z\n0.3,0.2,0\n")
     (tmp_path / "d.csv").write_text("x,y,z\n" + "".join(f"{x + 0.3},0.2,0\n" for x in (4, 5, 6, 7, 8)))
-    args = ["forward", "--mesh", str(tmp_path / "cubes.vtu"), "--mua", "0.06", "--musp", "10",
-            "--n", "1.37", "--sources", str(tmp_path / "s.csv"), "--detectors",
-            str(tmp_path / "d.csv"), "--model", "fem", "--json"]
+    base = ["forward", "--mesh", str(tmp_path / "cubes.vtu"), "--n", "1.37",
+            "--sources", str(tmp_path / "s.csv"), "--detectors", str(tmp_path / "d.csv"),
+            "--model", "fem", "--json"]
+    assert main(base + ["--mua", "0.06", "--musp", "10"]) == 2
+    err = capsys.readouterr().err
+    assert "musp" in err and "1/cm" in err and "Traceback" not in err
+    args = base + ["--mua", "0.15", "--musp", "4"]
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "negative" in err and "cubes.vtu" in err and "mm near the optodes would do" in err

@@ -260,7 +260,8 @@ def test_monte_carlo_engine_agrees_with_the_fem_engine():
     if not engine_available("mcxcl"):
         pytest.skip("MCX-CL is not installed (the 'mc' extra, `make system-deps`)")
     nx, ny, nz = 36, 24, 14
-    lab = np.full((nz, ny, nx), 3, np.int16)
+    lab = np.full((nz + 2, ny, nx), 3, np.int16)
+    lab[nz:] = 0                       # air above the skin: the top is skin, not a cut
     lab[nz - 6:nz - 2, ny // 2 - 2:ny // 2 + 2, nx // 2 - 2:nx // 2 + 2] = 7
     d = np.diag([-1.0, -1.0, 1.0])
     origin = np.array([240.0, 130.0, -410.0])
