@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoguide.errors import FluoInputError
+from fluoguide.library_errors import image_read_problem, image_write_problem, native_stderr_quiet
 
 _LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
 
@@ -38,10 +39,11 @@ def read_labelmap(path, node_name="CBCTLabels"):
     import SimpleITK as sitk
 
     try:
-        img = sitk.ReadImage(str(p))
-    except RuntimeError as exc:
-        raise FluoInputError(f"cannot read label map ({str(exc).splitlines()[0][:120]})",
-                             file=p) from None
+        with native_stderr_quiet():     # the readers' own lines (MetaIO, NIfTI, HDF5)
+            img = sitk.ReadImage(str(p))
+    except RuntimeError as exc:         # ITK's text names its build's files: say it in words
+        problem, field = image_read_problem(exc)
+        raise FluoInputError(f"cannot read label map ({problem})", file=p, field=field) from None
     arr = sitk.GetArrayFromImage(img)
     if "Segment0_ID" in img.GetMetaDataKeys():
         arr = _segments_to_labels(img, arr, p)
@@ -69,10 +71,11 @@ def read_volume_nrrd(path):
     if not p.is_file():
         raise FluoInputError("volume file not found", file=p)
     try:
-        img = sitk.ReadImage(str(p))
+        with native_stderr_quiet():
+            img = sitk.ReadImage(str(p))
     except RuntimeError as exc:
-        raise FluoInputError(f"cannot read volume ({str(exc).splitlines()[0][:120]})",
-                             file=p) from None
+        problem, field = image_read_problem(exc)
+        raise FluoInputError(f"cannot read volume ({problem})", file=p, field=field) from None
     arr = sitk.GetArrayFromImage(img)
     if arr.ndim != 3:
         raise FluoInputError("volume must be 3D", file=p, value=arr.shape)
@@ -132,5 +135,7 @@ def write_volume_nrrd(path, array_kji, spacing_mm, origin_mm, direction=None):
         os.replace(tmp, p)
     except (OSError, RuntimeError) as exc:
         tmp.unlink(missing_ok=True)
-        raise FluoInputError(f"cannot write ({str(exc).splitlines()[0][:120]})", file=p) from None
+        problem = (image_write_problem(exc) if isinstance(exc, RuntimeError)
+                   else f"cannot write ({exc.strerror or exc})")
+        raise FluoInputError(problem, file=p) from None
     return p

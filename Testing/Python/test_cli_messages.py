@@ -1,0 +1,252 @@
+"""What a hostile user reads (issue #34, item 8): one line ``fluo: error:
+FILE: FIELD: what is wrong (got VALUE)`` on stderr, nothing before it but
+progress lines, in the project's words:
+
+- a damaged image file (a corrupt .nii.gz, a NRRD with a broken header, a
+  .mha that is text) is said in words, never with ITK's build paths, and the
+  readers' own lines (MetaIO, libpng) stay off stderr;
+- files inside a folder the user named are shown as the user gave the folder
+  (``acq/data.csv``), never as absolute paths;
+- Python warnings go in the result's ``warnings`` (or the log when the
+  command failed), never on stderr before the error;
+- a newline or an escape sequence in a path or a value is escaped: the
+  message stays one line.
+
+Each command runs as a real process (the ``fluo`` fixture) where stderr is the
+point: the C libraries write to file descriptor 2, not to ``sys.stderr``."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+# a progress line (fluoguide.progress): "calib camera:  20% detecting board 2/4 (3 s)"
+PROGRESS = re.compile(r"^[\w .-]+: +\d+% .*\(\d+ s\)$")
+
+# what a library's internals look like in a message
+INTERNALS = re.compile(r"SimpleITK|itk::|ITK ERROR|\.(?:cxx|hxx|cpp|h):\d|0x[0-9a-f]{6}|/tmp/|"
+                       r"OpenCV\(|libpng|MetaImage:|HDF5|Traceback")
+
+
+def _error_line(r, rc=2):
+    """The one error line of a refused command; every other line a progress line."""
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == rc, r.stderr
+    assert lines and lines[-1].startswith("fluo: error: "), r.stderr
+    assert all(PROGRESS.match(ln) for ln in lines[:-1]), r.stderr
+    return lines[-1]
+
+
+def _label_files(folder):
+    """Damaged label maps of each kind ITK reads, beside a good one (returned by name)."""
+    import SimpleITK as sitk
+
+    lab = np.zeros((8, 10, 12), np.uint8)
+    lab[2:6, 3:7, 3:9] = 1
+    img = sitk.GetImageFromArray(lab)
+    sitk.WriteImage(img, str(folder / "good.nii.gz"))
+    sitk.WriteImage(img, str(folder / "good.nrrd"), True)
+    nii = (folder / "good.nii.gz").read_bytes()
+    # gzip whose content is not NIfTI, and a NIfTI cut in its header
+    (folder / "corrupt.nii.gz").write_bytes(gzip.compress(np.random.default_rng(0).bytes(600)))
+    (folder / "cut.nii.gz").write_bytes(gzip.compress(gzip.decompress(nii)[:200]))
+    head, _, body = (folder / "good.nrrd").read_bytes().partition(b"\n\n")
+    (folder / "sizes.nrrd").write_bytes(head.replace(b"sizes: 12 10 8", b"sizes: 12 x 8")
+                                        + b"\n\n" + body)
+    (folder / "cut.nrrd").write_bytes(head + b"\n\n" + body[: len(body) // 3])
+    (folder / "text.mha").write_text("this is a text file, not an image\n")
+    # a MetaImage header without its data: MetaIO prints its own lines to stderr
+    (folder / "nodata.mha").write_text("ObjectType = Image\nNDims = 3\nDimSize = 12 10 8\n"
+                                       "ElementType = MET_UCHAR\nElementDataFile = LOCAL\n")
+
+
+# file -> what the message must say (the field ITK named, in the message's FIELD place)
+DAMAGED = {
+    "corrupt.nii.gz": "damaged file or an unknown image format",
+    "cut.nii.gz": "damaged",
+    "sizes.nrrd": "sizes: cannot read label map (damaged NRRD header: axis 1 size is zero)",
+    "cut.nrrd": "damaged NRRD data: data cut short",
+    "text.mha": "damaged file or an unknown image format",
+    "nodata.mha": "damaged MetaImage file",
+}
+
+
+@pytest.fixture(scope="module")
+def damaged(tmp_path_factory):
+    d = tmp_path_factory.mktemp("damaged")
+    _label_files(d)
+    (d / "optics.json").write_text(json.dumps({
+        "n": 1.37, "excitation": {"1": {"mua_per_mm": 0.01, "musp_per_mm": 1.0}},
+        "emission": {"1": {"mua_per_mm": 0.008, "musp_per_mm": 0.9}}}))
+    return d
+
+
+@pytest.mark.parametrize("name", sorted(DAMAGED))
+@pytest.mark.parametrize("command", ["mesh", "tomo simulate"])
+def test_a_damaged_label_map_is_said_in_words(name, command, damaged, fluo):
+    """ITK's text (``Exception thrown in SimpleITK ImageFileReader_Execute:
+    /tmp/SimpleITK-build/ITK/Modules/IO/NRRD/src/itkNrrdImageIO.cxx:410``) was
+    the message, and MetaIO's lines came before it."""
+    if command == "mesh":
+        argv = ["mesh", name, "--out", "out.vtu", "--fast", "--size", "3"]
+    else:
+        argv = ["tomo", "simulate", "--labels", name, "--optics", "optics.json", "--yield",
+                "1:0.001", "--out", "acq"]
+    r = fluo(*argv, cwd=damaged)
+    line = _error_line(r)
+    assert line.startswith(f"fluo: error: {name}: "), line     # the file as given
+    assert DAMAGED[name] in line, line
+    assert not INTERNALS.search(r.stderr), r.stderr
+    assert not (damaged / "out.vtu").exists() and not (damaged / "acq").exists()
+
+
+def test_library_error_texts_in_words():
+    """The translation itself, on the texts SimpleITK 2 and OpenCV 4 raise."""
+    from fluoguide.library_errors import image_read_problem, opencv_problem, scrub
+
+    nrrd = ("Exception thrown in SimpleITK ImageFileReader_Execute: /tmp/SimpleITK-build/ITK/"
+            "Modules/IO/NRRD/src/itkNrrdImageIO.cxx:410:\nitk::ERROR: NrrdImageIO(0x563936a37940)"
+            ": ReadImageInformation: Error reading b.nrrd:\n[nrrd] nrrdLoad: trouble reading "
+            "\"b.nrrd\"\n[nrrd] nrrdRead: trouble\n[nrrd] _nrrdFormatNRRD_read: trouble parsing "
+            "type info |foo|\n[nrrd] _nrrdReadNrrdParse_type: couldn't parse type \"foo\"\n")
+    assert image_read_problem(RuntimeError(nrrd)) == (
+        "damaged NRRD header: couldn't parse type \"foo\"", "type")
+    cut = ("Exception thrown in SimpleITK ImageFileReader_Execute: /x/itkNrrdImageIO.cxx:935:\n"
+           "ITK ERROR: NrrdImageIO(0x55829b5cee70): Read: Error reading c.nrrd:\n[nrrd] "
+           "_nrrdEncodingRaw_read: fread got only 23855 1-sized things, not 48000 (49.7% of "
+           "expected)\n")
+    assert image_read_problem(RuntimeError(cut)) == (
+        "damaged NRRD data: data cut short: 23855 of 48000 values", None)
+    cv = ("OpenCV(4.14.0) /io/opencv/modules/calib3d/src/calibration.cpp:2676: error: "
+          "(-215:Assertion failed) nimages > 0 in function 'calibrateCameraRO'\n")
+    assert opencv_problem(RuntimeError(cv)) == "OpenCV: assertion failed"
+    yml = ("OpenCV(4.14.0) /io/opencv/modules/core/src/persistence_yml.cpp:681: error: "
+           "(-212:Parsing error) parseValue in function 'c.yaml(5): Missing , between the "
+           "elements'\n")
+    assert opencv_problem(RuntimeError(yml)) == (
+        "OpenCV: parsing error at line 5: Missing , between the elements")
+    # anything else: the internals out, one line
+    text = scrub("ITK ERROR: PNGImageIO(0x55829ad87d00): Error while reading file: "
+                 "/home/u/data/x.png\nsecond line")
+    assert text == "Error while reading file: x.png second line"
+
+
+def test_a_damaged_opencv_yaml_is_one_line(tmp_path, fluo):
+    """OpenCV's YAML parser error reached the user as ``fluo: internal error:
+    SystemError: <class 'cv2.FileStorage'> returned a result with an exception
+    set`` (its binding wraps the cv2.error), exit 1."""
+    from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
+
+    make_dataset(tmp_path / "boards", default_camera(320, 240), n_views=4)
+    (tmp_path / "cam.yaml").write_text("%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n"
+                                       "  rows: 3\n  cols: [\n")
+    r = fluo("calib", "handeye", "--images", "boards/*.png", "--board", "chessboard:9x6:20",
+             "--poses", "boards/truth.json", "--intrinsics", "cam.yaml", cwd=tmp_path)
+    line = _error_line(r)
+    assert line == ("fluo: error: cam.yaml: not an OpenCV FileStorage file (OpenCV: parsing "
+                    "error at line 5: Missing , between the elements)"), line
+
+
+# ------------------------------------------------------------- paths as given
+@pytest.fixture
+def own_copy(own_scene, tmp_path):
+    """The own scene in a fresh folder (labels.nrrd, optics.json, acq/), to damage."""
+    d = tmp_path / "own"
+    d.mkdir()
+    for f in ("labels.nrrd", "optics.json"):
+        shutil.copy(own_scene.dir / f, d / f)
+    shutil.copytree(own_scene.acq, d / "acq")
+    return d
+
+
+def test_acquisition_errors_name_files_as_given(own_copy, fluo):
+    """``fluo tomo reconstruct --acquisition acq/`` with a bad acq/data.csv named
+    ``/abs/path/acq/data.csv``."""
+    data = own_copy / "acq" / "data.csv"
+    rows = data.read_text().splitlines()
+    k = next(i for i, ln in enumerate(rows) if ln and not ln.startswith("#"))
+    rows[k] = "abc," + rows[k].split(",", 1)[1]
+    data.write_text("\n".join(rows) + "\n")
+    r = fluo("tomo", "reconstruct", "--labels", "labels.nrrd", "--optics", "optics.json",
+             "--acquisition", "acq/", "--out", "rec", cwd=own_copy)
+    line = _error_line(r)
+    assert line.startswith("fluo: error: acq/data.csv: data: line "), line
+    assert str(own_copy) not in r.stderr
+
+
+def test_batch_and_scene_errors_name_files_as_given(own_copy, fluo):
+    """A batch row's damaged label map and a scene's damaged data file were named by
+    their absolute paths."""
+    (own_copy / "bad.nrrd").write_text("NRRD0004\ntype: foo\n\n")
+    (own_copy / "batch.csv").write_text("labels,optics,acquisition\nbad.nrrd,optics.json,acq\n")
+    # run from the folder above: every path shown starts with the folder as typed
+    r = fluo("tomo", "batch", f"{own_copy.name}/batch.csv", "--out", "runs", cwd=own_copy.parent)
+    line = _error_line(r)
+    assert line.startswith(f"fluo: error: {own_copy.name}/batch.csv: line 2, labels: "
+                           f"{own_copy.name}/bad.nrrd: type: cannot read label map (damaged NRRD "
+                           "header"), line
+    assert str(own_copy) not in r.stderr
+    from fluoguide import mrml_io
+
+    scene = mrml_io.new_scene()
+    mrml_io.add_volume(scene, "CBCTLabels", np.ones((4, 5, 6), np.uint8), (1, 1, 1), (0, 0, 0),
+                       labelmap=True)
+    mrml_io.save_scene(scene, own_copy / "sc" / "scene.mrml")
+    (own_copy / "sc" / "CBCTLabels.nrrd").write_text("NRRD0004\ntype: foo\n\n")
+    r = fluo("scene", "info", "sc/scene.mrml", cwd=own_copy)
+    assert _error_line(r) == "fluo: error: sc/CBCTLabels.nrrd: CBCTLabels: corrupt volume file"
+    (own_copy / "sc" / "CBCTLabels.nrrd").unlink()
+    r = fluo("scene", "info", "sc/scene.mrml", cwd=own_copy)
+    assert _error_line(r).startswith("fluo: error: sc/CBCTLabels.nrrd: "), r.stderr
+    assert str(own_copy) not in r.stderr
+
+
+# ------------------------------------------------------------------ one line
+def test_a_newline_in_a_path_stays_one_line(tmp_path, fluo):
+    """``fluo mesh $'bad\\nname.nrrd'`` split its message in two lines; so did an
+    output path with a newline under a file."""
+    r = fluo("mesh", "bad\nname.nrrd", "--out", "x.vtu", cwd=tmp_path)
+    assert _error_line(r) == "fluo: error: bad\\nname.nrrd: label map file not found"
+    _label_files(tmp_path)
+    (tmp_path / "a_file").write_text("a file where a folder is expected\n")
+    r = fluo("mesh", "good.nrrd", "--out", "a_file/x\n\x1b[31my.vtu", "--fast", cwd=tmp_path)
+    line = _error_line(r)
+    assert line.startswith("fluo: error: a_file/x\\n\\x1b[31my.vtu"), line
+    assert "\x1b" not in r.stderr
+
+
+def test_error_text_is_one_line_whatever_it_holds():
+    """FluoInputError and FluoError (device) texts: every control character
+    escaped, as Python writes it; escaping twice changes nothing."""
+    from fluoguide.errors import FluoDeviceError, FluoInputError, one_line
+
+    e = FluoInputError("not found", file="a\nb.nrrd", field="f\ri", value="v\x00")
+    assert str(e) == "a\\nb.nrrd: f\\ri: not found (got 'v\\x00')"
+    assert e.file == "a\nb.nrrd"                       # the attributes keep what was given
+    assert str(FluoDeviceError("peer said:\nbye\u202e")) == "peer said:\\nbye\\u202e"
+    wrapped = FluoInputError(str(e), file="batch.csv", field="row 1")
+    assert str(wrapped) == "batch.csv: row 1: " + str(e)
+    assert one_line(one_line("x\ny\\n")) == "x\\ny\\n"
+    assert one_line("é ok 中") == "é ok 中"
+
+
+def test_the_last_resort_is_one_line_without_library_internals(capsys):
+    """``fluo: internal error:`` kept the first line of a bug's message: ITK's
+    build path, nothing of what followed a newline."""
+    import argparse
+
+    from fluoapp import cli
+
+    exc = RuntimeError("Exception thrown in SimpleITK ImageFileReader_Execute: /tmp/SimpleITK-"
+                       "build/ITK/Modules/IO/Meta/src/itkMetaImageIO.cxx:490:\nITK ERROR: "
+                       "MetaImageIO(0x55829b823cf0): File cannot be read: x.mha\x1b[2J")
+    assert cli._internal_error(exc, argparse.Namespace(debug=False)) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert err == ("fluo: internal error: RuntimeError: File cannot be read: x.mha\\x1b[2J "
+                   "(fluo --debug ... shows the traceback)\n"), err
