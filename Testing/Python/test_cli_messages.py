@@ -152,6 +152,92 @@ def test_a_damaged_opencv_yaml_is_one_line(tmp_path, fluo):
                     "error at line 5: Missing , between the elements)"), line
 
 
+# ------------------------------------------- warnings and the libraries' lines
+def test_a_numpy_warning_does_not_precede_the_error(tmp_path, fluo):
+    """A mesh with nodes no element uses: ``RuntimeWarning: invalid value
+    encountered in divide`` and its source line came before the refusal."""
+    from FluoTomoLib.meshing.mesh import Mesh
+    from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
+    from FluoTomoLib.meshing.vtu_io import write_vtu
+
+    m = mesh_labelmap_structured(np.ones((6, 6, 6), np.int32), np.ones(3),
+                                 np.array([-2.5, -2.5, -5.5]), 1.5)
+    write_vtu(Mesh(np.vstack([m.nodes_mm, m.nodes_mm[:3] + 100.0]), m.elements,
+                   m.element_region), tmp_path / "unused.vtu")
+    (tmp_path / "s.csv").write_text("0,0,0\n")
+    (tmp_path / "d.csv").write_text("2,0,0\n")
+    r = fluo("forward", "--mesh", "unused.vtu", "--mua", "0.01", "--musp", "1", "--sources",
+             "s.csv", "--detectors", "d.csv", "--jacobian", cwd=tmp_path)
+    assert "belong to no element" in _error_line(r), r.stderr
+    assert "Warning" not in r.stderr, r.stderr
+
+
+def test_damaged_pngs_print_no_libpng_lines(tmp_path, fluo):
+    """``fluo calib camera --images`` on cut PNGs printed ``libpng error: ...``
+    before the error, and on fuzz_cli's PNG claiming 20000 x 20000 pixels
+    (over Pillow's own limit, so its header went unread) OpenCV decoded it."""
+    import zlib
+
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.random.default_rng(1).integers(0, 255, (90, 120), np.uint8))
+    (tmp_path / "cut").mkdir()
+    for k in range(3):
+        (tmp_path / "cut" / f"c{k}.png").write_bytes(buf.tobytes()[:300])
+    bad = bytearray(buf.tobytes())
+    bad[40] ^= 0xFF                     # a chunk's type: "libpng error: IDA[AB]: bad header"
+    (tmp_path / "cut" / "c3.png").write_bytes(bytes(bad))
+
+    def chunk(kind, body):
+        return len(body).to_bytes(4, "big") + kind + body + zlib.crc32(kind + body).to_bytes(4, "big")
+
+    huge = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", (20000).to_bytes(4, "big") * 2
+                                           + bytes([8, 0, 0, 0, 0]))
+            + chunk(b"IDAT", zlib.compress(b"\x00" * 1000)) + chunk(b"IEND", b""))
+    (tmp_path / "huge").mkdir()
+    for k in range(3):
+        (tmp_path / "huge" / f"h{k}.png").write_bytes(huge)
+    for folder, says in (("cut", "cannot read image"), ("huge", "image too large")):
+        r = fluo("calib", "camera", "--images", f"{folder}/*.png", "--board", "chessboard:9x6:20",
+                 "--yaml", "c.yaml", cwd=tmp_path)
+        line = _error_line(r)
+        assert says in line and f"{folder}/" in line, line
+        assert "libpng" not in r.stderr, r.stderr
+
+
+def test_opencv_camera_lines_stay_off_stderr(tmp_path, fluo):
+    """OpenCV logged ``[ WARN:0@0.012] global cap_v4l.cpp:914 open
+    VIDEOIO(V4L2:/dev/video0): can't open camera by index`` before the error."""
+    from pathlib import Path
+
+    if Path("/dev/video0").exists():
+        pytest.skip("a camera is attached: index 0 would open and record")
+    r = fluo("record", "--camera", "0", "--out", "rec", "--seconds", "0.5", cwd=tmp_path)
+    assert _error_line(r) == ("fluo: error: camera: cannot open camera or video (OpenCV "
+                              "VideoCapture) (got 0)"), r.stderr
+
+
+def test_warnings_in_words():
+    """What the CLI makes of Python warnings (``cli._warning_texts``): the
+    project's by their message, numpy's with their category, deprecations
+    left out, each once, one line each."""
+    import warnings
+
+    from fluoapp import cli
+    from FluoTomoLib.optics import check_properties
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_properties(0.5, 1.0, where="excitation")       # musp/mua = 2: not diffusive
+        check_properties(0.5, 1.0, where="excitation")
+        np.array([1.0]) / np.array([0.0])
+        warnings.warn("old API", DeprecationWarning)
+        warnings.warn("a\nb", UserWarning)
+    said = cli._warning_texts(caught)
+    assert said == ["excitation: musp/mua = 2 < 10, diffusion theory is inaccurate",
+                    "RuntimeWarning: divide by zero encountered in divide", "a\\nb"], said
+
+
 # ------------------------------------------------------------- paths as given
 @pytest.fixture
 def own_copy(own_scene, tmp_path):
