@@ -93,6 +93,8 @@ def pytest_collection_modifyitems(session, config, items):
         f = files.setdefault(str(item.path), {"first": k, "gb": 0.0, "slow": False})
         f["gb"] = max(f["gb"], _heavy_gb(item) or 0.0)       # a bad mark: refused here
         f["slow"] |= bool(item.get_closest_marker("slow") or item.get_closest_marker("browser"))
+    if not files:
+        return
     largest = max(files.values(), key=lambda f: f["gb"])
     room = heavy_budget_gb() - largest["gb"]
 

@@ -222,21 +222,25 @@ class FluoTomoWidget(FluoModuleWidget):
 
         p = self.logic.parameter
 
-        def work(progress, cancel):
+        def prepare():          # the scene is read here, on Slicer's thread
             label = self._labelNode()
             acq = self._acquisitionFor(label)
             optics = self._optics() if acq is not None or p("OpticsFile") else None
-            node = self.logic.buildMesh(
+            return label, acq, self.logic.prepareBuildMesh(
                 label, target=p("Target") or None,
                 acquisition=None if acq is None else acq["acquisition"], optics=optics,
-                accuracy=p("Accuracy"), outputModelNode=self._node("Mesh"),
-                progress=progress, cancel=cancel)
-            return label, acq, node
+                accuracy=p("Accuracy"))
 
-        out = self.runWithProgress("Build mesh", work)
-        if out is None:
+        ready = self.run("Build mesh", prepare)
+        if ready is None:
             return
-        label, acq, node = out
+        label, acq, job = ready
+        built = self.runWithProgress("Build mesh", job, background=True)
+        if built is None:
+            return
+        node = self.run("Build mesh", self.logic.storeBuiltMesh, built, self._node("Mesh"))
+        if node is None:
+            return
         self._meshFor[node.GetID()] = self._meshKey(label, acq)
         self._setNodes(Mesh=node)
         info = mrml_io.get_json_attribute(node, "FluoTomo.Mesh") or {}
@@ -262,19 +266,20 @@ class FluoTomoWidget(FluoModuleWidget):
 
         p = self.logic.parameter
 
-        def work(progress, cancel):
+        def prepare():          # the scene is read here, on Slicer's thread
             label = self._labelNode()
-            optics = self._optics()
             yields = parse_yields(p("YieldByLabel"), field="Yield per label")
-            acq = self.logic.simulateAcquisition(label, optics, yields, noise=p("NoisePct"),
-                                                 seed=p("Seed"), accuracy=p("Accuracy"),
-                                                 progress=progress, cancel=cancel)
-            return label, acq
+            return label, self.logic.prepareSimulation(label, self._optics(), yields,
+                                                       noise=p("NoisePct"), seed=p("Seed"),
+                                                       accuracy=p("Accuracy"))
 
-        out = self.runWithProgress("Simulate acquisition", work)
-        if out is None:
+        ready = self.run("Simulate acquisition", prepare)
+        if ready is None:
             return
-        label, acq = out
+        label, job = ready
+        acq = self.runWithProgress("Simulate acquisition", job, background=True)
+        if acq is None:
+            return
         info = acq.meta.get("simulation", {})
         what = (f"the acquisition simulated on {label.GetName()} (yield {p('YieldByLabel')}, "
                 f"noise {p('NoisePct'):g} %, seed {p('Seed')})")
@@ -314,7 +319,7 @@ class FluoTomoWidget(FluoModuleWidget):
 
         p = self.logic.parameter
 
-        def work(progress, cancel):
+        def prepare():          # the scene is read here, on Slicer's thread
             label = self._labelNode()
             optics = self._optics()
             acq = self._acquisitionFor(label)
@@ -324,16 +329,22 @@ class FluoTomoWidget(FluoModuleWidget):
             mesh = self._node("Mesh")
             if mesh is not None and self._meshFor.get(mesh.GetID()) != self._meshKey(label, acq):
                 mesh = None
-            summary, node = self.logic.reconstruct(
+            return acq, mesh, self.logic.prepareReconstruction(
                 label, optics, acq["acquisition"], method=p("Method"), lam=p("Lambda"),
-                target=p("Target") or None, outputVolumeNode=self._node("OutputVolume"),
-                meshNode=mesh, accuracy=p("Accuracy"), progress=progress, cancel=cancel)
-            return acq, mesh, summary, node
+                target=p("Target") or None, meshNode=mesh, accuracy=p("Accuracy"))
 
-        out = self.runWithProgress("Reconstruction", work)
-        if out is None:
+        ready = self.run("Reconstruction", prepare)
+        if ready is None:
             return
-        acq, mesh, s, node = out
+        acq, mesh, job = ready
+        result = self.runWithProgress("Reconstruction", job, background=True)
+        if result is None:
+            return
+        node = self.run("Reconstruction", self.logic.storeReconstructionResult, result,
+                        self._node("OutputVolume"))
+        if node is None:
+            return
+        s = result["summary"]
         style_yield_volume(self.logic.scene, node)
         if in_slicer_application():
             import slicer
@@ -777,7 +788,8 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             y = ndimage.map_coordinates(arr, ijk[:, ::-1].T, order=1, mode="nearest")
         px, pm = optics.nodal(labs, F, yield_nodes=y)
         fm = FluorescenceModel(mesh, px, pm, src, det,
-                               source_normals=lm.surface().closest(src)[1])
+                               source_normals=lm.surface().closest(src)[1],
+                               cut_facets=lm.cut_facets(mesh))
         return {"excitation": fm.excitation_data(),
                 "fluorescence": None if y is None else fm.emission_data(y),
                 "mesh_nodes": mesh.n_nodes}
@@ -789,18 +801,32 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         finer than a reconstruction's) -> Acquisition; written to
         ``outputFolder`` when given.  ``scan``: DEFAULT_SCAN keys for the default
         grid over the target, or ``sources``/``detectors`` (RAS mm)."""
+        job = self.prepareSimulation(labelNode, optics, yieldByLabel, scan, noise, seed, sources,
+                                     detectors, accuracy, engine, outputFolder)
+        return job(progress, cancel)
+
+    def prepareSimulation(self, labelNode, optics, yieldByLabel, scan=None, noise=1.0, seed=0,
+                          sources=None, detectors=None, accuracy="balanced", engine="fem",
+                          outputFolder=None):
+        """:meth:`simulateAcquisition` split for a worker thread: reads the label map
+        and the optics now, returns ``job(progress, cancel) -> Acquisition`` (no MRML
+        inside; it writes ``outputFolder`` when given)."""
         from FluoTomoLib.tomography import simulate_acquisition, write_acquisition
 
         lm = self.labelMap(labelNode)
         optics = self.readOptics(optics)
-        acq, info = simulate_acquisition(lm, optics, {int(k): float(v) for k, v in
-                                                      dict(yieldByLabel).items()},
-                                         sources, detectors, scan=scan, noise_pct=noise,
-                                         seed=seed, engine=engine, accuracy=accuracy,
-                                         progress=progress, cancel=cancel)
-        if outputFolder is not None:
-            write_acquisition(outputFolder, acq, simulation=info)
-        return acq
+        yields = {int(k): float(v) for k, v in dict(yieldByLabel).items()}
+
+        def job(progress=None, cancel=None):
+            acq, info = simulate_acquisition(lm, optics, yields, sources, detectors, scan=scan,
+                                             noise_pct=noise, seed=seed, engine=engine,
+                                             accuracy=accuracy, progress=progress,
+                                             cancel=cancel)
+            if outputFolder is not None:
+                write_acquisition(outputFolder, acq, simulation=info)
+            return acq
+
+        return job
 
     def reconstruct(self, labelNode, optics, acquisition, method="HP", lam=None, target=None,
                     outputVolumeNode=None, meshNode=None, accuracy="balanced", progress=None,

@@ -28,6 +28,7 @@ Conventions every subcommand follows:
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
@@ -147,6 +148,16 @@ def main(argv=None):
         except KeyboardInterrupt:
             print("fluo: interrupted", file=sys.stderr)
             return 130
+        except OSError as exc:
+            _failed_warnings(caught, args)
+            if exc.errno != errno.ENAMETOOLONG:
+                return _internal_error(exc, args)
+            # a path typed too long for the file system (any reader's is_file or open):
+            # the user's to shorten; the web app refuses it earlier (paths.inside)
+            name = one_line(exc.filename or "")
+            shown = name if len(name) <= 80 else f"{name[:60]}... ({len(name)} characters)"
+            print(f"fluo: error: {shown}: name too long for the file system", file=sys.stderr)
+            return 2
         except Exception as exc:  # the last resort: a bug, not the user's input
             _failed_warnings(caught, args)
             return _internal_error(exc, args)

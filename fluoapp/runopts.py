@@ -6,6 +6,11 @@ default when the option has no value: as many workers as the machine has cores
 for ``--threads``); ``--scheduler ADDRESS`` (or ``$FLUO_SCHEDULER``) sends the
 same tasks to a running Dask cluster; neither runs serially in this process.
 ``--resume`` reuses the finished tasks of a killed run in ``--out``.
+
+A scheduler that does not answer within ``$FLUO_SCHEDULER_TIMEOUT`` seconds
+(default 30; the connection, the handshake, its workers, and a sign of life
+whenever no result came for that long during the run) ends the run with one
+line and exit code 1 (:mod:`fluoguide.runs.cluster`).
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ def add_run_options(p, threads_default="1"):
                    "value: one per core); without it (and without --scheduler) tasks run serially")
     g.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="tcp://HOST:PORT of a running Dask scheduler (default: $FLUO_SCHEDULER): "
-                   "the same tasks on a real cluster; its workers need FluoGuide installed")
+                   "the same tasks on a real cluster; its workers need FluoGuide installed. "
+                   "Each answer it owes is awaited at most $FLUO_SCHEDULER_TIMEOUT seconds "
+                   "(default 30), then the run ends with an error")
     default_text = ("1: one task per core, no oversubscription" if threads_default == "1" else
                     "the process's (fluo --threads) serially, 1 per task on workers")
     g.add_argument("--threads", default=threads_default, metavar="N",
@@ -52,14 +59,15 @@ def threads_from(args):
 
 def check_run_options(args):
     """Validate the options before any work starts (one-line errors, exit 2)."""
-    from fluoguide.runs.cluster import local_workers, scheduler_address
+    from fluoguide.runs.cluster import local_workers, scheduler_address, scheduler_timeout
 
     threads = threads_from(args)
     if args.resume and not getattr(args, "out", None):
         raise FluoInputError("--resume needs the run folder --out", field="--resume")
     if args.workers is not None:
         local_workers(args.workers, threads)
-    scheduler_address(args.scheduler)
+    if scheduler_address(args.scheduler) is not None or args.workers is not None:
+        scheduler_timeout()   # a bad $FLUO_SCHEDULER_TIMEOUT: refused before any work
     return threads
 
 

@@ -214,7 +214,16 @@ def atomic_path(path, field=None):
     _remove_debris(path.parent, prefix)
     tmp = path.with_name(f"{prefix}{os.getpid()}-{time.monotonic_ns()}{''.join(path.suffixes)}")
     try:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as exc:
+            # the writer could not create the temporary file: a folder that refuses
+            # writes (EACCES/EPERM/EROFS, root included) although check_writable
+            # passed (os.access trusts root); an error about another file is the
+            # writer's own and goes up as it is
+            if str(exc.filename) != str(tmp):
+                raise
+            raise output_error(exc, path, field) from None
         if not tmp.is_file():
             raise FluoInputError("the writer produced no file", file=path, field=field)
         with open(tmp, "rb+") as fh:

@@ -77,7 +77,8 @@ def _teem_detail(lines):
                and not r.startswith("trouble reading")]
     if not reasons:
         return None
-    r = reasons[-1].rstrip(".! ")
+    # teem's text stops at a NUL it quotes: "hit invalid character ('"
+    r = re.sub(r"\s*\(['\"]?$", "", reasons[-1]).rstrip(".! ")
     m = re.match(r"fread got only (\d+) (\d+)-sized things, not (\d+)", r)
     if m:
         return f"data cut short: {m.group(1)} of {m.group(3)} values"

@@ -122,8 +122,11 @@ def get_json_attribute(node, key, default=None):
     text = node.GetAttribute(key)
     if text is None:
         return default
+    from fluoguide.jsonable import loads
+
     try:
-        return json.loads(text)
+        # a key twice (hand-edited .mrml) is refused, not resolved to the last
+        return loads(text, field=f"{node.GetName()}.{key}")
     except json.JSONDecodeError as exc:
         raise FluoInputError(f"attribute is not valid JSON ({exc.msg})",
                              field=f"{node.GetName()}.{key}") from None
@@ -544,6 +547,12 @@ def _check_storage_paths(path, given=None):
                 raise FluoInputError("data file of the scene is not a regular file",
                                      file=given.parent / rel,
                                      field=elem.get("id") or elem.tag)
+            if key == "fileName" and "Volume" in elem.tag:
+                # MRML reads volumes through ITK, which trusts a lying header (a NaN
+                # voxel size becomes 1, extra data is cut): checked first
+                from fluoguide.volume_header import check_volume_file
+
+                check_volume_file(given.parent / rel)    # confined above; named as given
 
 
 def _check_transforms(scene, path):
@@ -621,6 +630,12 @@ def load_scene(path):
                                  field=node.GetName())
         if node.IsA("vtkMRMLVolumeNode") and node.GetImageData() is None:
             raise FluoInputError("corrupt volume file", file=shown, field=node.GetName())
+        if node.IsA("vtkMRMLVolumeNode") and not node.IsA("vtkMRMLSequenceNode"):
+            from fluoguide.volume_header import check_geometry
+
+            geo = volume_geometry(node)
+            check_geometry(geo["spacing"], geo["origin"], geo["direction"], file=shown,
+                           field=node.GetName())
         # a model holds a surface (polydata) or a volume mesh (unstructured grid)
         if node.IsA("vtkMRMLModelNode") and (node.GetMesh() is None
                                             or node.GetMesh().GetNumberOfPoints() == 0

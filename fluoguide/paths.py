@@ -9,6 +9,7 @@ app confines every path its users type to a workspace folder. Both go through
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from fluoguide.errors import FluoInputError
@@ -20,6 +21,23 @@ def is_inside(path, root):
     """True when ``path`` (resolved, links followed) is ``root`` or below it."""
     path, root = Path(path).resolve(), Path(root).resolve()
     return path == root or root in path.parents
+
+
+def _check_length(path, root, name, file, field, what):
+    """Refuse a path the file system cannot hold: every later ``is_file`` or
+    ``open`` would raise ENAMETOOLONG (pathlib's ``is_dir`` does not swallow it),
+    a traceback in the web app's log for a 5,000-character folder name."""
+    try:
+        name_max = os.pathconf(root, "PC_NAME_MAX")
+        path_max = os.pathconf(root, "PC_PATH_MAX")
+    except (OSError, ValueError):
+        name_max, path_max = 255, 4096          # Linux's limits
+    longest = max((len(os.fsencode(part)) for part in path.parts), default=0)
+    if longest > name_max or len(os.fsencode(str(path))) >= path_max:
+        text = str(name)
+        raise FluoInputError(f"{what} name too long (at most {name_max} bytes a name, "
+                             f"{path_max - 1} a path)", file=file, field=field,
+                             value=f"{text[:40]}... ({len(text)} characters)")
 
 
 def inside(root, name, file=None, field=None, what="file", root_name="its folder", given=False):
@@ -56,6 +74,7 @@ def inside(root, name, file=None, field=None, what="file", root_name="its folder
     shown = Path(root) / str(name).strip()
     root = Path(root).resolve()
     path = (root / str(name).strip()).resolve()
+    _check_length(path, root, name, file, field, what)
     if not (path == root or root in path.parents):
         # the value as given, never the resolved server path
         raise FluoInputError(f"{what} must be inside {root_name}", file=file, field=field,

@@ -98,6 +98,34 @@ def _render_cbct(labels, fractions, hu_by_label, spacing, rng, noise_hu=15.0, bl
     return np.clip(np.round(img), -1024, 3071).astype(np.int16)
 
 
+#: the peak memory a phantom adds per voxel of its grid [bytes]: voxel-centre
+#: coordinates (float64), the partial-volume fractions and their stack (float32
+#: per label), the blurred, noisy CBCT (float32 and float64 noise), the scene's
+#: copies. Measured (``fluo phantom``, /usr/bin/time -v, peak less the 0.32 GB
+#: of imports; the three phantoms at 0.4 to 0.2 mm, 3 to 29 million voxels):
+#: 44-70 B per voxel, the most on the finest grids; 80 B is 1.14-1.24x the
+#: measured peak at 0.3 mm and finer, up to 1.8x at 0.4 mm (docs/reliability.md,
+#: "Memory estimates")
+PHANTOM_BYTES_PER_VOXEL = 80.0
+
+
+def _check_memory(name, shape, voxel_mm):
+    """Refuse a phantom grid whose estimated peak does not fit (before any work)."""
+    from fluoguide.memory import GB, available_bytes, check_fits
+
+    voxels = float(np.prod(shape))
+    need = PHANTOM_BYTES_PER_VOXEL * voxels
+    avail = available_bytes()
+    hint = "use a larger --voxel-mm"
+    if avail:
+        # the voxel count goes as 1/voxel^3: the smallest size that fits, to 0.05 mm
+        v_fit = np.ceil(voxel_mm * (need / avail) ** (1 / 3) / 0.05) * 0.05
+        hint = (f"use --voxel-mm {v_fit:.2f} or more (about "
+                f"{need * (voxel_mm / v_fit) ** 3 / GB:.1f} GB)")
+    check_fits(need, f"the {name} phantom at {voxel_mm:g} mm ({voxels / 1e6:.0f} million "
+               "voxels)", hint, field="voxel_mm", value=voxel_mm)
+
+
 def _check_voxel(voxel_mm):
     v = float(voxel_mm)
     if not (0.1 <= v <= 5.0):
@@ -112,6 +140,7 @@ def slab(voxel_mm=0.8, seed=0):
     margin = 4 * v
     shape, origin = _grid((-a / 2 - margin, -b / 2 - margin, -h - margin),
                           (a / 2 + margin, b / 2 + margin, margin), v)
+    _check_memory("slab", shape, v)
 
     def inside(x, y, z):
         return (np.abs(x) <= a / 2) & (np.abs(y) <= b / 2) & (z <= 0) & (z >= -h)
@@ -161,6 +190,7 @@ def cylinder_tube(voxel_mm=0.8, seed=0, depth_mm=4.7, tube_diameter_mm=2.4,
                              f"(0.5 mm clearance)", field="depth_mm", value=d)
     margin = 4 * v
     shape, origin = _grid((-R - margin, -R - margin, -H - margin), (R + margin, R + margin, margin), v)
+    _check_memory("cylinder-tube", shape, v)
 
     def liquid(x, y, z):
         return (x * x + y * y <= R * R) & (z <= 0) & (z >= -H)
@@ -221,6 +251,7 @@ def oral_cavity(voxel_mm=0.8, seed=0, tissue_icg_ug_per_ml=0.4, tongue_icg_ug_pe
     margin = 4 * v
     shape, origin = _grid((-bx / 2 - margin, -by / 2 - margin, -bz - margin),
                           (bx / 2 + margin, by / 2 + margin, margin), v)
+    _check_memory("oral-cavity", shape, v)
 
     def block(x, y, z):
         return (np.abs(x) <= bx / 2) & (np.abs(y) <= by / 2) & (z <= 0) & (z >= -bz)

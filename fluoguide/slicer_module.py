@@ -88,6 +88,8 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         self._sceneObservers = []
         self._updatingGUI = False
         self.errors = []  # headless: the messages a dialog would have shown
+        self._installOffer = None   # the panel's offer to install missing packages
+        self._installText = None
 
     # -- the pieces a module supplies ------------------------------------------------
     def createLogic(self, scene):
@@ -106,17 +108,69 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         ScriptedLoadableModuleWidget.setup(self)
         if self.layout is None:  # headless (slicer_compat): no Qt to lay out
             return
+        from fluoguide.slicer_deps import install_summary
+
+        required, optional = install_summary()
+        if required or optional:
+            # offered in the panel, never in a modal dialog: Slicer (and its
+            # generic module tests) must not block on a question at start-up
+            self._installOffer = self._packageOffer(required, optional)
+            self.layout.addWidget(self._installOffer)
+        if required:
+            return
+        self._buildPanel()
+
+    def _packageOffer(self, required, optional):
+        """A box in the panel: what is missing, what each optional package adds,
+        and an Install button (each package on its own: one without a build for
+        this platform does not stop the others)."""
         import qt
+
+        box = qt.QGroupBox("Python packages")
+        form = qt.QVBoxLayout(box)
+        lines = []
+        if required:
+            lines.append("This module needs: " + ", ".join(required) + ".")
+        for line, adds in optional:
+            lines.append(f"Optional: {line} ({adds}).")
+        text = qt.QLabel("\n".join(lines) + "\nInstall them into Slicer's Python (a few "
+                         "minutes, needs the internet; docs/slicer.md)?")
+        text.wordWrap = True
+        form.addWidget(text)
+        button = qt.QPushButton("Install")
+        form.addWidget(button)
+        self._installText = text
+        button.connect("clicked(bool)", lambda _=False: self.onInstallPackages())
+        return box
+
+    def onInstallPackages(self):
+        """Install what is missing, one package at a time; build the panel once
+        every required package is there, and say what could not be installed."""
         import slicer
 
-        from fluoguide.slicer_deps import ensure_dependencies
+        from fluoguide.slicer_deps import install_requirements, install_summary
 
-        if not ensure_dependencies(ask=True):
-            note = qt.QLabel("FluoGuide's Python packages are not installed: reopen the module "
-                             "to install them (see docs/slicer.md).")
-            note.wordWrap = True
-            self.layout.addWidget(note)
+        required, optional = install_summary()
+        with slicer.util.WaitCursor():
+            failed = {k: v for k, v in install_requirements(
+                required + [line for line, _ in optional], slicer.util.pip_install).items() if v}
+        required, optional = install_summary()
+        said = []
+        if failed:
+            said.append("Could not install: " + "; ".join(f"{k} ({v})" for k, v in failed.items()))
+        if optional:
+            said.append("Not available here: " + "; ".join(adds for _, adds in optional))
+        if required:
+            self._installText.text = "\n".join(said + ["The module still needs: "
+                                                       + ", ".join(required)])
             return
+        self._installText.text = "\n".join(said) or "Installed."
+        if self.logic is None:
+            self._buildPanel()
+
+    def _buildPanel(self):
+        import slicer
+
         self.logic = self.createLogic(slicer.mrmlScene)
         uiWidget = slicer.util.loadUI(self.resourcePath(f"UI/{self.moduleName}.ui"))
         self.layout.addWidget(uiWidget)
@@ -237,9 +291,15 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
             node.EndModify(was)
 
     # -- long work, errors -----------------------------------------------------------
-    def runWithProgress(self, title, work):
-        """Run ``work(progress, cancel)`` with a modal progress dialog; its Cancel
-        button sets the cancel token, which the Lib checks between steps.
+    def runWithProgress(self, title, work, background=False):
+        """Run ``work(progress, cancel)`` with a progress dialog; its Cancel button
+        sets the cancel token, which the Lib checks between steps.
+
+        ``background``: the work is pure computation (a logic's ``prepare*`` job:
+        no MRML, no Qt) and runs on a worker thread (``fluoguide.jobs``) while
+        Slicer's event loop keeps running: the application repaints, the dialog
+        shows each step and how long it has run, and Cancel answers at once.
+        Otherwise the work runs here and Slicer answers only when it reports.
 
         Returns the result, or None when the work failed (the error is shown)
         or was cancelled (said in the status bar). Headless: no dialog, no
@@ -262,6 +322,8 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         dialog = slicer.util.createProgressDialog(parent=self.parent, value=0, maximum=100,
                                                   labelText=title, windowTitle=title)
         dialog.setWindowModality(qt.Qt.WindowModal)
+        if background:
+            return self._runInBackground(title, work, dialog)
         token = CancelToken()
         dialog.connect("canceled()", token.cancel)
 
@@ -281,6 +343,44 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
             return None
         finally:
             dialog.close()
+
+    def _runInBackground(self, title, work, dialog):
+        """``runWithProgress(background=True)``: the job on its thread, this thread in a
+        local event loop that a 100 ms timer updates and ends."""
+        import qt
+        import slicer
+
+        from fluoguide.jobs import BackgroundJob
+
+        job = BackgroundJob(work, name=title).start()
+        dialog.connect("canceled()", job.cancel)
+        loop = qt.QEventLoop()
+        timer = qt.QTimer()
+        timer.setInterval(100)
+
+        def tick():
+            state = job.poll()
+            dialog.setValue(int(round(100.0 * state.fraction)))
+            step = f" ({state.step_seconds:.0f} s)" if state.step_seconds >= 2 else ""
+            dialog.setLabelText(f"{title}: {state.message or 'starting'}{step}")
+            if state.finished:
+                loop.quit()
+
+        timer.connect("timeout()", tick)
+        timer.start()
+        try:
+            loop.exec_()
+        finally:
+            timer.stop()
+            dialog.close()
+        state = job.poll()
+        if state.status == "done":
+            return state.result
+        if state.status == "cancelled":
+            slicer.util.showStatusMessage(f"{title}: cancelled", 5000)
+            return None
+        self.showError(title, state.error)
+        return None
 
     def showError(self, title, exc):
         """Bad input and device errors as their one-line message; anything else with

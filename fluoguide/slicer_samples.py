@@ -1,18 +1,21 @@
 """The digital phantoms in Slicer's Sample Data module.
 
-The phantoms are generated, not downloaded (``fluoguide.phantoms``): each
-Sample Data button calls :func:`load_phantom`, which adds the phantom's
-``CBCT`` and ``CBCTLabels`` (with the ground truth in ``FluoGuide.Truth``) to
-the application's scene and shows them. Registered once per Slicer session by
-:func:`register_sample_data`, which the module files connect to Slicer's
-``startupCompleted()`` signal (:func:`register_on_startup`).
+The phantoms are generated, not downloaded (``fluoguide.phantoms``). At
+Slicer's start (:func:`register_on_startup`) each one is written once, as an
+MRML scene (``CBCT`` and ``CBCTLabels``, the ground truth in their
+``FluoGuide.Truth`` attribute), into Slicer's download cache
+(:func:`sample_scene`), and registered as a Sample Data source whose file is
+that scene: the Sample Data button and ``SampleData.downloadSample(name)`` both
+find it in the cache and load it (Slicer's ``downloadFromSource`` ignores a
+source's custom downloader, so one of those left ``downloadSample`` empty-handed).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["CATEGORY", "SAMPLES", "load_phantom", "register_sample_data", "register_on_startup"]
+__all__ = ["CATEGORY", "SAMPLES", "load_phantom", "sample_scene", "sample_sources",
+           "register_sample_data", "register_on_startup"]
 
 CATEGORY = "FluoGuide"
 #: Sample name -> (phantom name, description)
@@ -46,6 +49,41 @@ def _thumbnail():
     return None
 
 
+#: the cache folder (under Slicer's download cache) of the phantoms' scenes
+CACHE_FOLDER = "FluoGuide"
+
+
+def sample_file_name(sample):
+    """The sample's scene file relative to the download cache."""
+    return f"{CACHE_FOLDER}/{sample}/scene.mrml"
+
+
+def sample_scene(cache_dir, sample):
+    """The scene file of Sample Data entry ``sample`` in ``cache_dir`` (written once:
+    the phantom with its truth on both nodes, as :func:`load_phantom` makes it)."""
+    from fluoguide import mrml_io
+
+    path = Path(cache_dir) / sample_file_name(sample)
+    if not path.is_file():
+        scene = mrml_io.new_scene()
+        load_phantom(scene, SAMPLES[sample][0])
+        mrml_io.save_scene(scene, path)
+    return path
+
+
+def sample_sources(cache_dir):
+    """The keyword arguments of ``SampleDataLogic.registerCustomSampleDataSource``
+    for each phantom: a scene file already in the cache (nothing to download)."""
+    out = []
+    for sample, (_, description) in SAMPLES.items():
+        scene = sample_scene(cache_dir, sample)
+        out.append(dict(category=CATEGORY, sampleName=sample, uris=scene.as_uri(),
+                        fileNames=sample_file_name(sample), nodeNames=None,
+                        loadFiles=True, loadFileTypes="SceneFile",
+                        thumbnailFileName=_thumbnail()))
+    return out
+
+
 def register_sample_data():
     """Register the phantoms with Sample Data (in the Slicer application; once)."""
     import slicer
@@ -54,19 +92,9 @@ def register_sample_data():
         return
     import SampleData
 
-    def loader(phantom_name):
-        def load(source):
-            cbct, labels = load_phantom(slicer.mrmlScene, phantom_name)
-            slicer.util.setSliceViewerLayers(background=cbct, label=labels, fit=True)
-            return [cbct, labels]
-
-        return load
-
-    for sample, (phantom_name, description) in SAMPLES.items():
-        SampleData.SampleDataLogic.registerCustomSampleDataSource(
-            category=CATEGORY, sampleName=sample, uris=f"fluoguide:phantom/{phantom_name}",
-            fileNames=f"{phantom_name}.nrrd", nodeNames="CBCT", thumbnailFileName=_thumbnail(),
-            customDownloader=loader(phantom_name))
+    cache = slicer.mrmlScene.GetCacheManager().GetRemoteCacheDirectory()
+    for kwargs in sample_sources(cache):
+        SampleData.SampleDataLogic.registerCustomSampleDataSource(**kwargs)
     slicer.modules.fluoguideSampleDataRegistered = True
 
 

@@ -38,9 +38,7 @@ def spatially_resolved_reflectance(rho_mm, mua_per_mm, musp_per_mm, n):
     data that must stay finite in log space.
     """
     mua, musp = check_properties(mua_per_mm, musp_per_mm, n, warn=False)
-    rho = np.asarray(rho_mm, dtype=float)
-    if np.any(~np.isfinite(rho)) or np.any(rho < 0):
-        raise FluoInputError("distances must be finite and >= 0", field="rho_mm")
+    rho = check_distances(rho_mm)
     with np.errstate(under="ignore"):
         return np.exp(log_reflectance(rho, mua, musp, n))
 
@@ -49,7 +47,7 @@ def log_reflectance(rho_mm, mua_per_mm, musp_per_mm, n):
     """ln R(rho), computed in log space so 100 mm detectors stay finite."""
     mua = float(mua_per_mm)
     musp = float(musp_per_mm)
-    rho = np.asarray(rho_mm, dtype=float)
+    rho = check_distances(rho_mm)
     mut = mua + musp
     z0 = 1.0 / mut
     D = diffusion_coefficient(mua, musp)
@@ -73,7 +71,7 @@ def surface_fluence(rho_mm, mua_per_mm, musp_per_mm, n):
     rho > 3 mm at these properties; docs/fem.md).
     """
     mua, musp = check_properties(mua_per_mm, musp_per_mm, n, warn=False)
-    rho = np.asarray(rho_mm, dtype=float)
+    rho = check_distances(rho_mm)
     mut = float(mua + musp)
     z0 = 1.0 / mut
     D = float(diffusion_coefficient(mua, musp))
@@ -94,12 +92,29 @@ def _robin_parameters(mua_per_mm, musp_per_mm, n):
     return 1.0 / mut, 2.0 * float(robin_A(n)) * D, D, float(np.sqrt(3.0 * mua * mut))
 
 
-def _checked_distances(rho_mm, field="rho_mm"):
+#: the largest source-detector distance [mm] the half-space formulas take: 10 m,
+#: more than any tissue or phantom a pair of optodes can span (a body is < 2 m)
+#: and far inside the doubles (rho**2 overflows only past ~1e154 mm, which
+#: printed nulls after numpy's overflow warnings)
+MAX_DISTANCE_MM = 1e4
+
+
+def check_distances(rho_mm, field="rho_mm"):
+    """Source-detector distances [mm] as an array: finite, within 0..MAX_DISTANCE_MM.
+
+    Parameters
+    ----------
+    rho_mm : array_like
+        Distances [mm].
+    field : str
+        The option or argument named in the message.
+    """
     rho = np.asarray(rho_mm, dtype=float)
-    bad = ~np.isfinite(rho) | (rho < 0)
+    bad = ~np.isfinite(rho) | (rho < 0) | (rho > MAX_DISTANCE_MM)
     if rho.size == 0 or np.any(bad):
-        raise FluoInputError("distances must be finite and >= 0", field=field,
-                             value=float(rho[bad][0]) if np.any(bad) else "none")
+        raise FluoInputError(f"distances must be finite, within 0..{MAX_DISTANCE_MM:g} mm "
+                             "(10 m: larger than any tissue)", field=field,
+                             value=float(rho[bad].ravel()[0]) if np.any(bad) else "none")
     return rho
 
 
@@ -118,7 +133,7 @@ def log_robin_surface_fluence(rho_mm, mua_per_mm, musp_per_mm, n):
     """ln of :func:`robin_surface_fluence` [ln(1/mm^2)]: finite at any distance
     (the fluence itself underflows beyond ~700 decay lengths)."""
     z0, zb, D, me = _robin_parameters(mua_per_mm, musp_per_mm, n)
-    rho = _checked_distances(rho_mm)
+    rho = check_distances(rho_mm)
     u, inv = np.unique(rho.ravel(), return_inverse=True)   # each distance once
     out = np.empty(len(u))
     for i in range(0, len(u), 512):                          # bounded memory

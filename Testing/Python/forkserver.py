@@ -337,9 +337,10 @@ _SHARED = None
 _SHARED_LOCK = threading.Lock()
 
 
-def fluo(*args, cwd=None, env=None, timeout=600.0):
+def fluo(*args, cwd=None, env=None, timeout=600.0, memory_limit_mb=None):
     """``fluo ARGS`` on this process's shared server (started on first use with
-    this process's environment and one library thread, stopped at exit)."""
+    this process's environment and one library thread, stopped at exit);
+    ``memory_limit_mb``: the child's RLIMIT_DATA above what the server holds."""
     global _SHARED
     with _SHARED_LOCK:
         if _SHARED is None:
@@ -351,4 +352,5 @@ def fluo(*args, cwd=None, env=None, timeout=600.0):
                 server_env.setdefault(k, "1")
             _SHARED = Forkserver(env=server_env)
             atexit.register(_SHARED.close)
-    return _SHARED.run([str(a) for a in args], cwd=cwd or str(ROOT), env=env, timeout=timeout)
+    return _SHARED.run([str(a) for a in args], cwd=cwd or str(ROOT), env=env, timeout=timeout,
+                       memory_limit_mb=memory_limit_mb)

@@ -7,7 +7,8 @@ output path that is a file, or below a file), one option at a time, on top of
 a valid base invocation that runs in seconds. Some options also get hostile
 files made for them (a truncated NRRD, a label 65535, duplicate tetrahedra, a
 damaged recording, a PNG whose header claims 20000 x 20000 pixels: the known
-failures of issue #21). Each case runs in a fresh folder as its own process,
+failures of issue #21; NIfTI and NRRD headers that lie, JSON and YAML with a key
+twice, points of 1e300 mm: issue #34). Each case runs in a fresh folder as its own process,
 under a wall-clock limit and a memory limit (its peak resident size sampled
 every 20 ms from /proc): each command's valid base invocation as a real
 ``python -m fluoapp``, the hostile cases as children forked from one process
@@ -187,6 +188,65 @@ def _hostile_files(f, fx):
     fx["png_huge"] = str(f / "huge" / "*.png")
 
 
+def _lying_files(f, fx):
+    """Files whose header or keys lie (issue #34): read silently wrong before."""
+    import gzip
+    import struct
+
+    import numpy as np
+    import SimpleITK as sitk
+
+    lab = np.zeros((10, 16, 16), np.uint8)
+    lab[2:8, 3:13, 3:13] = 1
+    lab[4:6, 6:10, 6:10] = 2
+    # a NIfTI whose voxel size is NaN (ITK: spacing 1, exit 0), edited after SimpleITK wrote it
+    img = sitk.GetImageFromArray(lab)
+    sitk.WriteImage(img, str(f / "pixdim_nan.nii"))
+    data = bytearray((f / "pixdim_nan.nii").read_bytes())
+    struct.pack_into("<f", data, 80, float("nan"))                 # pixdim[1]
+    (f / "pixdim_nan.nii").write_bytes(bytes(data))
+
+    def nrrd(name, geometry, extra=b"", encoding="raw"):
+        head = (f"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 16 16 10\n{geometry}"
+                f"endian: little\nencoding: {encoding}\n\n").encode()
+        body = lab.tobytes() + extra
+        (f / name).write_bytes(head + (gzip.compress(body) if encoding == "gzip" else body))
+        return f / name
+
+    ok = "space: left-posterior-superior\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n"
+    fx["nii_pixdim_nan"] = f / "pixdim_nan.nii"
+    fx["nrrd_extra"] = nrrd("extra.nrrd", ok, extra=b"\x01" * 64)           # was cut silently
+    fx["nrrd_extra_gz"] = nrrd("extra_gz.nrrd", ok, extra=b"\x01" * 64, encoding="gzip")
+    fx["nrrd_spacing_nan"] = nrrd("spacing_nan.nrrd", "spacings: 1 nan 1\n")
+    fx["nrrd_spacing_zero"] = nrrd("spacing_zero.nrrd", "spacings: 0 1 1\n")
+    fx["nrrd_skew"] = nrrd("skew.nrrd", "space: left-posterior-superior\n"
+                                        "space directions: (1,0,0) (0.5,1,0) (0,0,1)\n")
+    # JSON and YAML with a key twice: the last one won silently
+    text = Path(fx["own_optics"]).read_text().rstrip()
+    (f / "optics_n_twice.json").write_text(text[:-1] + ', "n": 2.9}\n')
+    fx["optics_dup"] = f / "optics_n_twice.json"
+    own = Path(fx["own_labels"]).parent
+    (own / "batch_dup.json").write_text(json.dumps({"methods": "HP"})[:-1] + ', "cases": '
+                                        '[{"labels": "labels.nrrd", "optics": "optics.json", '
+                                        '"acquisition": "acq", "labels": "other.nrrd"}]}')
+    (own / "batch_dup.yaml").write_text("cases:\n  - labels: labels.nrrd\n    optics: "
+                                        "optics.json\n    acquisition: acq\n"
+                                        "methods: HP\nmethods: NP\n")
+    fx["own_batch_dup_json"], fx["own_batch_dup_yaml"] = own / "batch_dup.json", own / "batch_dup.yaml"
+    # points of 1e300 mm (the SVD overflowed: a null FRE, exit 0)
+    pts = np.loadtxt(fx["moving"], delimiter=",")
+    pts[2, 0] = 1e300
+    np.savetxt(f / "moving_1e300.csv", pts, delimiter=",")
+    fx["moving_1e300"] = f / "moving_1e300.csv"
+    # a recording whose log line gives its timestamp twice
+    d = f / "rec_dupkey"
+    shutil.copytree(fx["recording"], d)
+    lines = (d / "log.jsonl").read_text().splitlines()
+    lines[2] = lines[2].rstrip()[:-1] + ', "timestamp_s": 1e6}'
+    (d / "log.jsonl").write_text("\n".join(lines) + "\n")
+    fx["rec_dupkey"] = d
+
+
 def build_fixtures(folder):
     """Small valid inputs for every base invocation, and hostile files (about a minute)."""
     import numpy as np
@@ -238,6 +298,7 @@ def build_fixtures(folder):
     fx["recording"] = f / "rec"
     _own_scene(f, fx)
     _hostile_files(f, fx)
+    _lying_files(f, fx)
     fx["root"] = f
     return fx
 
@@ -374,7 +435,20 @@ REFUSE_ALSO = {
     (("track",), "--tools"): ["3"],                      # --sim: not applied
     # batch files naming a path outside their folder, a NaN truth, one name twice
     (("tomo", "batch"), "batch"): ["{own_batch_escape}", "{own_batch_nan_truth}",
-                                   "{own_batch_dup}"],
+                                   "{own_batch_dup}", "{own_batch_dup_json}",
+                                   "{own_batch_dup_yaml}"],
+    # issue #34: files that lie (a NaN voxel size was meshed, extra NRRD data cut
+    # off, a key given twice read as its last value) and values that passed
+    (("mesh",), "labelmap"): ["{nii_pixdim_nan}", "{nrrd_extra}", "{nrrd_extra_gz}",
+                              "{nrrd_spacing_nan}", "{nrrd_spacing_zero}", "{nrrd_skew}"],
+    (("tomo", "simulate"), "--labels"): ["{nii_pixdim_nan}", "{nrrd_extra}",
+                                         "{nrrd_spacing_nan}"],
+    (("tomo", "simulate"), "--optics"): ["{optics_dup}"],
+    (("tomo", "reconstruct"), "--labels"): ["{nrrd_extra_gz}"],
+    (("forward",), "--solver"): ["bogus"],
+    (("analytic",), "--rho"): ["1e300", "3,1e5"],
+    (("calib", "register"), "--moving"): ["{moving_1e300}"],
+    (("replay",), "folder"): ["{rec_dupkey}"],
 }
 
 # Whole invocations of issue #21 that need another base: (command words, what,
@@ -384,6 +458,10 @@ SPECIAL = [
      "mesh {labels} --out {out}.vtu --size 6 --threads -3", True),
     (("mesh",), "--threads 1 (quality mesher)", "mesh {labels} --out {out}.vtu --size 6 "
      "--threads 1", False),
+    # issue #34: inside the documented 0.1..5 mm, 13.7 GB: refused before it starts
+    # under the case's 3 GB cap (it ran out of memory: exit 1)
+    (("phantom",), "--voxel-mm 0.1 (13.7 GB)", "phantom cylinder-tube --out {out} "
+     "--voxel-mm 0.1", True),
 ]
 
 # Hostile files made for one option (command words, option) -> fixture names.

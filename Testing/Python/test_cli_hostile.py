@@ -103,3 +103,86 @@ def test_last_resort_one_line_exit_1_and_the_traceback_under_debug(tmp_path, cap
     assert rc == 1 and lines[0].startswith("Traceback") and "1 / 0" in "\n".join(lines)
     assert lines[-1].startswith("fluo: internal error: ZeroDivisionError")
     sys.modules.pop("fluo_boom", None)
+
+
+# ----------------------------------------------------------------- issue #34
+def _small_mesh(tmp_path):
+    from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
+    from FluoTomoLib.meshing.vtu_io import write_vtu
+
+    lab = np.ones((10, 10, 10), np.int32)
+    write_vtu(mesh_labelmap_structured(lab, np.ones(3), np.array([-4.5, -4.5, -9.5]), 2.0),
+              tmp_path / "m.vtu")
+    (tmp_path / "s.csv").write_text("0,0,0\n")
+    (tmp_path / "d.csv").write_text("3,0,0\n")
+    return ["forward", "--mesh", str(tmp_path / "m.vtu"), "--mua", "0.01", "--musp", "1",
+            "--sources", str(tmp_path / "s.csv"), "--detectors", str(tmp_path / "d.csv"), "--json"]
+
+
+def test_forward_refuses_an_unknown_solver_naming_the_valid_ones(tmp_path, capsys):
+    """Issue #34 item 7: the analytic path never used --solver, so ``bogus`` ran, exit 0."""
+    base = _small_mesh(tmp_path)
+    for model in ("auto", "analytic", "fem"):
+        rc, out, lines = _run(base + ["--solver", "bogus", "--model", model], capsys)
+        assert rc == 2 and out == "" and len(lines) == 1, lines
+        assert lines[0] == ("fluo: error: --solver: unknown solver; use auto, pardiso, splu, "
+                            "amg (got 'bogus')"), lines
+    rc, out, lines = _run(base + ["--solver", "splu", "--model", "fem"], capsys)
+    assert rc == 0 and json.loads(out)["solver"] == "superlu", lines
+
+
+def test_analytic_refuses_distances_beyond_10_m_without_a_numpy_warning(capsys):
+    """Issue #34 item 7: ``--rho 1e300`` printed nulls after numpy's overflow warnings."""
+    import warnings
+
+    base = ["analytic", "--mua", "0.01", "--musp", "1", "--json"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")           # a RuntimeWarning fails the test
+        for rho in ("1e300", "3,1e5", "inf"):
+            rc, out, lines = _run(base + ["--rho", rho], capsys)
+            assert rc == 2 and out == "" and len(lines) == 1, lines
+            assert lines[0].startswith("fluo: error: --rho: distances must be finite, within "
+                                       "0..10000 mm"), lines
+        rc, out, lines = _run(base + ["--rho", "0,3,10000"], capsys)
+    assert rc == 0 and lines == [], lines
+    doc = json.loads(out)
+    assert doc["R_rho"][-1] == 0.0 and np.isfinite(doc["ln_robin_surface_fluence"][-1])
+
+
+@pytest.mark.parametrize("row, value", [("1e300,0,0", "1e+300"), ("0,nan,0", "nan"),
+                                        ("0,0,-2e5", "-200000.0")])
+def test_calib_register_refuses_absurd_coordinates_with_file_and_row(row, value, tmp_path,
+                                                                     capsys):
+    """Issue #34 item 5: coordinates of 1e300 went into the SVD (a null FRE, exit 0)."""
+    pts = np.array([[0, 0, 0], [50, 0, 0], [0, 40, 0], [0, 0, 30], [20, 20, 20.0]])
+    np.savetxt(tmp_path / "fixed.csv", pts, delimiter=",")
+    lines_csv = [",".join(f"{v:g}" for v in p) for p in pts]
+    lines_csv[2] = row
+    (tmp_path / "moving.csv").write_text("\n".join(lines_csv) + "\n")
+    rc, out, lines = _run(["calib", "register", "--moving", str(tmp_path / "moving.csv"),
+                           "--fixed", str(tmp_path / "fixed.csv"), "--json"], capsys)
+    assert rc == 2 and out == "" and len(lines) == 1, lines
+    assert lines[0].startswith(f"fluo: error: {tmp_path / 'moving.csv'}: --moving row 3: "), lines
+    assert lines[0].endswith(f"(got {value})"), lines
+    from FluoCalibLib.geometry.registration import register_points
+
+    from fluoguide.errors import FluoInputError
+
+    bad = pts.copy()
+    bad[4, 1] = 1e300
+    with pytest.raises(FluoInputError, match=r"moving_mm row 5: coordinates must be within "
+                                             r"\+-100000 mm"):
+        register_points(bad, pts)
+
+
+@pytest.mark.parametrize("argv", [["mesh", "{long}", "--out", "{tmp}/m.vtu", "--fast"],
+                                  ["phantom", "cylinder-tube", "--voxel-mm", "4", "--out",
+                                   "{tmp}/{name300}"]])
+def test_a_path_too_long_for_the_file_system_is_one_line_exit_2(argv, tmp_path, capsys):
+    """ENAMETOOLONG from any reader's ``is_file`` was ``fluo: internal error: OSError``."""
+    subs = {"long": "a" * 5000, "tmp": tmp_path, "name300": "b" * 300}
+    rc, out, lines = _run([a.format(**subs) for a in argv] + ["--json"], capsys)
+    assert rc == 2 and out == "" and len(lines) == 1, lines
+    assert lines[0].startswith("fluo: error: ") and lines[0].endswith(
+        "characters): name too long for the file system"), lines
+    assert len(lines[0]) < 200 and list(tmp_path.iterdir()) == []

@@ -59,20 +59,34 @@ def _label_files(folder):
     (folder / "sizes.nrrd").write_bytes(head.replace(b"sizes: 12 10 8", b"sizes: 12 x 8")
                                         + b"\n\n" + body)
     (folder / "cut.nrrd").write_bytes(head + b"\n\n" + body[: len(body) // 3])
+    # header fields the header checks (fluoguide.volume_header) pass on to ITK
+    (folder / "space.nrrd").write_bytes(head.replace(b"left-posterior-superior", b"nowhere")
+                                        + b"\n\n" + body)
+    text = head.replace(b"encoding: gzip", b"encoding: ascii") + b"\n\n"
+    (folder / "ascii.nrrd").write_bytes(text + b"x " * 1000)
+    # one "value" of 2,000 characters: ITK's reader crashed (SIGSEGV, no message)
+    (folder / "long.nrrd").write_bytes(text + b"x" * 2000)
     (folder / "text.mha").write_text("this is a text file, not an image\n")
     # a MetaImage header without its data: MetaIO prints its own lines to stderr
     (folder / "nodata.mha").write_text("ObjectType = Image\nNDims = 3\nDimSize = 12 10 8\n"
                                        "ElementType = MET_UCHAR\nElementDataFile = LOCAL\n")
 
 
-# file -> what the message must say (the field ITK named, in the message's FIELD place)
+# file -> what the message must say: the NRRD and NIfTI header checks' own words
+# (fluoguide.volume_header) or ITK's error in words (fluoguide.library_errors), the
+# field in the message's FIELD place
 DAMAGED = {
-    "corrupt.nii.gz": "damaged file or an unknown image format",
-    "cut.nii.gz": "damaged",
-    "sizes.nrrd": "sizes: cannot read label map (damaged NRRD header: axis 1 size is zero)",
-    "cut.nrrd": "damaged NRRD data: data cut short",
-    "text.mha": "damaged file or an unknown image format",
-    "nodata.mha": "damaged MetaImage file",
+    "corrupt.nii.gz": "sizeof_hdr: not a NIfTI header",
+    "cut.nii.gz": "sizeof_hdr: NIfTI header cut short",
+    "sizes.nrrd": "sizes: must be integers",
+    "cut.nrrd": "cut short",
+    "space.nrrd": 'space: cannot read label map (damaged NRRD header: couldn\'t parse space '
+                  '"nowhere")',
+    "ascii.nrrd": "cannot read label map (damaged NRRD data: couldn't parse element 1 of 960",
+    "long.nrrd": "data: text data hold a value of more than 64 characters (not a number)",
+    "text.mha": "cannot read label map (damaged file or an unknown image format)",
+    "nodata.mha": "cannot read label map (damaged MetaImage file: its header or data cannot "
+                  "be read)",
 }
 
 
@@ -274,8 +288,7 @@ def test_batch_and_scene_errors_name_files_as_given(own_copy, fluo):
     r = fluo("tomo", "batch", f"{own_copy.name}/batch.csv", "--out", "runs", cwd=own_copy.parent)
     line = _error_line(r)
     assert line.startswith(f"fluo: error: {own_copy.name}/batch.csv: line 2, labels: "
-                           f"{own_copy.name}/bad.nrrd: type: cannot read label map (damaged NRRD "
-                           "header"), line
+                           f"{own_copy.name}/bad.nrrd: "), line
     assert str(own_copy) not in r.stderr
     from fluoguide import mrml_io
 
@@ -283,7 +296,13 @@ def test_batch_and_scene_errors_name_files_as_given(own_copy, fluo):
     mrml_io.add_volume(scene, "CBCTLabels", np.ones((4, 5, 6), np.uint8), (1, 1, 1), (0, 0, 0),
                        labelmap=True)
     mrml_io.save_scene(scene, own_copy / "sc" / "scene.mrml")
-    (own_copy / "sc" / "CBCTLabels.nrrd").write_text("NRRD0004\ntype: foo\n\n")
+    nrrd = own_copy / "sc" / "CBCTLabels.nrrd"
+    good = nrrd.read_bytes()
+    nrrd.write_text("NRRD0004\ntype: foo\n\n")          # refused by the header checks
+    r = fluo("scene", "info", "sc/scene.mrml", cwd=own_copy)
+    assert _error_line(r) == ("fluo: error: sc/CBCTLabels.nrrd: dimension: required header "
+                              "field missing")
+    nrrd.write_bytes(good.replace(b"left-posterior-superior", b"nowhere"))   # by MRML's reader
     r = fluo("scene", "info", "sc/scene.mrml", cwd=own_copy)
     assert _error_line(r) == "fluo: error: sc/CBCTLabels.nrrd: CBCTLabels: corrupt volume file"
     (own_copy / "sc" / "CBCTLabels.nrrd").unlink()

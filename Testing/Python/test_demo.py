@@ -18,6 +18,28 @@ def test_phantom_stage_writes_report_and_metrics(tmp_path):
     html = (out / "report.html").read_text()
     assert "phantoms.png" in html and (out / "phantoms.png").stat().st_size > 10_000
     assert (out / "scene.mrml").exists()
+    # the report opens on what the demo showed: here, that nothing was quantified
+    first = html.index("<h2>")
+    assert html[first:].startswith("<h2>What the demo showed</h2>")
+    assert "tomography stages did not run" in html and html.index("Details") > first
+
+
+def test_report_opens_on_the_quantification_against_the_truth_and_the_thesis():
+    """The summary's table from a tomography stage's metrics (their names as
+    stage_tomography writes them), before any detail."""
+    m = {"tube_depths_mm": [2.7, 4.7], "stages_failed": {},
+         "tomography": {"NP mean |yield error| %": 84.2, "NP mean |centroid error| %": 30.0,
+                        "SP mean |yield error| %": 12.4, "SP mean |centroid error| %": 3.1,
+                        "HP mean |yield error| %": 5.1, "HP mean |centroid error| %": 2.9,
+                        "reconstruction warnings": ["tube 2.7 mm, SP: over-regularised"]},
+         "tomography_mc": {"HP from Monte Carlo data: tube yield error % per depth": [-12.1],
+                           "reconstruction warnings": []}}
+    text = demo.summary_html(m, [("tomography", "tomo_errors.png", "errors")])
+    assert text.startswith("<h2>What the demo showed</h2>")
+    rows = {r.split("</td>")[0].split("<td>")[-1]: r for r in text.split("<tr>")[2:]}
+    assert "5.1 %" in rows["HP"] and "16 %" in rows["HP"] and "12.1 %" in rows["HP"]
+    assert "84.2 %" in rows["NP"] and "85 %" in rows["NP"]
+    assert "1 reconstruction warning(s)" in text and "tomo_errors.png" in text
 
 
 def test_failing_stage_keeps_earlier_results(tmp_path, monkeypatch):
@@ -54,6 +76,10 @@ def test_quick_demo_end_to_end(tmp_path):
     hp = metrics["tomography"]["HP mean |yield error| %"]
     np_ = metrics["tomography"]["NP mean |yield error| %"]
     assert hp < np_
+    # the report opens on what the demo showed, the tube's HP among it
+    html = (tmp_path / "q" / "report.html").read_text()
+    assert html[html.index("<h2>"):].startswith("<h2>What the demo showed</h2>")
+    assert f"{hp:.1f} %" in html.split("<h2>Details</h2>")[0]
     assert metrics["camera_calibration"]["rms reprojection [px]"] < 0.5
     light = metrics["light_calibration"]
     assert abs(light["gain_adu_per_e (truth 1.08)"] - 1.08) / 1.08 < 0.03

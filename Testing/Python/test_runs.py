@@ -7,10 +7,10 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
+from dask_processes import DaskProcesses, stop_process
 from fluoapp.cli import main
 from fluoguide.errors import FluoInputError
 from fluoguide.runs.engine import run_tasks
@@ -124,22 +124,6 @@ def _fluo(*args, env=None, timeout=400):
                           timeout=timeout, env=env)
 
 
-def _stop(proc):
-    """End a process started with start_new_session, and everything it started."""
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(15)
-    else:  # the leader has gone; its children (Dask's worker processes) may not have
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-
-
 @pytest.mark.slow
 def test_a_killed_run_resumes_without_redoing_finished_tasks(tmp_path):
     out = tmp_path / "run"
@@ -155,7 +139,7 @@ def test_a_killed_run_resumes_without_redoing_finished_tasks(tmp_path):
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(30)
     finally:
-        _stop(proc)
+        stop_process(proc)
     done = {p.stem: json.loads(p.read_text()) for p in (out / "tasks").glob("*.json")}
     assert 4 <= len(done) < 15 and all(r["pid"] == proc.pid for r in done.values())
 
@@ -180,45 +164,24 @@ def test_a_killed_run_resumes_without_redoing_finished_tasks(tmp_path):
 def test_a_sweep_on_a_dask_scheduler_and_workers_started_as_processes(tmp_path):
     """`dask scheduler` and `dask worker` (2 processes) on 127.0.0.1; the sweep goes
     there by --scheduler and by $FLUO_SCHEDULER, and gives the serial run's table."""
-    sfile = tmp_path / "scheduler.json"
-    log = open(tmp_path / "dask.log", "w")
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host",
-                              "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
-                              str(sfile)], stdout=log, stderr=subprocess.STDOUT,
-                             start_new_session=True)
-    workers = None
-    try:
-        deadline = time.monotonic() + 120
-        while not sfile.exists() or not sfile.read_text().strip():
-            assert sched.poll() is None and time.monotonic() < deadline, \
-                (tmp_path / "dask.log").read_text()
-            time.sleep(0.1)
-        address = json.loads(sfile.read_text())["address"]
-        workers = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
-                                    "--nworkers", "2", "--nthreads", "1", "--no-dashboard",
-                                    "--host", "127.0.0.1"], stdout=log, stderr=subprocess.STDOUT,
-                                   start_new_session=True)
-        sweep = ["study", "A", "--sweep", "lambda", "--values", "0.1,10", "--json"]
+    sweep = ["study", "A", "--sweep", "lambda", "--values", "0.1,10", "--json"]
+    with DaskProcesses(tmp_path, nworkers=2) as dask:
+        address = dask.address
         r = _fluo(*sweep, "--scheduler", address, "--out", str(tmp_path / "dask"))
         assert r.returncode == 0, r.stderr
         doc = json.loads(r.stdout)
         assert doc["executor"] == "dask (scheduler)" and doc["workers"] == 2
-        assert doc["scheduler"] == address and f"dask: 2 workers" in r.stderr
+        assert doc["scheduler"] == address and "dask: 2 workers" in r.stderr
         assert doc["tasks"] == 6 and doc["failures"] == 0 and doc["shared_inputs"] == 2
         ran_on = {row["worker"] for row in doc["rows"]}
         assert len(ran_on) == 2 and all(w.split(":")[1] != "" for w in ran_on)
         env = dict(os.environ, FLUO_SCHEDULER=address)
         r2 = _fluo(*sweep, "--out", str(tmp_path / "env"), env=env)
         assert r2.returncode == 0 and json.loads(r2.stdout)["executor"] == "dask (scheduler)"
-    finally:
-        for p in (workers, sched):
-            if p is not None:
-                _stop(p)
-        log.close()
     serial = _fluo(*sweep, "--out", str(tmp_path / "serial"))
     assert serial.returncode == 0, serial.stderr
     tables = [read_table(tmp_path / d / "table.csv") for d in ("serial", "dask", "env")]
     keep = stable_columns(tables[0][0])
     rows = [[[x[c] for c in keep] for x in t[1]] for t in tables]
     assert rows[0] == rows[1] == rows[2]
-    assert sched.poll() is not None and workers.poll() is not None
+    assert dask.scheduler.poll() is not None and dask.workers.poll() is not None

@@ -211,7 +211,10 @@ def test_the_walker_catches_a_missing_file(tree, tmp_path):
 
 #: what Slicer's own Python has (never to be installed by us)
 SLICER_PROVIDED = {"vtk", "numpy", "slicer", "qt", "ctk", "mrml", "vtkAddon", "vtkITK",
-                   "vtkSegmentationCore", "SampleData", "SimpleITK"}
+                   "vtkSegmentationCore", "SampleData", "SimpleITK",
+                   # pip (and the packaging it vendors) is how Slicer installs packages;
+                   # slicer_deps reads markers with either, and without both lets pip decide
+                   "pip", "packaging"}
 # Optional engines, imported only when asked for, behind a one-line error that names
 # what to install: the Monte Carlo reference (FluoTomoLib/montecarlo, the `mc` extra;
 # never on a module's main path, and pmcxcl needs a system OpenCL driver pip cannot
@@ -294,3 +297,146 @@ def test_sample_data_loads_each_phantom_with_its_truth():
     truth = mrml_io.get_json_attribute(cbct, "FluoGuide.Truth")
     assert truth["phantom"] == "slab" and labels.IsA("vtkMRMLLabelMapVolumeNode")
     assert mrml_io.volume_array(labels).max() >= 1
+
+
+def test_cmake_installs_every_data_file_the_libs_read(installed):
+    """Every file pyproject.toml's package-data ships beside a Lib's code is
+    installed by CMake too (the stored Monte Carlo sets were missing)."""
+    import tomllib
+
+    doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    dirs = doc["tool"]["setuptools"]["package-dir"]
+    data = doc["tool"]["setuptools"]["package-data"]
+    wanted = set()
+    for package, patterns in data.items():
+        base = ROOT / dirs[package]
+        for pattern in patterns:
+            for f in base.glob(pattern):
+                if f.is_file():
+                    # a Lib installs relative to its module folder, fluoguide from the root
+                    wanted.add(str(f.relative_to(base.parent if package.endswith("Lib")
+                                                 else ROOT)))
+    assert wanted, "package-data lists no file"
+    assert not wanted - set(installed), sorted(wanted - set(installed))
+
+
+def test_optional_and_platform_specific_requirements_are_marked():
+    """mkl has no build for Apple silicon or ARM Linux: it is optional and marked
+    for x86-64, so an install there goes on without it (SuperLU solves)."""
+    from packaging.markers import Marker
+
+    from fluoguide.slicer_deps import applies_here, requirements
+
+    reqs = {r.name: r for r in requirements()}
+    mkl = reqs["mkl"]
+    assert mkl.optional and "SuperLU" in mkl.optional and mkl.marker
+    for machine, expected in (("x86_64", True), ("AMD64", True), ("arm64", False),
+                              ("aarch64", False)):
+        assert Marker(mkl.marker).evaluate({"platform_machine": machine}) is expected
+    assert reqs["pytetwild"].optional and reqs["embreex"].optional
+    required = [r.name for r in reqs.values() if r.optional is None]
+    assert "scipy" in required and "numba" in required
+    assert all(applies_here(r) for r in reqs.values() if r.marker is None)
+
+
+def test_packages_install_one_at_a_time_and_a_failure_stops_none(tmp_path):
+    from fluoguide.slicer_deps import install_requirements, install_summary
+
+    req = tmp_path / "req.txt"
+    req.write_text("scipy>=1.13\nfluoguide-no-such-a>=1\n"
+                   "fluoguide-no-such-b>=1  # optional: nothing real\n"
+                   "fluoguide-not-here>=1 ; platform_machine == 'no-such-machine'\n")
+    required, optional = install_summary(req)
+    assert required == ["fluoguide-no-such-a>=1"]                # scipy is installed
+    assert optional == [("fluoguide-no-such-b>=1", "nothing real")]
+    calls = []
+
+    def pip_install(line):       # what slicer.util.pip_install is given, one line each
+        calls.append(line)
+        if "no-such-a" in line:
+            raise RuntimeError("pip failed\nERROR: No matching distribution found")
+
+    out = install_requirements(["fluoguide-no-such-a>=1", "fluoguide-no-such-b>=1"], pip_install)
+    assert calls == ["fluoguide-no-such-a>=1", "fluoguide-no-such-b>=1"]   # the second still ran
+    assert out["fluoguide-no-such-a>=1"].endswith("No matching distribution found")
+    assert out["fluoguide-no-such-b>=1"] is None
+
+
+def test_the_panels_never_ask_in_a_modal_dialog_when_they_are_built():
+    """The package offer is in the panel: nothing reachable from the widget's
+    setup opens a modal dialog (it blocked Slicer's generic module tests)."""
+    src = (ROOT / "fluoguide" / "slicer_module.py").read_text()
+    tree = ast.parse(src)
+    funcs = {n.name: n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)}
+    reach, todo = set(), ["setup"]
+    while todo:
+        name = todo.pop()
+        if name in reach or name not in funcs:
+            continue
+        reach.add(name)
+        for node in ast.walk(funcs[name]):
+            if isinstance(node, ast.Attribute) and node.attr in funcs:
+                todo.append(node.attr)
+    called = {node.attr for name in reach for node in ast.walk(funcs[name])
+              if isinstance(node, ast.Attribute)}
+    called |= {node.id for name in reach for node in ast.walk(funcs[name])
+               if isinstance(node, ast.Name)}
+    assert "_packageOffer" in reach and "_buildPanel" in reach
+    modal = {"confirmOkCancelDisplay", "confirmYesNoDisplay", "ensure_dependencies", "exec_",
+             "exec"}
+    assert not called & modal, called & modal
+
+
+# Removed from Python by 3.12 (the Python of the supported Slicer releases,
+# docs/slicer.md): modules and the unittest aliases the module tests could use
+REMOVED_IN_312 = {"distutils", "imp", "asynchat", "asyncore", "smtpd"}
+REMOVED_ATTRS_312 = {"assertEquals", "assertNotEquals", "assertAlmostEquals",
+                     "assertNotAlmostEquals", "assertRegexpMatches", "assertRaisesRegexp",
+                     "assertDictContainsSubset", "failUnless", "failIf", "failUnlessEqual",
+                     "SafeConfigParser", "readfp", "getargspec", "formatargspec"}
+
+
+def test_the_shipped_files_use_nothing_python_312_removed():
+    found = []
+    for path in _shipped_sources():
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                found += [(path, a.name) for a in node.names
+                          if a.name.split(".")[0] in REMOVED_IN_312]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                if node.module.split(".")[0] in REMOVED_IN_312:
+                    found.append((path, node.module))
+            elif isinstance(node, ast.Attribute) and node.attr in REMOVED_ATTRS_312:
+                found.append((path, node.attr))
+    assert not found, [(str(p.relative_to(ROOT)), n) for p, n in found]
+    # and the oldest syntax they may rely on parses (Slicer's previous Python)
+    for path in _shipped_sources():
+        ast.parse(path.read_text(), filename=str(path), feature_version=(3, 9))
+
+
+def test_sample_data_sources_are_scenes_in_the_cache_that_download_sample_loads(tmp_path):
+    """``SampleData.downloadSample(name)`` goes through ``downloadFromSource``, which
+    ignores a custom downloader: each phantom is a scene file already in Slicer's
+    download cache (written once), found there under its file name and loaded as a
+    scene, truth and all."""
+    from fluoguide import mrml_io
+    from fluoguide.slicer_samples import SAMPLES, sample_sources
+
+    cache = tmp_path / "cache"
+    sources = sample_sources(cache)
+    assert [s["sampleName"] for s in sources] == list(SAMPLES)
+    for s in sources:
+        assert "customDownloader" not in s and s["loadFileTypes"] == "SceneFile"
+        assert s["loadFiles"] is True
+        # what downloadFileIntoCache finds (no checksum: an existing file is used)
+        path = cache / s["fileNames"]
+        assert path.is_file() and s["uris"] == path.as_uri()
+        scene = mrml_io.load_scene(path)                 # what slicer.util.loadScene does
+        phantom = SAMPLES[s["sampleName"]][0]
+        for name in ("CBCT", "CBCTLabels"):
+            truth = mrml_io.get_json_attribute(mrml_io.get_node(scene, name), "FluoGuide.Truth")
+            assert truth["phantom"] == phantom, name
+    mtime = (cache / sources[0]["fileNames"]).stat().st_mtime_ns
+    sample_sources(cache)                                     # the next start: reused
+    assert (cache / sources[0]["fileNames"]).stat().st_mtime_ns == mtime

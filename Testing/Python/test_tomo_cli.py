@@ -288,3 +288,28 @@ def test_mesh_fast_reports_region_volumes_and_warns(tmp_path, fluo):
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
     assert any("region 9" in w for w in doc["warnings"]), doc["warnings"]
+
+
+def test_optics_in_1_per_cm_are_refused_naming_the_unit(own_scene, tmp_path, fluo):
+    """Optics written in 1/cm (ten times the 1/mm values) were refused for the
+    mesh they implied ('size_mm: about 3.22e+07 cells'), nothing said of the
+    optics or their units (issue #33): now the file, the label, the value and the
+    likely mistake, before any work."""
+    doc = json.loads(own_scene.optics.read_text())
+    for table in ("excitation", "emission"):
+        for entry in doc[table].values():
+            entry["mua_per_mm"] *= 10.0
+            entry["musp_per_mm"] *= 10.0
+    cm = tmp_path / "optics_cm.json"
+    cm.write_text(json.dumps(doc))
+    for args in (["tomo", "simulate", "--labels", own_scene.labels, "--optics", cm, "--yield",
+                  "7:0.0026", "--out", tmp_path / "out"],
+                 ["tomo", "reconstruct", "--labels", own_scene.labels, "--optics", cm,
+                  "--acquisition", own_scene.acq, "--element-mm", "1.5", "--out",
+                  tmp_path / "out"]):
+        r = fluo(*args)
+        _one_line_exit_2(r, "optics_cm.json")
+        line = r.stderr.strip()
+        assert "musp_per_mm" in line and "1/cm" in line and "label 3" in line, line
+        assert "cells" not in line
+        assert not (tmp_path / "out").exists()

@@ -1,7 +1,9 @@
 """The web app's server side without a browser: the job runner, and the FluoTomo
 panel's workflow driven through the same callbacks the buttons call."""
 
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -257,6 +259,18 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, ow
     s.tomo_own_labels = "own/labels.nrrd"
     app.ctrl.tomo_load_own()
     assert s.tomo_own and "labels [3, 7]" in s.tomo_own_info, s.fluo_message
+    # shown as a phantom is (issue #33): grey tones, each label an outlined segment,
+    # their surfaces in the 3D view from the start
+    labels = mrml_io.get_node(app.scene, "labels")
+    assert labels.GetDisplayNode().GetColorNode().GetName() == "FluoTomoLabelTones"
+    seg = mrml_io.get_node(app.scene, "labels segments")
+    names = {seg.GetSegmentation().GetNthSegment(k).GetName()
+             for k in range(seg.GetSegmentation().GetNumberOfSegments())}
+    optics_names = json.loads((own_scene.optics).read_text()).get("names", {})
+    assert names == {optics_names.get(k, f"label {k}") for k in ("3", "7")}, names
+    d = seg.GetDisplayNode()
+    assert d.GetOpacity2DOutline() == 1.0 and d.GetVisibility3D()
+    assert seg.GetSegmentation().ContainsRepresentation("Closed surface")
     s.tomo_mesh_size_mm = 1.5
     s.tomo_mesh_method = "fast (structured)"
     app.ctrl.tomo_build_mesh()
@@ -290,6 +304,9 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, ow
     app.poll()
     res = s.tomo_own_result
     assert "over-regularised" in res["warnings"], res
+    # the colour bar and the threshold follow the user's result as the phantom's
+    assert float(s.tomo_colorbar["max"]) > 0 and s.tomo_colorbar["gradient"]
+    assert s.job["owner"] == "FluoTomo"
     assert s.fluo_message_color == "warning"
     assert "over-regularised" in s.fluo_message
     s.tomo_lambda = 10.0
@@ -301,9 +318,6 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, ow
 def test_ui_paths_stay_in_the_workspace_and_messages_show_no_server_path(app, tmp_path):
     """Issue #21: a scripted client made the server write scene.mrml anywhere, list
     /etc through the image glob's message and read files outside a stack folder."""
-    import json
-    from pathlib import Path
-
     ws = app.workspace.root
     s = app.state
     outside = tmp_path / "outside"
@@ -342,3 +356,65 @@ def test_ui_paths_stay_in_the_workspace_and_messages_show_no_server_path(app, tm
         assert str(ws) not in text and str(outside) not in text, text
     s.calib_images = "bundled:opencv_left/left*.jpg"
     assert len(app.workspace.glob(s.calib_images, "images")) >= 3
+
+
+def test_a_5000_character_path_is_a_message_not_a_traceback(app, caplog, capfd):
+    """Issue #34 item 5: pathlib's ``is_dir`` raises ENAMETOOLONG (it is not one
+    of the errors it swallows): the light-folder field put a traceback in the log."""
+    import logging
+
+    s = app.state
+    caplog.set_level(logging.DEBUG)
+    long = "a" * 5000
+    for field, value, call in (("calib_light_folder", long, app.ctrl.calib_light_run),
+                               ("calib_light_folder", "/".join(["b" * 200] * 25),
+                                app.ctrl.calib_light_run),
+                               ("calib_save_path", long + ".mrml", app.ctrl.calib_save)):
+        setattr(s, field, value)
+        call()
+        _wait(app.jobs)
+        app.poll()
+        assert "name too long" in s.fluo_message and s.fluo_message_color == "error", \
+            s.fluo_message
+        assert len(s.fluo_message) < 300, s.fluo_message
+    s.calib_light_folder, s.calib_save_path = "", "fluoguide-session/scene.mrml"
+    assert "Traceback" not in caplog.text and "Traceback" not in capfd.readouterr().err
+    assert not any(r.exc_info for r in caplog.records)
+
+
+def test_panels_show_only_their_own_jobs_and_fluonav_finds_any_label_map(own_scene, tmp_path):
+    """A job of the tomography panel is shown by that panel only (the FluoCalib panel
+    showed 'reconstruction HP done'); FluoNav's surface comes from whatever label map
+    the scene holds ('CBCTLabels: node not found in scene' on a user's own scene)."""
+    import shutil
+
+    from fluoapp.webapp.app import create_app
+
+    app = create_app(workspace=tmp_path / "ws")
+    own = app.workspace.root / "own"
+    shutil.copytree(own_scene.dir, own)
+    s = app.state
+    s.nav_target_triangles = 0
+    app.ctrl.nav_build_surface()                        # nothing loaded yet: said so
+    assert s.fluo_message_color == "error" and "no label map" in s.fluo_message
+    s.tomo_own_labels, s.tomo_own_optics, s.tomo_own_acquisition = (
+        "own/labels.nrrd", "own/optics.json", "own/acq")
+    app.ctrl.tomo_load_own()
+    app.ctrl.nav_build_surface()
+    assert s.fluo_message_color == "success", s.fluo_message
+    assert "TissueSurface of labels" in s.nav_surface_info
+    s.tomo_mesh_size_mm = 2.0
+    s.tomo_mesh_method = "fast (structured)"
+    app.ctrl.tomo_build_mesh()
+    _wait(app.jobs, 300)
+    app.poll()
+    assert s.job["owner"] == "FluoTomo" and s.job["name"] == "mesh"
+    # the templates: each panel's job line is bound to its own jobs
+    from fluoapp.webapp import calib_panel, tomo_panel
+
+    for module, key in ((calib_panel, "FluoCalib"), (tomo_panel, "FluoTomo")):
+        assert f"job.owner === '{key}'" in Path(module.__file__).read_text()
+    # the colour bar and the threshold slider exist for the user's result too
+    ui = Path(tomo_panel.__file__).read_text()
+    assert 'v_if="tomo_result || tomo_own_result", id="tomo-colorbar"' in ui
+    assert '"!(tomo_result || tomo_own_result)",), id="tomo-threshold-slider"' in ui

@@ -8,7 +8,6 @@ workspace rules themselves are checked without a server.
 """
 
 import asyncio
-import os
 import re
 import subprocess
 import sys

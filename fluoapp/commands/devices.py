@@ -34,6 +34,13 @@ def _track(args):
         if not args.serial:
             raise FluoInputError("applies to --serial only", field="--tools", value=args.tools)
         check_number("--tools", args.tools, 1, 16, integer=True)  # an NDI tracker's passive ports
+    if args.inject_faults is not None:
+        if not args.sim:
+            raise FluoInputError("applies to --sim only", field="--inject-faults",
+                                 value=args.inject_faults)
+        from FluoNavLib.devices.ndi_simulator import Faults
+
+        Faults.named(args.inject_faults)    # an unknown kind: refused before the simulator
     if args.igtl:
         source, address, options = "igtl", args.igtl, {"rate_hz": args.rate}
     elif args.sim:
@@ -72,7 +79,7 @@ def _record(args):
     _seconds(args.seconds)
     if not (args.fps > 0 and args.fps <= 1000):
         raise FluoInputError("must be a frame rate in (0, 1000] Hz", field="--fps", value=args.fps)
-    sim = NDISimulator(faults=Faults.typical() if args.inject_faults else Faults(), seed=args.seed)
+    sim = NDISimulator(faults=Faults.named(args.inject_faults), seed=args.seed)
     port = sim.start()
     try:
         # the camera first: a refused source must not leave a recording folder behind
@@ -120,6 +127,15 @@ def _replay(args):
     return out
 
 
+def _add_inject_faults(p, what):
+    from FluoNavLib.devices.ndi_simulator import FAULT_KINDS
+
+    kinds = "; ".join(f"{k}: {v[0]}" for k, v in FAULT_KINDS.items())
+    p.add_argument("--inject-faults", nargs="?", const="typical", default=None,
+                   metavar="KIND,...", help=f"{what}: inject faults, the kinds named "
+                   f"(comma-separated; without a value: typical) - {kinds} (default: none)")
+
+
 def register(subparsers):
     p = subparsers.add_parser("devices", help="list attached trackers and cameras (USB / serial)")
     add_json_flag(p)
@@ -136,8 +152,7 @@ def register(subparsers):
                    "messages carry no sequence numbers (default: not counted that way)")
     p.add_argument("--seconds", type=float, default=5.0,
                    help="how long to track [s] (default %(default)s)")
-    p.add_argument("--inject-faults", action="store_true",
-                   help="simulator: CRC errors, slow replies, dropouts and a disconnect")
+    _add_inject_faults(p, "simulator")
     p.add_argument("--tools", type=int, default=None,
                    help="passive tools to request (--serial only; default 1)")
     p.add_argument("--seed", type=int, default=0,
@@ -160,8 +175,7 @@ def register(subparsers):
                    help="synthetic frames: width [px] (default %(default)s)")
     p.add_argument("--height", type=int, default=260,
                    help="synthetic frames: height [px] (default %(default)s)")
-    p.add_argument("--inject-faults", action="store_true",
-                   help="simulated tracker: CRC errors, slow replies, dropouts and a disconnect")
+    _add_inject_faults(p, "simulated tracker")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the synthetic frames and the tracker's faults (default "
                    "%(default)s)")

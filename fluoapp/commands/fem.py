@@ -21,6 +21,7 @@ def _floats(text, field):
 
 def _analytic(args):
     from FluoTomoLib.analytic import (
+        check_distances,
         log_robin_surface_fluence,
         spatially_resolved_reflectance,
         total_diffuse_fluorescence,
@@ -38,7 +39,7 @@ def _analytic(args):
     )
 
     check_properties(args.mua, args.musp, args.n, where="--mua/--musp/--n", warn=False)
-    rho = np.array(_floats(args.rho, "--rho")) if args.rho else None
+    rho = check_distances(_floats(args.rho, "--rho"), "--rho") if args.rho else None
     warnings = diffusion_validity(args.mua, args.musp, rho)
     out = {
         "mua_per_mm": args.mua, "musp_per_mm": args.musp, "n": args.n,
@@ -196,7 +197,17 @@ def _forward(args):
 
     from FluoTomoLib.fem.forward import FluorescenceModel, safe_log
 
+    from fluoguide import atomic
+    from FluoTomoLib.fem.operators import check_solver
+
     t0 = time.perf_counter()
+    # before any work: a solver name is checked even where the analytic path
+    # would not use it (it was ignored, exit 0), and the outputs are writable
+    check_solver(args.solver, field="--solver")
+    for flag, path in (("--jacobian-out", args.jacobian_out),
+                       ("--yield-jacobian-out", args.yield_jacobian_out)):
+        if path:
+            atomic.check_writable(path, flag)
     mesh, flipped = _read_forward_mesh(args.mesh)
     src = _read_points_csv(args.sources, "sources")
     det = _read_points_csv(args.detectors, "detectors")

@@ -64,14 +64,34 @@ def _positive(value, field, upper=None):
 def _write_csv(path, rows, keys):
     import csv
 
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(keys)
-        for r in rows:
-            w.writerow(["" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float)
-                                                      else r[k]) for k in keys])
-    tmp.replace(path)
+    import io
+
+    from fluoguide import atomic
+
+    fh = io.StringIO(newline="")
+    w = csv.writer(fh)
+    w.writerow(keys)
+    for r in rows:
+        w.writerow(["" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float)
+                                                  else r[k]) for k in keys])
+    atomic.write_text(path, fh.getvalue(), field="--out")
+
+
+def _mkdir(out):
+    """Create the output folder; a folder that refuses it is the user's to fix (one line)."""
+    from fluoguide import atomic
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise atomic.output_error(exc, out, "--out") from None
+
+
+def _write_json(path, result):
+    from fluoguide import atomic
+    from fluoguide.jsonable import dumps
+
+    atomic.write_text(path, dumps(result), field="--out")
 
 
 def _mc(args):
@@ -119,7 +139,7 @@ def _mc(args):
                                         executor=ex, threads=threads,
                                         store=RunStore(out / "mc_runs", resume=args.resume))
         mc_source = "this run"
-        out.mkdir(parents=True, exist_ok=True)
+        _mkdir(out)
         reference.write_json_atomic(out / "mc_halfspace.json",
                                     reference.halfspace_set(medium, merged, _command_line()))
     ref = None
@@ -137,7 +157,7 @@ def _mc(args):
         res = compare.validate_halfspace(medium, merged, boundaries=boundaries,
                                          level=args.mesh_level, reference=ref, progress=bar)
     text = f"mua {medium.mua:g}/mm, musp {medium.musp:g}/mm, g {medium.g:g}, n {medium.n:g}"
-    out.mkdir(parents=True, exist_ok=True)
+    _mkdir(out)
     validation_figure(res, text, out / "validate_mc.png")
     rkeys = list(res["rows"][0].keys())
     _write_csv(out / "validate_mc_reflectance.csv", res["rows"], rkeys)
@@ -159,11 +179,7 @@ def _mc(args):
         "tables": [str(out / "validate_mc_reflectance.csv"), str(out / "validate_mc_fluence.csv")],
     }
     result["seconds"] = time.perf_counter() - t0
-    from fluoguide.jsonable import dumps
-
-    tmp = out / "validate_mc.json.tmp"
-    tmp.write_text(dumps(result))
-    tmp.replace(out / "validate_mc.json")
+    _write_json(out / "validate_mc.json", result)
     if not args.json:
         _print_table(result)
         return {"agree_from_mm": result["agree_from_mm"], "reference": result["reference"],
@@ -223,7 +239,7 @@ def _mc_fluorescence(args):
                                        progress=bar, executor=ex, threads=threads,
                                        store=RunStore(out / "mc_runs", resume=args.resume))
         data = reference.fluorescence_set(case, res, _command_line())
-        out.mkdir(parents=True, exist_ok=True)
+        _mkdir(out)
         reference.write_json_atomic(out / "mc_fluorescence.json", data)
         mc = {k: np.asarray(res[k], float) for k in ("excitation", "excitation_se", "emission",
                                                      "emission_se")}
@@ -251,7 +267,7 @@ def _mc_fluorescence(args):
                 row[f"fem_{b}_emission_vs_mc_pct"] = compare._pct(f["emission"][s, d],
                                                                   mc["emission"][s, d])
             rows.append(row)
-    out.mkdir(parents=True, exist_ok=True)
+    _mkdir(out)
     _write_csv(out / "validate_mc_fluorescence.csv", rows, list(rows[0].keys()))
     warnings = ["excitation pairs closer than 5 mm (a source's own position) are diffusion's "
                 "near-source regime: not a test of the model"]
@@ -306,16 +322,12 @@ def _mc_tomography(args):
             photons=args.photons or tube_mc.PHOTONS, out_dir=out, methods=methods,
             accuracy=args.accuracy, executor=ex, threads=threads, resume=args.resume,
             progress=bar)
-    out.mkdir(parents=True, exist_ok=True)
+    _mkdir(out)
     res["figure"] = tube_mc.figure(res, out / "validate_mc_tomography.png")
     _write_csv(out / "validate_mc_tomography.csv", res["rows"], list(res["rows"][0].keys()))
     res["table"] = str(out / "validate_mc_tomography.csv")
     res["seconds"] = time.perf_counter() - t0
-    from fluoguide.jsonable import dumps
-
-    tmp = out / "validate_mc_tomography.json.tmp"
-    tmp.write_text(dumps(res))
-    tmp.replace(out / "validate_mc_tomography.json")
+    _write_json(out / "validate_mc_tomography.json", res)
     if not args.json:
         print(f"{'depth':>5} {'method':>6} {'FEM data: yield %':>18} {'centroid %':>10} "
               f"{'MC data: yield %':>17} {'centroid %':>10}", file=sys.stderr)

@@ -171,8 +171,87 @@ def _fmt(v):
     return html.escape(str(v))
 
 
+# The thesis's phantom experiment (real data, the reference this demo repeats on
+# digital phantoms): mean |yield error| and mean |centroid error| [%]
+THESIS_TUBE = {"NP": (85.0, None), "SP": (18.0, 1.8), "HP": (16.0, 1.2)}
+# the figures that show what the demo found, in the order the summary shows them
+KEY_FIGURES = ("tomo_errors.png", "tomo_profiles.png", "tomography_mc.png", "oral_sections.png",
+               "mapping_mismatch.png")
+
+
+def _mean_abs(values):
+    vals = [abs(float(v)) for v in values or [] if v is not None]
+    return sum(vals) / len(vals) if vals else None
+
+
+def _pct(v, digits=1):
+    return "-" if v is None else f"{v:.{digits}f} %"
+
+
+def summary_html(m, figures):
+    """The report's first section: what the demo showed, in a few lines and one
+    table (the quantification with and without priors against the truth and the
+    thesis), then the key figures. ``m``: metrics.json's dict; ``figures``:
+    (stage, file, caption) of the figures written."""
+    e = html.escape
+    out = ["<h2>What the demo showed</h2>"]
+    tomo, mc, oral = m.get("tomography"), m.get("tomography_mc"), m.get("oral_tomography")
+    if not (tomo or mc or oral):
+        out.append("<p>The tomography stages did not run (see the stages below): no "
+                   "quantification to report.</p>")
+    else:
+        rows = []
+        for meth in ("NP", "SP", "HP"):
+            cells = [f"<td>{meth}</td>"]
+            if tomo:
+                cells += [f"<td>{_pct(tomo.get(f'{meth} mean |yield error| %'))}</td>",
+                          f"<td>{_pct(tomo.get(f'{meth} mean |centroid error| %'))}</td>"]
+            else:
+                cells += ["<td>-</td>", "<td>-</td>"]
+            if mc:
+                cells.append("<td>" + _pct(_mean_abs(
+                    mc.get(f"{meth} from Monte Carlo data: tube yield error % per depth")))
+                    + "</td>")
+            else:
+                cells.append("<td>-</td>")
+            t_y, t_c = THESIS_TUBE[meth]
+            cells += [f"<td>{_pct(t_y, 0)}</td>", f"<td>{_pct(t_c)}</td>"]
+            cells.append("<td>" + (_pct(oral.get(f"{meth} tongue yield error %"))
+                                   if oral else "-") + "</td>")
+            rows.append("<tr>" + "".join(cells) + "</tr>")
+        depths = m.get("tube_depths_mm") or []
+        out.append(
+            "<p>Fluorescence yield recovered without a prior (NP), with the CBCT as a soft "
+            "prior (SP) and as a hard prior (HP), against the known truth of digital "
+            "phantoms: the cylinder tube at depths "
+            f"{', '.join(f'{d:g}' for d in depths) or '-'} mm (diffusion data from a finer, "
+            "independent model" + ("; stored Monte Carlo data, photon transport written "
+                                   "outside the project, as an independent check" if mc else "")
+            + ") and the oral cavity's tongue. The thesis's phantom experiment (real data) is "
+            "the reference.</p>")
+        out.append(
+            "<table><tr><th>method</th><th>tube: mean |yield error|</th>"
+            "<th>tube: mean |centroid error|</th><th>tube from Monte Carlo data: mean "
+            "|yield error|</th><th>thesis: yield</th><th>thesis: centroid</th>"
+            "<th>oral cavity: tongue yield error</th></tr>" + "".join(rows) + "</table>")
+        warned = [w for sec in (tomo, mc, oral) if sec
+                  for w in sec.get("reconstruction warnings", [])]
+        out.append(f"<p>{len(warned)} reconstruction warning(s) in all (listed with each "
+                   "stage below).</p>" if warned else
+                   "<p>No reconstruction carried a warning.</p>")
+    if m.get("stages_failed"):
+        out.append("<p class='fail'>Failed: " + e(", ".join(m["stages_failed"])) + "</p>")
+    names = {name: (stage, caption) for stage, name, caption in figures}
+    for name in KEY_FIGURES:
+        if name in names:
+            out.append(f"<figure><img src='{e(name)}' alt='{e(names[name][1])}'>"
+                       f"<figcaption>{e(names[name][1])}</figcaption></figure>")
+    return "\n".join(out)
+
+
 def write_report(ctx):
-    """``report.html``: every stage's numbers, notes and figures on one page."""
+    """``report.html``: what the demo showed first (summary_html), then every
+    stage's numbers, notes and figures."""
     m = ctx.metrics
     rows = []
     for stage in list(m["stage_seconds"]):
@@ -189,7 +268,9 @@ def write_report(ctx):
         f"<p>Mode: {'quick' if m.get('quick') else 'full'}; seed {m.get('seed')}; total "
         f"{m.get('total_seconds', 0):.1f} s. Numbers: <a href='metrics.json'>metrics.json</a>; "
         "scene: <a href='scene.mrml'>scene.mrml</a>.</p>",
-        "<h2>Stages</h2><table><tr><th>stage</th><th>status</th><th>seconds</th></tr>",
+        summary_html(m, ctx.figures),
+        "<h2>Details</h2>",
+        "<h3>Stages</h3><table><tr><th>stage</th><th>status</th><th>seconds</th></tr>",
         *rows, "</table>",
     ]
     for stage, err in m["stages_failed"].items():
@@ -200,7 +281,7 @@ def write_report(ctx):
         notes = [n for n in ctx.notes if n[0] == stage]
         if section is None and not figs and not notes:
             continue
-        parts.append(f"<h2>{html.escape(stage)}</h2>")
+        parts.append(f"<h3>{html.escape(stage)}</h3>")
         for _, text in notes:
             parts.append(f"<p>{html.escape(text)}</p>")
         if isinstance(section, dict):
@@ -209,6 +290,9 @@ def write_report(ctx):
                 parts.append(f"<tr><th>{html.escape(str(k))}</th><td>{_fmt(v)}</td></tr>")
             parts.append("</table>")
         for _, name, caption in figs:
+            if name in KEY_FIGURES:           # shown in the summary at the top
+                parts.append(f"<p>Figure {html.escape(name)}: in the summary above.</p>")
+                continue
             parts.append(f"<figure><img src='{html.escape(name)}' alt='{html.escape(caption)}'>"
                          f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     parts.append("</body></html>")

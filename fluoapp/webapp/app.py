@@ -140,9 +140,11 @@ class FluoGuideApp:
 
         return wrapper
 
-    def start_job(self, name, work, on_done=None):
+    def start_job(self, name, work, on_done=None, owner=None):
         """Run ``work(progress, cancel)`` in the background; ``on_done(result)`` later
-        on the event loop.  Errors and cancellation end up as messages."""
+        on the event loop.  Errors and cancellation end up as messages. ``owner``:
+        the panel that started it (FluoCalib, FluoNav, FluoTomo): only that panel
+        shows the job's name, progress and outcome."""
 
         def on_error(kind, text):
             if kind == "cancelled":
@@ -151,10 +153,12 @@ class FluoGuideApp:
                 self.notify(f"{name} failed: {text}", "error")
 
         self.jobs.start(name, work, on_done=on_done, on_error=on_error)
+        self._job_owner = owner
         self.state.job = self._job_state()
 
     def _job_state(self):
         job = self.jobs.state.as_dict()
+        job["owner"] = getattr(self, "_job_owner", None)
         job["message"], job["error"] = (self.workspace.scrub(job["message"]),
                                         self.workspace.scrub(job["error"]))
         return job

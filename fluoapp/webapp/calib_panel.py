@@ -70,7 +70,7 @@ class CalibPanel:
             self.app.notify(f"Camera calibrated: RMS {res.rms_px:.3f} px over {len(res.used)} views",
                             "success")
 
-        self.app.start_job("camera calibration", job, on_done=done)
+        self.app.start_job("camera calibration", job, on_done=done, owner="FluoCalib")
 
     def light_synth(self):
         """Write synthetic stack / illumination / laser sets (known truth) and point the
@@ -102,7 +102,7 @@ class CalibPanel:
             self.app.state.calib_light_folder = shown(folder / ("stack" if kind == "radiometry" else kind))
             self.app.notify(f"Synthetic data sets in {shown(folder)}", "success")
 
-        self.app.start_job("synthetic light data", work, on_done=done)
+        self.app.start_job("synthetic light data", work, on_done=done, owner="FluoCalib")
 
     def light_run(self):
         """Radiometry, illumination or laser calibration of the folder (background job
@@ -165,7 +165,7 @@ class CalibPanel:
             s.calib_light_plot = plot
             self.app.notify(f"{kind} calibration stored on FluoCalibration", "success")
 
-        self.app.start_job(f"{kind} calibration", job, on_done=done)
+        self.app.start_job(f"{kind} calibration", job, on_done=done, owner="FluoCalib")
 
     def save(self):
         from fluoguide import mrml_io
@@ -193,8 +193,11 @@ class CalibPanel:
             with v.VCol(cols=4):
                 v.VBtn("Cancel", click=self.app.ctrl.fluo_cancel_job, block=True,
                        disabled=("!" + busy,))
-        v.VProgressLinear(model_value=("job.fraction * 100",), height=6, classes="mt-2")
-        html.Div("{{ job.name }} {{ job.message }}", classes="text-caption")
+        # the job's progress and outcome are shown by the panel that started it only
+        v.VProgressLinear(model_value=("job.fraction * 100",), height=6, classes="mt-2",
+                          v_if="job.owner === 'FluoCalib'")
+        html.Div("{{ job.name }} {{ job.message }}", classes="text-caption",
+                 v_if="job.owner === 'FluoCalib'", id="calib-job")
         with html.Div(v_if="calib_result", classes="text-caption mt-2", id="calib-result"):
             html.Div("fx {{ calib_result.fx }}, fy {{ calib_result.fy }} px; centre "
                      "({{ calib_result.cx }}, {{ calib_result.cy }}) px")

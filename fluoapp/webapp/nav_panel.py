@@ -9,6 +9,7 @@ import queue
 import numpy as np
 
 from fluoguide import mrml_io
+from fluoguide.errors import FluoInputError
 
 __all__ = ["NavPanel"]
 
@@ -51,12 +52,20 @@ class NavPanel:
     def build_surface(self):
         s = self.app.state
         target = int(s.nav_target_triangles) if s.nav_target_triangles else None
-        model = self.logic.buildSurface(targetTriangles=target)
+        # the scene's label map: the phantom's CBCTLabels, or the map the user
+        # loaded in the tomography panel (whatever its name)
+        labels = (mrml_io.get_node(self.app.scene, "CBCTLabels", "vtkMRMLLabelMapVolumeNode",
+                                   required=False)
+                  or next(iter(mrml_io.nodes(self.app.scene, "vtkMRMLLabelMapVolumeNode")), None))
+        if labels is None:
+            raise FluoInputError("the scene has no label map: load the phantom or your own "
+                                 "label map (FluoTomo panel) first", field="label map")
+        model = self.logic.buildSurface(targetTriangles=target, labelMapNode=labels)
         model.GetDisplayNode().SetOpacity(0.6)
         self.app.show_in_3d(model)
         poly = model.GetPolyData()
-        s.nav_surface_info = (f"TissueSurface: {poly.GetNumberOfCells()} triangles, "
-                              f"{poly.GetNumberOfPoints()} points")
+        s.nav_surface_info = (f"TissueSurface of {labels.GetName()}: {poly.GetNumberOfCells()} "
+                              f"triangles, {poly.GetNumberOfPoints()} points")
         self.app.render_all(reset_3d=True)
         self.app.notify(s.nav_surface_info, "success")
 
@@ -150,7 +159,7 @@ class NavPanel:
                             f"{result['lost_unreported']})", "success")
 
         # on an error or cancel the job's own ``finally`` closed the session
-        self.app.start_job("tracked stream", work, on_done=done)
+        self.app.start_job("tracked stream", work, on_done=done, owner="FluoNav")
 
     def on_poll(self):
         """Show the newest streamed frame (called by the app's poll loop)."""
@@ -179,7 +188,7 @@ class NavPanel:
         v.VTextField(v_model_number=("nav_target_triangles",), type="number",
                      label="Target triangles (0 = keep all)", density="compact", hide_details=True,
                      id="nav-triangles")
-        v.VBtn("Surface from CBCTLabels", click=self.app.ctrl.nav_build_surface, block=True,
+        v.VBtn("Surface from the label map", click=self.app.ctrl.nav_build_surface, block=True,
                classes="mt-2", disabled=("job.running",), id="nav-surface")
         html.Div("{{ nav_surface_info }}", classes="text-caption", id="nav-surface-info")
         html.Div("Tracked fluorescence (simulated NDI tracker, oral-cavity phantom)",

@@ -134,8 +134,65 @@ class TomoPanel:
                            f"({len(acq.sources_ras_mm)} sources x "
                            f"{len(acq.detectors_ras_mm)} detectors)")
         self.app.show_volume(node)
+        self._show_own_labels(node, lm, optics)
         self.app.notify("Loaded your scene: " + s.tomo_own_info + ". Next: build the mesh.",
                         "success")
+
+    def _show_own_labels(self, node, lm, optics):
+        """The user's label map as a phantom's is shown: its tissue in grey tones
+        (not the label table's saturated colours), each label as a segment with its
+        outline in the slices and its surface in the 3D view from the start (the
+        tissue translucent, the other labels solid)."""
+        import vtk
+
+        import slicer
+
+        scene = self.app.scene
+        top = max(lm.labels)
+        target = lm.default_target()
+        tones = mrml_io.get_node(scene, "FluoTomoLabelTones", required=False)
+        if tones is None:
+            tones = slicer.vtkMRMLColorTableNode()
+            tones.SetName("FluoTomoLabelTones")
+            tones.SetTypeToUser()
+            scene.AddNode(tones)
+        tones.SetNumberOfColors(top + 1)
+        tones.SetColor(0, "air", 0.0, 0.0, 0.0, 0.0)
+        for lab in range(1, top + 1):
+            g = 0.6 if lab == target else 0.35
+            tones.SetColor(lab, optics.names.get(lab, f"label {lab}"), g, g, g, 1.0)
+        node.GetDisplayNode().SetAndObserveColorNodeID(tones.GetID())
+        for old in list(mrml_io.nodes(scene, "vtkMRMLSegmentationNode")):
+            if old.GetName() == f"{node.GetName()} segments":
+                scene.RemoveNode(old)
+        seg = slicer.vtkMRMLSegmentationNode()
+        seg.SetName(f"{node.GetName()} segments")
+        scene.AddNode(seg)
+        seg.CreateDefaultDisplayNodes()
+        seg.SetReferenceImageGeometryParameterFromVolumeNode(node)
+        slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(node, seg)
+        seg.CreateClosedSurfaceRepresentation()
+        palette = [(0.95, 0.75, 0.2), (0.2, 0.85, 0.4), (0.95, 0.35, 0.35), (0.4, 0.6, 1.0)]
+        display = seg.GetDisplayNode()
+        segmentation = seg.GetSegmentation()
+        ids = vtk.vtkStringArray()
+        segmentation.GetSegmentIDs(ids)
+        vols = lm.region_volumes()
+        largest = max(vols, key=vols.get)
+        for k in range(ids.GetNumberOfValues()):
+            sid = ids.GetValue(k)
+            segment = segmentation.GetSegment(sid)
+            lab = int(segment.GetLabelValue()) if hasattr(segment, "GetLabelValue") else None
+            if lab is None or lab not in vols:
+                lab = lm.labels[k] if k < len(lm.labels) else largest
+            segment.SetName(optics.names.get(lab, f"label {lab}"))
+            tissue = lab == largest
+            segment.SetColor(*((0.85, 0.65, 0.55) if tissue else palette[k % len(palette)]))
+            display.SetSegmentOpacity3D(sid, 0.3 if tissue else 1.0)
+        display.SetOpacity2DFill(0.0 if len(vols) > 1 else 0.2)
+        display.SetOpacity2DOutline(1.0)
+        self.app.show_in_3d(seg)
+        self.app.render_all(reset_3d=True)
 
     def _own_label_node(self):
         node = self.app.scene.GetNodeByID(self._own["label"]) if self._own else None
@@ -211,7 +268,7 @@ class TomoPanel:
                 self._mesh_node_id = node.GetID()
                 self._show_mesh(built["mesh_ras"], size, quality, used=not quality)
 
-            self.app.start_job("mesh", job, on_done=done_own)
+            self.app.start_job("mesh", job, on_done=done_own, owner="FluoTomo")
             return
         job = self.logic.prepareMesh(sizeMm=size, roi=self._roi(), quality=quality)
 
@@ -219,7 +276,7 @@ class TomoPanel:
             self.logic.storeMesh(mesh)
             self._show_mesh(mesh, size, quality, used=False)
 
-        self.app.start_job("mesh", job, on_done=done)
+        self.app.start_job("mesh", job, on_done=done, owner="FluoTomo")
 
     def _show_mesh(self, mesh, size, quality, used):
         """Mesh surface in 3D and its counts and region volumes in the panel; says
@@ -308,7 +365,7 @@ class TomoPanel:
             self.app.notify(text + "".join(f"; warning: {w}" for w in warnings),
                             "warning" if warnings else "success")
 
-        self.app.start_job(f"reconstruction {method}", job, on_done=done)
+        self.app.start_job(f"reconstruction {method}", job, on_done=done, owner="FluoTomo")
 
     def _reconstruct_own(self, method, lam):
         s = self.app.state
@@ -349,7 +406,7 @@ class TomoPanel:
                             + "".join(f"; warning: {w}" for w in warnings),
                             "warning" if warnings else "success")
 
-        self.app.start_job(f"reconstruction {method}", job, on_done=done)
+        self.app.start_job(f"reconstruction {method}", job, on_done=done, owner="FluoTomo")
 
     # -- display -------------------------------------------------------------
     def _show_yield(self):
@@ -481,10 +538,11 @@ class TomoPanel:
             with v.VCol(cols=4):
                 v.VBtn("Cancel", click=self.app.ctrl.fluo_cancel_job, block=True,
                        disabled=("!" + busy,), id="tomo-cancel")
-        v.VProgressLinear(model_value=("job.fraction * 100",), height=6, classes="mt-2",
+        v.VProgressLinear(model_value=("job.owner === 'FluoTomo' ? job.fraction * 100 : 0",),
+                          height=6, classes="mt-2",
                           color=("job.error ? 'error' : 'primary'",), id="tomo-progress")
         html.Div("{{ job.name }} {{ job.message }} {{ job.running ? '(' + job.seconds + ' s)' : '' }}",
-                 classes="text-caption", id="tomo-job")
+                 classes="text-caption", id="tomo-job", v_if="job.owner === 'FluoTomo'")
         with html.Div(v_if="tomo_result", classes="text-caption mt-1", id="tomo-result"):
             html.Div("{{ tomo_result.method }}: peak {{ tomo_result.peak }} /mm (true "
                      "{{ tomo_result.true_peak }}), error {{ tomo_result.peak_error_pct }} %")
@@ -504,8 +562,9 @@ class TomoPanel:
         html.Div("5. Display", classes="text-subtitle-2 mt-4")
         v.VSlider(v_model=("tomo_threshold",), min=0.0, max=0.95, step=0.05,
                   label="Threshold (fraction of max)", density="compact", hide_details=True,
-                  disabled=("!tomo_result",), id="tomo-threshold-slider")
-        with html.Div(v_if="tomo_result", id="tomo-colorbar", classes="mt-1"):
+                  disabled=("!(tomo_result || tomo_own_result)",), id="tomo-threshold-slider")
+        # a reconstruction's yield, of the phantom or of the user's own scene
+        with html.Div(v_if="tomo_result || tomo_own_result", id="tomo-colorbar", classes="mt-1"):
             html.Div(style=("{height: '14px', background: tomo_colorbar.gradient, "
                             "borderRadius: '3px'}",))
             with html.Div(style="display:flex; justify-content: space-between;",

@@ -22,5 +22,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "grid": ["parse_values", "load_study_file", "grid_product"],
     "store": ["RunStore", "read_table", "stable_columns"],
     "engine": ["run_tasks", "SerialExecutor"],
-    "cluster": ["dask_executor", "executor", "scheduler_address", "SCHEDULER_ENV"],
+    "cluster": ["dask_executor", "executor", "scheduler_address", "scheduler_timeout",
+                "probe_scheduler", "SCHEDULER_ENV", "SCHEDULER_TIMEOUT_ENV"],
 })

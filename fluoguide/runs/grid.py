@@ -9,7 +9,6 @@ file, the field and the value.
 from __future__ import annotations
 
 import itertools
-import json
 import math
 from pathlib import Path
 
@@ -87,8 +86,10 @@ def load_study_file(path, what="study file"):
     elif suffix in (".yaml", ".yml"):
         import yaml
 
+        from fluoguide import strict_yaml
+
         try:
-            doc = yaml.safe_load(text)
+            doc = strict_yaml.load(text, file=p)        # a key twice is refused
         except (yaml.YAMLError, RecursionError) as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

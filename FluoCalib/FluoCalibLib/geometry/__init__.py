@@ -25,7 +25,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "handeye": ["OPENCV_METHODS", "METHODS", "check_motion", "solve_handeye", "paired_point_handeye", "handeye_errors", "compare_methods", "board_to_tracker_from_pointer", "estimate_board_to_tracker", "MIN_ROTATION_DEG"],
     "intrinsics": ["ViewResult", "IntrinsicsResult", "detect_views", "calibrate_camera", "calibrate_from_detections", "view_poses", "reprojection_errors", "MIN_VIEWS", "PARALLEL_VIEWS_DEG"],
     "opencv_yaml": ["write_calibration_yaml", "read_calibration_yaml"],
-    "registration": ["RegistrationResult", "register_points", "target_registration_error", "pivot_calibration"],
+    "registration": ["MAX_COORDINATE_MM", "check_points", "RegistrationResult", "register_points", "target_registration_error", "pivot_calibration"],
     "scene": ["CALIBRATION_NODE", "INTRINSICS_KEY", "HANDEYE_KEY", "REGISTRATION_KEY", "HANDEYE_TRANSFORM", "LEGACY_HANDEYE_TRANSFORMS", "TOOL_TRANSFORM", "REGISTRATION_TRANSFORM", "calibration_node", "store_intrinsics", "load_intrinsics", "intrinsics_doc", "store_handeye", "handeye_node", "load_handeye", "store_registration"],
     "synthetic_boards": ["SyntheticView", "random_board_poses", "render_view", "make_dataset", "default_camera", "default_camera_to_tool"],
     "transforms": ["make_rigid", "invert_rigid", "apply_rigid", "rotation_matrix", "rotvec_to_matrix", "matrix_to_rotvec", "matrix_to_quaternion", "quaternion_to_matrix", "slerp", "look_at", "is_rigid", "as_rigid", "as_rigid_list", "orthonormalize", "rotation_angle"],

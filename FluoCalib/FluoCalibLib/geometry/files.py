@@ -54,12 +54,9 @@ def read_points(path, field):
             arr = np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=2)
         except ValueError as exc:
             raise FluoInputError(f"cannot parse points ({exc})", file=p, field=field) from None
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise FluoInputError("points must be N rows of x, y, z [mm]", file=p, field=field,
-                             value=arr.shape)
-    if not np.all(np.isfinite(arr)):
-        raise FluoInputError("points must be finite", file=p, field=field)
-    return arr
+    from FluoCalibLib.geometry.registration import check_points
+
+    return check_points(arr, field, file=p)     # finite, within 100 m; the row named
 
 
 def _matrix(value, file, field):

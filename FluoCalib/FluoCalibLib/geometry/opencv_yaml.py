@@ -49,6 +49,22 @@ def write_calibration_yaml(path, camera=None, camera_to_tool=None, board_to_trac
     return path
 
 
+def _check_duplicate_keys(path):
+    """Refuse a YAML file with a key twice (FileStorage silently reads the first)."""
+    import yaml
+
+    from fluoguide.strict_yaml import check_duplicate_keys
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return                  # not text: FileStorage refuses it with its own message
+    try:
+        check_duplicate_keys(text, file=path)
+    except (yaml.YAMLError, RecursionError):
+        pass                    # YAML that only OpenCV parses: it cannot hold this check
+
+
 def read_calibration_yaml(path):
     """Read a file written by :func:`write_calibration_yaml` or OpenCV's calibration sample.
 
@@ -61,6 +77,8 @@ def read_calibration_yaml(path):
     path = Path(path)
     if not path.is_file():
         raise FluoInputError("file not found", file=path)
+    if path.suffix.lower() in (".yaml", ".yml"):
+        _check_duplicate_keys(path)
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:

@@ -20,7 +20,7 @@ from fluoguide.errors import FluoInputError
 
 from FluoCalibLib.geometry import transforms as tf
 
-__all__ = ["RegistrationResult", "register_points", "target_registration_error",
+__all__ = ["MAX_COORDINATE_MM", "check_points", "RegistrationResult", "register_points", "target_registration_error",
            "pivot_calibration"]
 
 
@@ -37,13 +37,46 @@ class RegistrationResult:
                 "residuals_mm": self.residuals_mm.tolist()}
 
 
-def _points(name, p):
-    arr = np.asarray(p, dtype=float)
+#: the largest coordinate [mm] a tracked or image point may have: 100 m, far
+#: beyond any tracker's working volume (an optical tracker's is ~3 m) or scanner
+#: frame; the SVD squares coordinates, and 1e300 mm overflowed to a null FRE
+MAX_COORDINATE_MM = 1e5
+
+
+def check_points(points_mm, field, file=None):
+    """(N, 3) points [mm] as an array: finite, each coordinate within
+    +-MAX_COORDINATE_MM; else FluoInputError naming the file, ``field row R``
+    (1-based) and the value.
+
+    Parameters
+    ----------
+    points_mm : array_like
+        Points [mm], one per row.
+    field : str
+        The option or argument named in the message.
+    file : str or Path, optional
+        The file the points came from.
+    """
+    try:
+        arr = np.asarray(points_mm, dtype=float)
+    except (TypeError, ValueError):
+        raise FluoInputError("points must be numbers", file=file, field=field) from None
     if arr.ndim != 2 or arr.shape[1] != 3:
-        raise FluoInputError("points must be an (N, 3) array [mm]", field=name, value=arr.shape)
-    if not np.all(np.isfinite(arr)):
-        raise FluoInputError("points must be finite", field=name)
+        raise FluoInputError("points must be N rows of x, y, z [mm]", file=file, field=field,
+                             value=arr.shape)
+    bad = ~np.isfinite(arr) | (np.abs(arr) > MAX_COORDINATE_MM)
+    if np.any(bad):
+        row = int(np.argwhere(bad)[0][0])
+        value = float(arr[row][bad[row]][0])
+        what = ("must be finite" if not np.isfinite(value) else
+                f"coordinates must be within +-{MAX_COORDINATE_MM:g} mm (100 m, beyond any "
+                "tracker's or scanner's volume)")
+        raise FluoInputError(what, file=file, field=f"{field} row {row + 1}", value=value)
     return arr
+
+
+def _points(name, p):
+    return check_points(p, name)
 
 
 def register_points(moving_mm, fixed_mm, weights=None):

@@ -25,7 +25,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "live_loop": ["LiveLoop"],
     "ndi_client": ["NDIClient", "TrackingStats"],
     "ndi_protocol": ["NDIProtocolError", "crc16", "with_crc", "check_reply", "command", "ToolPose", "TXReply", "parse_tx", "format_tx", "parse_phsr", "format_phsr", "ERROR_CODES", "PORT_OCCUPIED", "PORT_ENABLED", "PORT_OUT_OF_VOLUME", "PORT_PARTIAL_OUT_OF_VOLUME"],
-    "ndi_simulator": ["Faults", "SimTool", "NDISimulator"],
+    "ndi_simulator": ["Faults", "SimTool", "NDISimulator", "FAULT_KINDS"],
     "recorder": ["Recorder", "read_recording", "replay", "to_scene"],
     "timesync": ["PoseBuffer", "estimate_latency"],
     "tracker": ["SOURCES", "TrackerSession", "NDITracker", "IGTLTracker", "ReplayTracker", "open_tracker", "check_seconds", "parse_host_port", "finite_pose"],

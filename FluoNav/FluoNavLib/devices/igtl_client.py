@@ -16,7 +16,11 @@ trusts nothing the server sends:
   bytes that are not a header end the connection (the framing is lost) and are
   reported as a device error, not as the user's bad input;
 - a message whose content is not finite (NaN in a pose) is counted as rejected
-  and never reaches the scene.
+  and never reaches the scene;
+- a run (:meth:`IGTLReceiver.receive`) in which the server sent no usable
+  message (it stayed silent, sent half a header and held, closed after a
+  header or in a body, or sent only rejected or unmapped messages) is a device
+  error saying what arrived, never an empty success (issue #34).
 
 Every message is applied (nothing is dropped between polls). Messages the
 sender lost are counted from a ``seq`` metadata field when the sender puts one
@@ -43,6 +47,8 @@ HEADER_SIZE = 58
 _HEADER = struct.Struct("> H 12s 20s I I Q Q")
 # A sequence or timestamp jump beyond this many messages is a reset, not a loss.
 MAX_PLAUSIBLE_GAP = 10_000
+# The message types that reach the scene (the others are counted as ignored).
+MAPPED_TYPES = ("TRANSFORM", "IMAGE")
 
 
 class IGTLReceiver:
@@ -138,7 +144,9 @@ class IGTLReceiver:
         self._buffer = self._buffer[HEADER_SIZE + body_size:]
         if CRC64(body) != crc:
             self._device_error(f"CRC mismatch in a {mtype} message from {device!r}")
-        message = pyigtl.MessageBase.create_message(mtype)
+        # a type we do not map is counted, not decoded: pyigtl's decoders of other types
+        # (STRING's text encodings, POINT) are code a hostile body need not reach
+        message = pyigtl.MessageBase.create_message(mtype) if mtype in MAPPED_TYPES else None
         if message is None:
             self.ignored_types[mtype] = self.ignored_types.get(mtype, 0) + 1
             return False
@@ -146,8 +154,11 @@ class IGTLReceiver:
                   "timestamp": sec + frac / 2.0**32, "body_size": body_size}
         try:
             message.unpack(fields, body)
-        except (struct.error, ValueError, IndexError, UnicodeDecodeError) as exc:
-            self._device_error(f"malformed {mtype} body from {device!r} ({exc})")
+        except Exception as exc:  # noqa: BLE001 - pyigtl decoding untrusted bytes raises
+            # anything (struct.error, ValueError, NotImplementedError for a sub-volume,
+            # TypeError from its own `raise "text"` on bad metadata): the peer's fault
+            self._device_error(f"malformed {mtype} body from {device!r} "
+                               f"({type(exc).__name__}: {exc})")
         return message
 
     def _read_exact_peek(self, n, deadline):
@@ -259,14 +270,48 @@ class IGTLReceiver:
         dict
             ``received``, ``lost``, ``rejected``, ``resets`` per device,
             ``ignored_types``, and ``closed_by_peer``.
+
+        Raises
+        ------
+        FluoDeviceError
+            The server sent no message that reached the scene within ``seconds``
+            (or closed the connection before one did); the message says what
+            arrived instead.
         """
         seconds = float(seconds)
         if not np.isfinite(seconds) or seconds <= 0 or seconds > 86400:
             raise FluoInputError("must be a number of seconds in (0, 86400]", field="--seconds",
                                  value=seconds)
-        t_end = time.monotonic() + seconds
+        t0 = time.monotonic()
+        t_end = t0 + seconds
         while time.monotonic() < t_end and not self.closed_by_peer:
             self.poll(budget_s=max(0.0, min(0.1, t_end - time.monotonic())))
+        if not self.received:
+            # nothing reached the scene: a peer failure, not an empty success
+            self._device_error(self._nothing_usable(time.monotonic() - t0))
         return {"received": dict(self.received), "lost": dict(self.lost),
                 "rejected": dict(self.rejected), "resets": dict(self.resets),
                 "ignored_types": dict(self.ignored_types), "closed_by_peer": self.closed_by_peer}
+
+    def _nothing_usable(self, elapsed_s):
+        """What the server sent instead of a usable message, in words."""
+        what = []
+        if self.rejected:
+            what.append(f"{sum(self.rejected.values())} messages rejected (not a finite pose "
+                        f"or image) from {', '.join(sorted(self.rejected))}")
+        if self.ignored_types:
+            what.append("only message types that are not mapped (" + ", ".join(
+                f"{k} x{v}" for k, v in sorted(self.ignored_types.items())) + ")")
+        n = len(self._buffer)
+        if n >= HEADER_SIZE:
+            _, mtype, _, _, _, body_size, _ = _HEADER.unpack(self._buffer[:HEADER_SIZE])
+            mtype = mtype.decode("ascii", "replace").rstrip(" \t\r\n\0")
+            what.append(f"a {mtype} header announcing a {body_size}-byte body of which "
+                        f"{n - HEADER_SIZE} bytes arrived")
+        elif n:
+            what.append(f"{n} of the {HEADER_SIZE} bytes of a header")
+        if not what:
+            return (f"closed the connection after {elapsed_s:.1f} s without sending anything"
+                    if self.closed_by_peer else f"sent nothing in {elapsed_s:.1f} s")
+        end = "then closed the connection" if self.closed_by_peer else "then nothing more"
+        return f"no usable message in {elapsed_s:.1f} s: {'; '.join(what)}, {end}"

@@ -7,6 +7,9 @@ along smooth paths with measurement noise, and can inject the faults a real
 setup has: tools MISSING (occlusion bursts) or out of volume, corrupted CRCs,
 slow replies, and a disconnect (silence for a while, after which the device
 has reset and must be initialised again, as after a power cycle or cable pull).
+And the faults of a device that misbehaves (issue #34): a CRC storm (every
+reply corrupted for a while), a chaotic frame counter (random 32-bit frame
+numbers), and every reply sent twice (a loop-back or a confused adapter).
 
 Serial break on a pty is a no-op, so a reset is asked for with the ``RESET``
 command (which the real device also accepts).
@@ -22,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fluoguide.errors import seeded_rng
+from fluoguide.errors import FluoInputError, seeded_rng
 
 from FluoNavLib.devices.ndi_protocol import (
     PORT_ENABLED,
@@ -34,7 +37,7 @@ from FluoNavLib.devices.ndi_protocol import (
     with_crc,
 )
 
-__all__ = ["Faults", "SimTool", "NDISimulator"]
+__all__ = ["Faults", "SimTool", "NDISimulator", "FAULT_KINDS"]
 
 
 @dataclass
@@ -48,11 +51,49 @@ class Faults:
     dropout_s: float = 0.2
     disconnect_at_s: tuple = ()          # times after TSTART of a disconnect
     disconnect_s: float = 0.5
+    crc_storms: tuple = ()               # ((start, end), ...) after the first TSTART [s]:
+                                         # every reply's CRC corrupted in these windows
+    chaotic_frames: bool = False         # TX frame numbers drawn at random in [0, 2^32)
+    duplicate_replies: tuple = ()        # commands whose replies are sent twice ("*": all) ...
+    duplicate_delay_s: float = 0.002     # ... the copy this long after the first [s]
 
     @classmethod
     def typical(cls):
         return cls(crc_error_rate=0.01, slow_reply_rate=0.005, dropout_rate_per_s=0.5,
                    disconnect_at_s=(2.0,))
+
+    @classmethod
+    def named(cls, kinds, field="--inject-faults"):
+        """The faults of ``kinds``: a comma-separated list of :data:`FAULT_KINDS` names
+        (``fluo track --sim --inject-faults crc-storm,chaotic-frames``); True: typical;
+        None, False or nothing: none."""
+        if kinds is None or kinds is False:
+            return cls()
+        if kinds is True:
+            kinds = "typical"
+        names = [k.strip() for k in str(kinds).split(",")]
+        bad = [k for k in names if k not in FAULT_KINDS]
+        if bad or not names:
+            raise FluoInputError(f"expected fault kinds from {', '.join(FAULT_KINDS)}, "
+                                 f"comma-separated", field=field, value=kinds)
+        settings = {}
+        for k in names:
+            settings.update(FAULT_KINDS[k][1])
+        return cls(**settings)
+
+
+#: The fault sets ``--inject-faults`` names: name -> (what, Faults fields).
+FAULT_KINDS = {
+    "typical": ("CRC errors, slow replies, occlusion bursts and a disconnect at 2 s",
+                {"crc_error_rate": 0.01, "slow_reply_rate": 0.005, "dropout_rate_per_s": 0.5,
+                 "disconnect_at_s": (2.0,)}),
+    # 0.3 s in every second from 0.5 s on (for an hour): each one costs a recovery
+    "crc-storm": ("every reply's CRC corrupted for 0.3 s in every second",
+                  {"crc_storms": tuple((0.5 + k, 0.8 + k) for k in range(3600))}),
+    "chaotic-frames": ("TX frame numbers at random in [0, 2^32)", {"chaotic_frames": True}),
+    "duplicate-replies": ("every TX reply sent twice, the copy 2 ms after the first",
+                          {"duplicate_replies": ("TX",)}),
+}
 
 
 @dataclass
@@ -94,8 +135,9 @@ class NDISimulator:
         self._stop = threading.Event()
         self.port = None
         self.counters = {"replies": 0, "crc_corrupted": 0, "slow": 0, "disconnects": 0,
-                         "commands": 0}
+                         "commands": 0, "duplicated": 0, "chaotic_frames": 0}
         self._done_disconnects = set()   # survives resets: each scheduled disconnect once
+        self._first_start = None         # the first TSTART (the CRC storm's clock)
         self._reset_state()
 
     # -- device state ----------------------------------------------------------
@@ -158,16 +200,24 @@ class NDISimulator:
             buf += chunk
             while b"\r" in buf:
                 line, buf = buf.split(b"\r", 1)
-                reply = self._handle(line.decode("ascii", "replace"))
+                text = line.decode("ascii", "replace")
+                reply = self._handle(text)
                 if reply is not None:
-                    self._send(reply)
+                    self._send(reply, text.strip().partition(" ")[0].split(":")[0].upper())
 
-    def _send(self, reply):
+    def _in_crc_storm(self):
+        if not self.faults.crc_storms or self._first_start is None:
+            return False
+        t = time.monotonic() - self._first_start
+        return any(start <= t < end for start, end in self.faults.crc_storms)
+
+    def _send(self, reply, name=""):
         f = self.faults
         if f.slow_reply_rate and self.rng.random() < f.slow_reply_rate:
             self.counters["slow"] += 1
             time.sleep(f.slow_reply_s)
-        if f.crc_error_rate and self.rng.random() < f.crc_error_rate and len(reply) > 5:
+        if len(reply) > 5 and (self._in_crc_storm() or (
+                f.crc_error_rate and self.rng.random() < f.crc_error_rate)):
             self.counters["crc_corrupted"] += 1
             b = bytearray(reply)
             k = len(b) - 2
@@ -176,6 +226,10 @@ class NDISimulator:
         self.counters["replies"] += 1
         try:
             os.write(self._master, reply)
+            if "*" in f.duplicate_replies or name in f.duplicate_replies:
+                time.sleep(f.duplicate_delay_s)
+                self.counters["duplicated"] += 1
+                os.write(self._master, reply)
         except OSError:
             pass
 
@@ -239,6 +293,8 @@ class NDISimulator:
         if name == "TSTART":
             self.tracking = True
             self._t0 = now
+            if self._first_start is None:
+                self._first_start = now
             return with_crc("OKAY")
         if name == "TSTOP":
             self.tracking = False
@@ -264,6 +320,9 @@ class NDISimulator:
         t = now - self._t0
         frame = self._frame(now)
         f = self.faults
+        if f.chaotic_frames:
+            self.counters["chaotic_frames"] += 1
+            frame = int(self.rng.integers(0, 2**32))
         recs = []
         for h, s in sorted(self.handles.items()):
             if not s["enabled"]:

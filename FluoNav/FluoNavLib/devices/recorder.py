@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoguide.errors import FluoInputError
+from fluoguide.jsonable import loads
 
 __all__ = ["Recorder", "read_recording", "replay", "to_scene"]
 
@@ -38,14 +39,17 @@ class Recorder:
             raise FluoInputError("output exists and is not a folder", file=self.folder)
         if self.folder.exists() and any(self.folder.iterdir()):
             raise FluoInputError("recording folder exists and is not empty", file=self.folder)
+        atomic.check_writable(self.folder, folder=True)
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
+            # an existing folder that refuses files (EACCES/EPERM, root too, where
+            # os.access said yes): one line naming it, not a traceback
+            self._log = open(self.folder / "log.jsonl", "a", encoding="utf-8")
         except OSError as exc:
             raise atomic.output_error(exc, self.folder) from None
         self.tools = list(tools)
         self.n = 0
         self._last_t = None
-        self._log = open(self.folder / "log.jsonl", "a", encoding="utf-8")
         header = {"format": "fluoguide-recording/1", "tools": self.tools}
         self._append(header)
 
@@ -158,7 +162,7 @@ def read_recording(folder):
     if not lines:
         raise FluoInputError("empty recording log", file=log)
     try:
-        header = json.loads(lines[0])
+        header = loads(lines[0], file=log, field="line 1")
     except (json.JSONDecodeError, RecursionError):
         raise FluoInputError("corrupt recording header", file=log, field="line 1") from None
     if not isinstance(header, dict) or not isinstance(header.get("tools", []), list):
@@ -167,7 +171,7 @@ def read_recording(folder):
     frames = []
     for k, line in enumerate(lines[1:], start=2):
         try:
-            doc = json.loads(line)
+            doc = loads(line, file=log, field=f"line {k}")
         except (json.JSONDecodeError, RecursionError):
             if k == len(lines):
                 break             # the frame in flight when the recorder died

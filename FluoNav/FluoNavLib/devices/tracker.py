@@ -80,7 +80,8 @@ class NDITracker(TrackerSession):
         Serial port of a real tracker; None with ``simulate``.
     simulate : bool
         Start an ``NDISimulator`` on a pseudo-terminal (``sim_tools`` moving
-        tools, faults when ``inject_faults``).
+        tools, the faults ``inject_faults`` names: True for the typical ones, or
+        a comma-separated list of ``ndi_simulator.FAULT_KINDS``).
     tools : int
         Passive tools to request from a real tracker (the simulator has two).
     tool_names : sequence of str
@@ -91,11 +92,12 @@ class NDITracker(TrackerSession):
                  tool_names=("CameraToolToTracker",), sim_tools=None, roms=None):
         from FluoNavLib.devices import ndi_simulator
         from FluoNavLib.devices.ndi_client import NDIClient
+        from FluoNavLib.devices.ndi_protocol import NDIProtocolError
 
         self.source = "ndi-sim" if simulate else "ndi"
         self.sim = None
         if simulate:
-            faults = ndi_simulator.Faults.typical() if inject_faults else ndi_simulator.Faults()
+            faults = ndi_simulator.Faults.named(inject_faults)
             kw = {"faults": faults, "seed": seed}
             if sim_tools is not None:
                 kw["tools"] = list(sim_tools)
@@ -115,12 +117,23 @@ class NDITracker(TrackerSession):
             if roms is None:
                 n = (2 if sim_tools is None else len(sim_tools)) if simulate else int(tools)
                 roms = [b"FluoGuide sim tool " * 4] * n
-            self.client.initialize(roms)
-            self.client.start()
+            try:
+                self.client.initialize(roms)
+                self.client.start()
+            except NDIProtocolError as exc:
+                raise FluoDeviceError(f"tracker on {port} could not be set up: {exc} "
+                                      f"({self._faults()})") from None
         except BaseException:
             self.close()
             raise
         self._failures = 0
+
+    def _faults(self):
+        """The client's fault counts, in words (for an error message)."""
+        st = self.client.stats
+        return (f"CRC errors {st.crc_errors}, time-outs {st.timeouts}, malformed "
+                f"{st.malformed}, device errors {st.device_errors}, unrequested replies "
+                f"{st.duplicate_replies}, recoveries {st.recovered}")
 
     def _poses(self, reply):
         poses = {}
@@ -138,11 +151,14 @@ class NDITracker(TrackerSession):
         try:
             reply = self.client.poll()
             self._failures = 0
-        except NDIProtocolError:
+        except NDIProtocolError as exc:
+            if exc.kind == "duplicate":    # resynchronised (a device that keeps it up is refused)
+                return None
             self._failures += 1
             if self._failures >= self.client.max_failures:
                 if not self.client.recover():
-                    raise
+                    raise FluoDeviceError(f"tracker on {self.port}: {exc}, and it did not "
+                                          f"recover ({self._faults()})") from None
                 self._failures = 0
             return None
         if reply is None:
@@ -158,22 +174,30 @@ class NDITracker(TrackerSession):
         faults, ``lost_unreported`` (computed, must be 0), simulator counters.
         Raises FluoDeviceError when the tracker delivered no frame at all.
         """
+        from FluoNavLib.devices.ndi_protocol import NDIProtocolError
+
         seconds = check_seconds(seconds)
         callback = None if on_poses is None else (lambda reply, t: on_poses(self._poses(reply), t))
         t0 = time.monotonic()
-        stats = self.client.track(seconds, on_frame=callback)
+        try:
+            stats = self.client.track(seconds, on_frame=callback)
+        except NDIProtocolError as exc:
+            # failures in a row and every recovery attempt failed: one device error
+            raise FluoDeviceError(f"tracker on {self.port}: {exc}, and it did not recover "
+                                  f"({self._faults()})") from None
         elapsed = time.monotonic() - t0
         if stats.frames == 0:
             # a tracker that answered nothing usable is a failed run, not an empty success
             raise FluoDeviceError(
-                f"tracker on {self.port} delivered no frames in {elapsed:.1f} s (CRC errors "
-                f"{stats.crc_errors}, time-outs {stats.timeouts}, malformed {stats.malformed}, "
-                f"device errors {stats.device_errors})")
+                f"tracker on {self.port} delivered no frames in {elapsed:.1f} s "
+                f"({self._faults()})")
         return {"frames": stats.frames, "rate_hz": stats.frames / elapsed, "seconds": elapsed,
                 "missing": stats.missing, "tool_missing": stats.tool_missing,
                 "out_of_volume": stats.out_of_volume, "crc_errors": stats.crc_errors,
                 "timeouts": stats.timeouts, "malformed": stats.malformed,
                 "device_errors": stats.device_errors, "recovered": stats.recovered,
+                "duplicate_replies": stats.duplicate_replies,
+                "late_replies": stats.late_replies, "counter_jumps": stats.counter_jumps,
                 "lost_unreported": stats.lost_unreported(), "segments": stats.segments,
                 "simulator": self.sim.counters if self.sim is not None else None}
 

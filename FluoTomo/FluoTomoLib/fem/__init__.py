@@ -22,7 +22,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "halfspace": ["half_space_check", "half_space_excitation_data"],
     "jacobian_kernels": ["node_elements", "pair_jacobian"],
     "locate": ["barycentric", "PointLocator", "locator", "BoundaryLocator", "boundary_locator"],
-    "operators": ["geometry", "symmetric_from_upper", "weighted_mass", "stiffness", "MeshResolutionWarning", "DiffusionOperator", "snap_to_surface", "source_positions", "point_source_rhs", "detector_operator"],
+    "operators": ["SOLVERS", "check_solver", "geometry", "symmetric_from_upper", "weighted_mass", "stiffness", "MeshResolutionWarning", "DiffusionOperator", "snap_to_surface", "source_positions", "point_source_rhs", "detector_operator"],
     "ordering": ["geometric_nested_dissection"],
     "pardiso": ["mkl_pardiso", "PardisoPattern", "PardisoCholesky"],
     "resolution": ["element_sizes", "log_error_estimate", "required_size", "pair_sizes"],

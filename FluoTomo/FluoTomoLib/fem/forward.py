@@ -82,18 +82,21 @@ class FluorescenceModel:
     solver : see DiffusionOperator
     source_normals : (S, d) outward unit normals of the true surface at the
         sources, to bury them along (default: the nearest facet's normal)
+    cut_facets : bool mask over ``mesh.boundary_facets`` where the tissue goes on
+        beyond the mesh (DiffusionOperator); default none
     """
 
     def __init__(self, mesh, props_x, props_m, sources_mm, detectors_mm, solver="auto",
-                 max_snap_mm=5.0, source_normals=None):
+                 max_snap_mm=5.0, source_normals=None, cut_facets=None):
         t0 = time.perf_counter()
         mua_x, musp_x, n_x = _props(mesh, props_x, "props_x")
         mua_m, musp_m, n_m = _props(mesh, props_m, "props_m")
         # the boundary constant's method (optics.robin_A), "boundary" in either dict
         self.boundary = props_x.get("boundary", props_m.get("boundary"))
         self.mesh = mesh
+        self.cut_facets = cut_facets
         self.op_x = DiffusionOperator(mesh, mua_x, musp_x, n_x, solver, name="excitation",
-                                      boundary=self.boundary)
+                                      boundary=self.boundary, cut_facets=cut_facets)
         # The emission operator is assembled on first use: excitation-only work
         # (mua Jacobians, reflectance) never pays for it.
         check_properties(_nodal(mesh, mua_m, "emission.mua_per_mm"),
@@ -115,6 +118,13 @@ class FluorescenceModel:
         self._adj_m = None
         self._adj_x = None
         self.timings = {"assembly": self.op_x.assembly_seconds}
+        # progress(fraction, message) of the steps a Jacobian takes (set by the
+        # caller: TissueModel); each step says what it is doing before it starts
+        self.progress = None
+
+    def _say(self, fraction, message):
+        if self.progress is not None:
+            self.progress(fraction, message)
 
     @property
     def op_m(self):
@@ -122,7 +132,7 @@ class FluorescenceModel:
         if self._op_m is None:
             mesh, mua_m, musp_m, n_m, solver = self._op_m_args
             self._op_m = DiffusionOperator(mesh, mua_m, musp_m, n_m, solver, name="emission",
-                                           boundary=self.boundary)
+                                           boundary=self.boundary, cut_facets=self.cut_facets)
             self.timings["assembly"] += self._op_m.assembly_seconds
         return self._op_m
 
@@ -143,6 +153,8 @@ class FluorescenceModel:
         """(N, S) excitation fluence for unit-power sources [1/mm^2 in 3D, 1/mm in 2D]."""
         if self._phi_x is None:
             t0 = time.perf_counter()
+            self._say(0.0, f"excitation: factorising ({self.mesh.n_nodes} nodes) and solving "
+                           f"{self.n_sources} source(s)")
             self._phi_x = self.op_x.solve(self.q, readout=self.P)
             self.timings["forward_x"] = time.perf_counter() - t0
             self.timings["factor"] = self.op_x.factor_seconds
@@ -153,6 +165,8 @@ class FluorescenceModel:
         """(N, D) emission-wavelength adjoint fields (Green's function of each detector)."""
         if self._adj_m is None:
             t0 = time.perf_counter()
+            self._say(0.4, f"emission: factorising and solving {self.n_detectors} detector "
+                           "adjoint(s)")
             self._adj_m = self.op_m.solve(self.P.T.tocsc(), readout=self.q.T)
             self.timings["adjoint_m"] = time.perf_counter() - t0
             self.timings["factor"] = self.timings.get("factor", 0) + self.op_m.factor_seconds
@@ -185,9 +199,13 @@ class FluorescenceModel:
 
     def jacobian_yield(self):
         """(S*D, N): d(emission data)/d(nodal yield), row s*D + d."""
+        phi, adj = self.phi_x, self.adjoint_m
         t0 = time.perf_counter()
-        J = triple_product_jacobian(self.mesh, self.adjoint_m, self.phi_x)
+        self._say(0.8, f"Jacobian kernel ({self.n_sources * self.n_detectors} pairs x "
+                       f"{self.mesh.n_nodes} nodes)")
+        J = triple_product_jacobian(self.mesh, adj, phi)
         self.timings["jacobian"] = time.perf_counter() - t0
+        self._say(1.0, "Jacobian done")
         return J
 
     def accuracy(self, target=0.05, wavelengths=("excitation",)):

@@ -159,6 +159,17 @@ def stiffness(mesh, D_nodal):
 
 # ---------------------------------------------------------------- solver
 
+#: the linear solvers a DiffusionOperator knows (docs/fem.md)
+SOLVERS = ("auto", "pardiso", "splu", "amg")
+
+
+def check_solver(name, field="solver"):
+    """``name`` if it is one of :data:`SOLVERS`, else FluoInputError naming them."""
+    if name not in SOLVERS:
+        raise FluoInputError(f"unknown solver; use {', '.join(SOLVERS)}", field=field, value=name)
+    return name
+
+
 def _pardiso_available():
     return mkl_pardiso() is not None
 
@@ -207,6 +218,11 @@ class DiffusionOperator:
         Robin condition applies; elsewhere the boundary is reflecting (zero
         flux), e.g. the cut sides of a column modelling an infinite slab.
         Default: every boundary facet.
+    cut_facets : bool mask over ``mesh.boundary_facets`` where the tissue goes on
+        beyond the mesh (a label map cropped through tissue): the continuation
+        condition -D dPhi/dn = sqrt(mua D) Phi of a field decaying as
+        exp(-mueff x) into the same tissue, instead of the tissue-air condition
+        (docs/physics.md section 2.5). Default: none.
     solver : "auto" (PARDISO if MKL loads, else SuperLU), "pardiso", "splu" or "amg"
         (smoothed-aggregation AMG preconditioned CG, for meshes too big to factorise)
     boundary : the boundary constant A's method for ``optics.robin_A`` ("empirical" or
@@ -215,7 +231,7 @@ class DiffusionOperator:
     """
 
     def __init__(self, mesh, mua_per_mm, musp_per_mm, n, solver="auto", name="operator",
-                 robin_facets=None, boundary=None):
+                 robin_facets=None, boundary=None, cut_facets=None):
         mesh.check_topology()
         mua = _nodal(mesh, mua_per_mm, f"{name}.mua_per_mm")
         musp = _nodal(mesh, musp_per_mm, f"{name}.musp_per_mm")
@@ -232,13 +248,20 @@ class DiffusionOperator:
         t0 = time.perf_counter()
         g = geometry(mesh)
         self.robin_facets = robin_facets
+        self.cut_facets = cut_facets
+        boundary_coef = g.boundary_weight(robin_facets) * (1.0 / (2.0 * self.A))
+        if cut_facets is not None and np.any(cut_facets):
+            cut = np.asarray(cut_facets, bool)
+            air = ~cut if robin_facets is None else (np.asarray(robin_facets, bool) & ~cut)
+            boundary_coef = (g.boundary_weight(air) * (1.0 / (2.0 * self.A))
+                             + g.boundary_weight(cut) * np.sqrt(mua * self.D))
         # assembled as the upper triangle PARDISO factorises; the full matrix
         # (K) is built only when asked for (SuperLU, AMG, matrix products)
-        self.K_upper = g.upper(self.D, mua, g.boundary_weight(robin_facets) * (1.0 / (2.0 * self.A)))
+        self.K_upper = g.upper(self.D, mua, boundary_coef)
         self._K = None
         self.assembly_seconds = time.perf_counter() - t0
         self.factor_seconds = 0.0
-        self._solver_request = solver
+        self._solver_request = check_solver(solver)
         self._solve = None
         self.solver_name = None
         self.n_solves = 0
@@ -256,9 +279,6 @@ class DiffusionOperator:
             return self
         t0 = time.perf_counter()
         req = self._solver_request
-        if req not in ("auto", "pardiso", "splu", "amg"):
-            raise FluoInputError("unknown solver; use auto, pardiso, splu or amg", field="solver",
-                                 value=req)
         pardiso = req in ("auto", "pardiso") and _pardiso_available()
         if req == "pardiso" and not pardiso:
             raise FluoInputError("PARDISO (MKL) is not available", field="solver", value=req)

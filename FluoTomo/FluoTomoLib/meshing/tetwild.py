@@ -38,6 +38,16 @@ from FluoTomoLib.meshing.mesh import Mesh
 #: (memory ~1.5 kB per tet inside fTetWild, minutes per million tets on 2 cores)
 MAX_BOX_TETS = 4.0e6
 
+#: the peak memory of the quality mesher [bytes]: per tetrahedron of fTetWild's
+#: padded box (its background mesh, the output, the region labelling) and per
+#: voxel of the label map (SurfaceNets surfaces). Measured (``fluo mesh``,
+#: /usr/bin/time -v, peak less the 0.43 GB of imports; the 0.8 mm cylinder-tube
+#: label map, 0.48 million voxels, at 3, 2 and 1.5 mm: 0.16, 0.47 and 1.06
+#: million box tetrahedra): 100, 227 and 406 MB; the estimate (500 and 120 B)
+#: gives 136, 294 and 587 MB, 1.3-1.45x (docs/reliability.md, "Memory estimates")
+QUALITY_BYTES_PER_BOX_TET = 500.0
+QUALITY_BYTES_PER_VOXEL = 120.0
+
 
 # ----------------------------------------------------------------- label map
 def _check_geometry(labels, spacing_mm, origin_mm, direction):
@@ -498,6 +508,12 @@ def mesh_labelmap_quality(labels_kji, spacing_mm, origin_mm, size_mm, roi=None, 
         raise FluoInputError(f"about {box_tets:.3g} tetrahedra in the meshing box: choose a "
                              "larger element size or an roi (or --fast)", field="size_mm",
                              value=size_mm)
+    from fluoguide.memory import check_fits
+
+    check_fits(QUALITY_BYTES_PER_BOX_TET * box_tets + QUALITY_BYTES_PER_VOXEL * labels.size,
+               f"the quality mesh ({box_tets / 1e6:.1f} million tetrahedra in fTetWild's box "
+               f"at {size_mm:g} mm)", "choose a larger element size or an roi (or --fast)",
+               field="size_mm", value=size_mm)
     spec = _parse_refine(refine, size_mm)
     timing["labels_s"] = time.perf_counter() - t0
     check_cancel(cancel)

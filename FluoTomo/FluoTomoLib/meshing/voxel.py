@@ -291,6 +291,33 @@ VOLUME_WARN_PCT = 2.0
 #: most cells one structured mesh may have (6 tetrahedra each; ~3 GB of work)
 MAX_CELLS = 3_000_000
 
+#: the peak memory the structured mesher adds per tetrahedron of tissue [bytes]:
+#: node ids (int64), np.unique's sort and inverse, node coordinates, orientation
+#: and the volume report. Measured (``fluo mesh --fast``, /usr/bin/time -v, peak
+#: less the 0.43 GB of imports; the 0.8 mm cylinder-tube label map at 1, 0.6 and
+#: 0.45 mm: 0.75, 3.5 and 8.4 million tetrahedra): 435, 415 and 397 B; 500 is
+#: 1.15-1.26x that (docs/reliability.md, "Memory estimates")
+STRUCTURED_BYTES_PER_TET = 500.0
+
+
+def _check_memory(labels, spacing, extent_lo, roi, n_cells, size_mm):
+    """Refuse a structured mesh whose estimated peak does not fit, before the
+    grid is built: 6 tetrahedra per cell, times the tissue's share of the label
+    map inside the roi (its voxels counted: cheap next to the meshing)."""
+    from fluoguide.memory import check_fits
+
+    shape_ijk = np.array(labels.shape[::-1])
+    i0 = np.clip(np.floor((roi[0::2] - extent_lo) / spacing), 0, shape_ijk).astype(int)
+    i1 = np.clip(np.ceil((roi[1::2] - extent_lo) / spacing), i0 + 1, shape_ijk).astype(int)
+    sub = labels[i0[2]:i1[2], i0[1]:i1[1], i0[0]:i1[0]]
+    tissue = np.count_nonzero(sub) / max(sub.size, 1)
+    tets = 6.0 * n_cells * tissue
+    check_fits(STRUCTURED_BYTES_PER_TET * tets,
+               f"a structured mesh of {tets / 1e6:.1f} million tetrahedra "
+               f"({size_mm:g} mm cells)",
+               "choose a larger element size or a smaller region of interest",
+               field="size_mm", value=size_mm)
+
 
 def check_direction(direction, field="direction"):
     """An IJK-to-RAS direction matrix as a (3, 3) array: orthonormal (a rotation,
@@ -463,6 +490,7 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     if n_cells > MAX_CELLS:
         raise FluoInputError(f"{n_cells:.3g} cells: choose a larger element size, a smaller roi "
                              "or a narrower refinement", field="size_mm", value=size_mm)
+    _check_memory(labels, spacing, extent_lo, roi, n_cells, size_mm)
     cell, edges, volumes, partial = _cell_labels(labels, spacing, origin, roi, edges)
     check_cancel(cancel)
     report(progress, 0.4, "building tetrahedra")

@@ -85,6 +85,8 @@ def validation_figure(result, medium_text, path):
     ax[1, 1].legend(fontsize=7, ncol=2)
     ax[1, 1].grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    from fluoguide import atomic
+
+    atomic.save_figure(fig, path, field="--out", dpi=110)   # whole, or nothing
     plt.close(fig)
     return path

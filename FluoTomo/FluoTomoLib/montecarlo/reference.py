@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import datetime
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from fluoguide.errors import FluoInputError
+from fluoguide.jsonable import loads
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 INDEPENDENT_N137 = DATA_DIR / "independent_reflectance_n137.csv"
@@ -41,8 +41,8 @@ def read_set(path):
     if not p.is_file():
         raise FluoInputError("file not found", file=p)
     try:
-        data = json.loads(p.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = loads(p.read_text(), file=p)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise FluoInputError(f"not a JSON Monte Carlo set ({exc})", file=p) from None
     if not isinstance(data, dict) or data.get("kind") not in ("halfspace", "fluorescence"):
         raise FluoInputError("not a Monte Carlo set (needs kind 'halfspace' or 'fluorescence')",
@@ -52,13 +52,10 @@ def read_set(path):
 
 
 def write_json_atomic(path, data):
+    from fluoguide import atomic
     from fluoguide.jsonable import dumps
 
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(dumps(data, indent=1) + "\n")
-    os.replace(tmp, p)
-    return p
+    return atomic.write_text(path, dumps(data, indent=1) + "\n", field="--out")
 
 
 def halfspace_set(medium, merged, command):

@@ -307,6 +307,8 @@ def figure(result, path):
                  "diffusion-FEM data (hatched): same 12 sources and 13 detectors, same 1 % "
                  "noise", fontsize=10)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
+    from fluoguide import atomic
+
+    atomic.save_figure(fig, path, field="--out", dpi=110)   # whole, or nothing
     plt.close(fig)
     return str(path)

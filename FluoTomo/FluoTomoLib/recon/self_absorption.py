@@ -64,7 +64,7 @@ def _aitken(v0, v1, v2, max_ratio=0.9):
 
 def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
                                mua_per_yield, lam=10.0, passes=None, rel_tol=0.02,
-                               cancel=None):
+                               cancel=None, progress=None, region_weights=None):
     """Reconstruct with the fluorophore's absorption fed back into the model.
 
     Parameters
@@ -83,24 +83,36 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
     rel_tol : HP stops when the region values (or their Aitken extrapolation,
         from the second pass on) change by less than this, relative to the
         largest
+    progress : progress(fraction, message): each pass, and the solver's
+        iterations inside it
+    region_weights : SP's region means (``reconstruct``'s), passed on
 
     Returns (ReconResult of the last pass with ``yield_per_mm`` nodal, list of
     the largest nodal yield after each pass).
     """
-    from fluoguide.progress import check_cancel
+    from fluoguide.progress import check_cancel, report, scaled
 
     method = method.upper()
     passes = (6 if method == "HP" else 1) if passes is None else int(passes)
+
+    def step(k, what):                 # pass k of 1 + passes: its share of the bar
+        share = 1.0 / (passes + 1)
+        return scaled(progress, k * share, (k + 1) * share, f"{method} {what}")
+
     if method != "HP":
-        res = reconstruct(J, y, method, lam=lam, prior=prior)
+        res = reconstruct(J, y, method, lam=lam, prior=prior, progress=step(0, "first solve"),
+                          region_weights=region_weights)
         history = [float(np.max(res.yield_per_mm))]
-        for _ in range(passes):
+        for k in range(passes):
             check_cancel(cancel)
+            report(step(k + 1, f"self-absorption pass {k + 1}"), 0.0, "model with the dye's "
+                   "absorption, its Jacobian")
             x = res.yield_per_mm
             model = make_model(absorbing_mua(mua_bg[0], x, yield_bg, mua_per_yield[0]),
                                absorbing_mua(mua_bg[1], x, yield_bg, mua_per_yield[1]))
             res = reconstruct(model.jacobian_yield()[mask.ravel()], y, method, lam=lam,
-                              prior=prior)
+                              prior=prior, progress=step(k + 1, f"self-absorption pass {k + 1}"),
+                              region_weights=region_weights)
             history.append(float(np.max(res.yield_per_mm)))
         return res, history
 
@@ -111,17 +123,21 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
         warnings.simplefilter("ignore")
         unknowns = PartialVolumePrior(np.asarray(prior.labels), prior.labels,
                                       np.eye(len(prior.labels)))
-    res = first = reconstruct(J @ K, y, "HP", lam=lam, prior=unknowns)
+    res = first = reconstruct(J @ K, y, "HP", lam=lam, prior=unknowns,
+                              progress=step(0, "first solve"))
     values = [res.yield_per_mm.copy()]     # every state the models were built from
     triple = [values[-1]]                  # the current fixed-point sequence
     stop = res.stop_reason
     for k in range(passes):
         check_cancel(cancel)
+        report(step(k + 1, f"self-absorption pass {k + 1}"), 0.0,
+               f"emission data of {K.shape[1]} regions with the dye's absorption")
         x = K @ triple[-1]
         model = make_model(absorbing_mua(mua_bg[0], x, yield_bg, mua_per_yield[0]),
                            absorbing_mua(mua_bg[1], x, yield_bg, mua_per_yield[1]))
         A = np.stack([model.emission_data(K[:, r])[mask] for r in range(K.shape[1])], axis=1)
-        res = reconstruct(A, y, "HP", lam=lam, prior=unknowns)
+        res = reconstruct(A, y, "HP", lam=lam, prior=unknowns,
+                          progress=step(k + 1, f"self-absorption pass {k + 1}"))
         triple.append(res.yield_per_mm.copy())
         values.append(triple[-1])
         scale = max(float(np.max(np.abs(triple[-1]))), 1e-300)

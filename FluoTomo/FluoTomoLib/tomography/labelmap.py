@@ -23,6 +23,10 @@ from FluoTomoLib.meshing.voxel import check_direction
 
 #: most labels a label map may have (the prior has one unknown per label)
 MAX_LABELS = 64
+#: a surface point within this many voxels of a cut side's plane (and facing
+#: along its axis) is on the cut face: the iso-surface of a padded mask lies on
+#: the plane, and smoothing moves it by a fraction of a voxel
+CUT_TOLERANCE_VOXELS = 0.75
 
 
 @dataclass(eq=False)
@@ -200,28 +204,87 @@ class LabelMap:
         return ((ijk.min(axis=0) - 0.5) * self.spacing_mm,
                 (ijk.max(axis=0) + 0.5) * self.spacing_mm)
 
+    # ----- cut faces: where the tissue reaches the map's border -----
+    def cut_sides(self):
+        """The sides of the volume that tissue reaches: [(axis, side)], axis 0..2
+        along I, J, K, side 0 (first slice) or 1 (last). A label map's border is
+        not skin: tissue there was cropped (a CBCT's field of view, a crop around
+        the target) and goes on beyond it."""
+        cached = getattr(self, "_cut_sides", None)
+        if cached is None:
+            tissue = self.labels_kji > 0
+            cached = []
+            for a in range(3):
+                ax = 2 - a                      # (K, J, I) array axis of IJK axis a
+                for side, idx in ((0, 0), (1, -1)):
+                    if tissue.take(idx, axis=ax).any():
+                        cached.append((a, side))
+            self._cut_sides = cached
+        return list(cached)
+
+    def cut_planes_local(self):
+        """[(axis, coordinate mm)] of the cut sides' outer planes in the local frame."""
+        lo, hi = self.local_extent()
+        return [(a, float(lo[a] if side == 0 else hi[a])) for a, side in self.cut_sides()]
+
+    def on_cut(self, points_local, normals_local=None, tol_voxels=CUT_TOLERANCE_VOXELS):
+        """True for points (P, 3) on a cut face: within ``tol_voxels`` voxels of a
+        cut side's plane and, with ``normals_local``, facing along its axis (a
+        smoothed surface rounds the edge where skin meets the cut)."""
+        p = np.atleast_2d(np.asarray(points_local, float))
+        out = np.zeros(len(p), bool)
+        for a, c in self.cut_planes_local():
+            near = np.abs(p[:, a] - c) <= tol_voxels * self.spacing_mm[a]
+            if normals_local is not None:
+                near &= np.abs(np.atleast_2d(normals_local)[:, a]) > 0.5
+            out |= near
+        return out
+
+    def cut_facets(self, mesh):
+        """Bool mask over a local-frame mesh's boundary facets that lie on a cut
+        face of the label map (None when the map has none): the facets where the
+        model lets the tissue go on (DiffusionOperator's ``cut_facets``)."""
+        if not self.cut_sides():
+            return None
+        c = mesh.nodes_mm[mesh.boundary_facets].mean(axis=1)
+        mask = self.on_cut(c, mesh.boundary_normals)
+        return mask if mask.any() else None
+
+    def distance_to_cut(self, points_local):
+        """Distance [mm] of each point to the nearest cut face plane (inf without one)."""
+        p = np.atleast_2d(np.asarray(points_local, float))
+        d = np.full(len(p), np.inf)
+        for a, c in self.cut_planes_local():
+            d = np.minimum(d, np.abs(p[:, a] - c))
+        return d
+
     # ----- the tissue-air surface -----
     def surface(self):
-        """The tissue-air surface in the local frame: the 0.5 iso-surface of the
+        """The tissue's surface in the local frame: the 0.5 iso-surface of the
         tissue mask, smoothed without shrinking (FluoNav's surface extraction),
-        as ``SurfaceInfo`` (points, triangles, normals, closest-point queries)."""
+        as ``SurfaceInfo`` (points, triangles, normals, closest-point queries);
+        its ``skin`` marks the triangles that are tissue-air, not a cut face."""
         cached = getattr(self, "_surface", None)
         if cached is None:
             cached = SurfaceInfo.from_labelmap(self)
+            centres = cached.points[cached.triangles].mean(axis=1)
+            cached.skin = ~self.on_cut(centres, cached.normals)
             self._surface = cached
         return cached
 
 
 class SurfaceInfo:
-    """A triangulated tissue-air surface (local frame) with closest-point and
-    ray queries."""
+    """A triangulated tissue surface (local frame) with closest-point and ray
+    queries; ``skin`` (per triangle) is False on the cut faces of a label map."""
 
-    def __init__(self, points, triangles, normals):
+    def __init__(self, points, triangles, normals, skin=None):
         self.points = np.asarray(points, float)
         self.triangles = np.asarray(triangles, np.int64)
         self.normals = np.asarray(normals, float)     # per triangle, outward
+        self.skin = np.ones(len(self.triangles), bool) if skin is None else np.asarray(skin, bool)
         self._locator = None
         self._poly = None
+        self._skin_only = None
 
     @classmethod
     def from_labelmap(cls, lm):
@@ -251,6 +314,29 @@ class SurfaceInfo:
             loc.BuildLocator()
             self._locator = loc
         return self._locator
+
+    def skin_only(self):
+        """This surface without its cut faces (itself when it has none)."""
+        if self.skin.all():
+            return self
+        if self._skin_only is None:
+            self._skin_only = SurfaceInfo(self.points, self.triangles[self.skin],
+                                          self.normals[self.skin])
+        return self._skin_only
+
+    def closest_is_skin(self, points):
+        """For each point (P, 3): is the closest triangle of the surface skin?"""
+        import vtk
+
+        loc = self._vtk_locator()
+        pts = np.atleast_2d(np.asarray(points, float))
+        out = np.empty(len(pts), bool)
+        c = [0.0, 0.0, 0.0]
+        cell, sub, d2 = vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
+        for n, p in enumerate(pts):
+            loc.FindClosestPoint(p.tolist(), c, cell, sub, d2)
+            out[n] = self.skin[int(cell)]
+        return out
 
     def closest(self, points):
         """Closest surface point, its triangle's outward normal and the
@@ -296,7 +382,8 @@ def place_on_surface(lm, points_ras, what, max_offset_mm=MAX_OFFSET_MM, file=Non
     Returns (points in the local frame, distances [mm]).
     """
     local = lm.to_local(points_ras)
-    q, _, dist = lm.surface().closest(local)
+    surf = lm.surface()
+    q, _, dist = surf.closest(local)
     far = np.flatnonzero(dist > max_offset_mm)
     if len(far):
         i = int(far[0])
@@ -304,4 +391,11 @@ def place_on_surface(lm, points_ras, what, max_offset_mm=MAX_OFFSET_MM, file=Non
                              f"{dist[i]:.3g} mm from it (at most {max_offset_mm:g} mm; "
                              "coordinates are RAS mm of the label map's space)", file=file,
                              field=f"{what}[{i}]", value=np.round(points_ras[i], 3).tolist())
+    cut = np.flatnonzero(~surf.closest_is_skin(local))
+    if len(cut):
+        i = int(cut[0])
+        raise FluoInputError(f"{len(cut)} point(s) on a cut face of the label map (its border, "
+                             "where the tissue was cropped), not on skin: light cannot enter "
+                             "or leave there", file=file, field=f"{what}[{i}]",
+                             value=np.round(points_ras[i], 3).tolist())
     return q, dist

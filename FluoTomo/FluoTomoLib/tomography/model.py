@@ -227,6 +227,33 @@ def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
     return out, notes
 
 
+def label_mean_weights(mesh, labels_kji, spacing_mm, origin_mm, region_labels):
+    """{label: (N,) nodal weights}: the mean over a label's voxels (those inside
+    the mesh) of a P1 field sampled at the voxel centres, as weights on its nodal
+    values: a region's yield is this volume-weighted mean over the label (equal
+    voxels), the same number as the yield volume's mean over the label, and its
+    standard deviation is that of the same functional (docs/tomography-own-scene.md,
+    "Region yields")."""
+    from FluoTomoLib.fem.locate import locator
+
+    labels = np.asarray(labels_kji)
+    k, j, i = np.indices(labels.shape)
+    pts = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * np.asarray(spacing_mm, float) \
+        + np.asarray(origin_mm, float)
+    lo, hi = mesh.bounds()
+    flat = labels.ravel()
+    out = {}
+    loc = locator(mesh)
+    for lab in region_labels:
+        sel = (flat == int(lab)) & np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
+        if not sel.any():
+            continue
+        P = loc.interpolation_matrix(pts[sel], outside="zero")
+        w = np.asarray(P.sum(axis=0)).ravel() / float(sel.sum())
+        out[int(lab)] = w
+    return out
+
+
 class TissueModel:
     """Everything a reconstruction needs on its mesh.
 
@@ -239,6 +266,10 @@ class TissueModel:
     mask : (S, D) bool, the pairs measured
     source_normals : (S, 3) outward normals of the tissue surface at the
         sources (they are buried along them; default: the facets')
+    cut_facets : bool mask over the mesh's boundary facets on a cut face of the
+        label map, where the tissue goes on (``LabelMap.cut_facets``); default none
+    progress : progress(fraction, message) of building the Jacobian (each step:
+        factorisation and solves of either wavelength, the kernel)
 
     Attributes
     ----------
@@ -250,7 +281,8 @@ class TissueModel:
     """
 
     def __init__(self, mesh, labels_kji, spacing_mm, optics, sources_mm, detectors_mm, mask,
-                 origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None):
+                 origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None,
+                 cut_facets=None, progress=None):
         from FluoTomoLib.fem.forward import FluorescenceModel
         from FluoTomoLib.meshing.voxel import node_regions_volume_preserving
         from FluoTomoLib.recon.partial_volume import PartialVolumePrior
@@ -263,6 +295,7 @@ class TissueModel:
         self.sources_mm = np.asarray(sources_mm, float)
         self.detectors_mm = np.asarray(detectors_mm, float)
         self.source_normals = source_normals
+        self.cut_facets = cut_facets
         labels = np.asarray(labels_kji)
         self.region_labels, self.fractions = membership(mesh, labels, spacing_mm, origin_mm)
         optics.check_labels(self.region_labels)
@@ -272,10 +305,14 @@ class TissueModel:
         node_region = node_regions_volume_preserving(mesh, labels, spacing_mm, origin_mm,
                                                      background=background)
         self.prior = PartialVolumePrior(node_region, self.region_labels, self.fractions)
+        self.region_weights = label_mean_weights(mesh, labels, spacing_mm, origin_mm,
+                                                 self.region_labels)
         timings["prior"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         self.model = FluorescenceModel(mesh, self.props_x, self.props_m, self.sources_mm,
-                                       self.detectors_mm, source_normals=source_normals)
+                                       self.detectors_mm, source_normals=source_normals,
+                                       cut_facets=cut_facets)
+        self.model.progress = progress
         self.J = self.model.jacobian_yield()[self.mask.ravel()]
         timings["jacobian"] = time.perf_counter() - t0
 
@@ -287,10 +324,10 @@ class TissueModel:
         px = dict(self.props_x, mua_per_mm=self.props_x["mua_per_mm"] + dye_mua_x_nodes)
         pm = dict(self.props_m, mua_per_mm=self.props_m["mua_per_mm"] + dye_mua_m_nodes)
         return FluorescenceModel(self.mesh, px, pm, self.sources_mm, self.detectors_mm,
-                                 source_normals=self.source_normals)
+                                 source_normals=self.source_normals, cut_facets=self.cut_facets)
 
     def solve(self, y, method="HP", lam=10.0, self_absorption=("HP",), log_data=False,
-              cancel=None):
+              cancel=None, progress=None):
         """NP / SP / HP of the used data ``y``; the methods in ``self_absorption``
         (HP by default: it took the tube's HP from 23 % to 5 % mean error, SP from
         10.5 % to 13.7 %) feed the fluorophore's absorption back when the optics
@@ -306,10 +343,12 @@ class TissueModel:
         if feed:
             res, passes = reconstruct_self_absorbing(
                 method, self.J, y, self.mask, self.prior, self.make_model, (0.0, 0.0), 0.0,
-                slopes, lam=lam, cancel=cancel)
+                slopes, lam=lam, cancel=cancel, progress=progress,
+                region_weights=self.region_weights)
         else:
             res = reconstruct(self.J, y, method=method, lam=lam, prior=self.prior,
-                              log_data=log_data, cancel=cancel)
+                              log_data=log_data, cancel=cancel, progress=progress,
+                              region_weights=self.region_weights)
             passes = []
         res.seconds = time.perf_counter() - t0
         return res, passes

@@ -25,12 +25,19 @@ import warnings
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 
 #: Jacobian-sized arrays the solver holds at once (J and R^-1 J^T for NP / SP)
 _JACOBIAN_COPIES = 2
+#: Jacobian-sized arrays at the peak, per method, for the memory estimate: SP's
+#: R^-1 = (L^T L)^-1 applied to J^T makes several (N, M) temporaries. Measured
+#: (/usr/bin/time -v, peak less the 0.43 GB of imports, less RECON_BYTES_PER_NODE
+#: a node, over one Jacobian): SP 6.8 (78,454 nodes) and 7.7 (issue #17's scene
+#: at balanced, 161,749 nodes, 10.0 GB in all); HP 0.8-1.0 and NP 1.4 (78,454 nodes).
+#: The estimate is then 1.12-1.28x the measured peak (docs/reliability.md)
+_PEAK_JACOBIAN_COPIES = {"NP": 2, "HP": 2, "SP": 9}
 #: largest Jacobian memory [bytes] a reconstruction may take
 MAX_JACOBIAN_BYTES = 4e9
 #: largest regularisation lambda (docs/reconstruction.md's trade table ends at 1e3,
@@ -126,7 +133,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
     from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
                                               reconstruction_mesh)
-    from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
+    from FluoTomoLib.tomography.roi import choose_roi, label_map_cut, roi_from_ras
 
     t_all = time.perf_counter()
     timings = {}
@@ -151,7 +158,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                              field="target", value=int(target))
     if data_model == "log":
         acquisition.check_for_log()
-    notes = []
+    notes = []          # warnings: what may make the result wrong
+    remarks = []        # notes: what was done differently from the request, harmlessly
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         report(progress, 0.01, "optodes onto the tissue surface")
@@ -163,10 +171,12 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         if moved > 0.5:
             notes.append(f"optodes were moved up to {moved:.2f} mm onto the tissue surface")
         check_cancel(cancel)
+        cut_info = label_map_cut(lm, optics, src, det, acquisition.mask, cancel=cancel)
+        notes.extend(cut_info.pop("warnings"))
         h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
         if h < settings["recon_mm"]:
-            notes.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
-                         f"(asked for {settings['recon_mm']:g} mm)")
+            remarks.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
+                           f"(asked for {settings['recon_mm']:g} mm)")
         if mesh is None:
             t0 = time.perf_counter()
             if roi_ras is not None:
@@ -207,12 +217,19 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                  f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
                                  "larger element size or fewer pairs", field="size_mm",
                                  value=h)
+        from FluoTomoLib.tomography.simulate import RECON_BYTES_PER_NODE, check_fem_memory
+
+        # and what this machine has left, for the method that needs the most
+        copies = max(_PEAK_JACOBIAN_COPIES[m] for m in methods)
+        check_fem_memory(mesh.n_nodes, n_bytes / _JACOBIAN_COPIES * copies, h,
+                         per_node=RECON_BYTES_PER_NODE)
         check_cancel(cancel)
         report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
                               f"{acquisition.n_measurements} measurements)")
         tm = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det,
                          acquisition.mask, source_normals=lm.surface().closest(src)[1],
-                         timings=timings)
+                         timings=timings, cut_facets=lm.cut_facets(mesh),
+                         progress=scaled(progress, 0.3, 0.6, "Jacobian"))
         _, prior_notes = check_prior_volumes(tm.prior, mesh,
                                              mesh.meta.get("labelmap_volumes_mm3", {}))
         notes.extend(prior_notes)
@@ -220,11 +237,12 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         solved = {}
         for i, method in enumerate(methods):
             check_cancel(cancel)
-            report(progress, 0.6 + 0.3 * i / len(methods), f"reconstruction {method}")
+            part = scaled(progress, 0.6 + 0.38 * i / len(methods),
+                          0.6 + 0.38 * (i + 1) / len(methods), f"reconstruction {method}")
+            report(part, 0.0, "start")
             solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
-                                      cancel)
-    for w in caught:
-        text = str(w.message)
+                                      cancel, progress=part)
+    for text in _once(str(w.message) for w in caught):
         if text not in notes:
             notes.append(text)
     t_common = time.perf_counter() - t_all - sum(r.seconds for r, _ in solved.values())
@@ -234,40 +252,60 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                               target, data_model, settings, h, roi_info, list(notes),
                               dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
                               t_common + res.seconds)
+        out[method]["summary"]["label_map_cut"] = cut_info
+        out[method]["summary"]["notes"] = list(remarks)
     report(progress, 1.0, "done")
     return out
+
+
+def _once(texts):
+    """Warnings caught during a reconstruction, each said once: the diffusion
+    validity warning of each wavelength comes from every model the passes build
+    (self-absorption feedback), so only its lowest musp/mua is kept."""
+    import re
+
+    out, worst = [], {}
+    for text in texts:
+        m = re.match(r"^(\w+): musp/mua = ([0-9.eE+-]+) < 10", text)
+        if m:
+            key, ratio = m.group(1), float(m.group(2))
+            if key not in worst or ratio < worst[key][0]:
+                worst[key] = (ratio, text)
+            continue
+        if text not in out:
+            out.append(text)
+    return [t for _, t in worst.values()] + out
 
 
 def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target, data_model,
             settings, h, roi_info, notes, timings, src, det, d_src, d_det, seconds):
     """The summary and volumes of one method's solution."""
-    from FluoTomoLib.tomography.model import nodal_volumes
-
     vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
-    if "diverged" in res.stop_reason:
+    # a diverged run says so once: the solver's own warning repeats the stop reason
+    if "diverged" in res.stop_reason and not any(w.startswith(res.stop_reason)
+                                                 for w in res.warnings):
         notes.append(res.stop_reason)
     # the solver's own diagnostics (under-determination, fit, damping): a
     # result it warns about may be far from the truth, for the reasons given
     for w in res.warnings:
         if w not in notes:
             notes.append(w)
-    # region yields: nodes wholly inside each region (partial volume >= 0.99; a
-    # rim node carries its neighbours' share whatever the method)
-    v = nodal_volumes(mesh)
-    F = tm.fractions
-    regions = {}
+    # One definition of a region's yield: the volume-weighted mean over the label
+    # (its voxels inside the reconstruction's region) of the reconstructed yield:
+    # for HP its region value (the partial-volume model is that value over the
+    # label), for NP and SP the yield volume's mean over the label; the SD is of
+    # that same number (TissueModel.region_weights). The volume itself is the P1
+    # field at the voxel centres: for HP its mean over a small label is lower (the
+    # rim is shared with the neighbours), so the summary names both.
     conf = res.region_confidence
-    for r, lab in enumerate(tm.region_labels):
-        sel = F[:, r] >= 0.99
-        if not np.any(sel):
-            sel = F[:, r] >= F[:, r].max() - 1e-9
-        mean = float(np.sum(res.yield_per_mm[sel] * v[sel]) / np.sum(v[sel]))
+    regions = {}
+    for lab in tm.region_labels:
         vox = lm.labels_kji == lab
         c = conf.get(int(lab), {})
         regions[str(int(lab))] = {
-            "yield_per_mm": mean,
+            "yield_per_mm": c.get("mean_yield_per_mm"),
             "sd_per_mm": c.get("sd_yield_per_mm"),
-            "voxel_mean_per_mm": float(vol[vox].mean()) if vox.any() else None,
+            "volume_mean_per_mm": float(vol[vox].mean()) if vox.any() else None,
             "name": optics.names.get(int(lab)),
         }
     k, j, i = np.unravel_index(int(np.argmax(vol)), vol.shape)
@@ -277,6 +315,11 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         "method": method, "lambda": lam, "data_model": data_model,
         "target": target,
         "regions": regions,
+        "regions_note": ("yield_per_mm: the region's yield, the volume-weighted mean over its "
+                         "label (HP: the region's value), and sd_per_mm its standard deviation; "
+                         "volume_mean_per_mm: the yield volume's mean over the label (the P1 "
+                         "field at voxel centres; for HP lower than the region's value where "
+                         "the label is small: quote yield_per_mm)"),
         "peak_yield_per_mm": float(vol.max()),
         "peak_ras_mm": lm.to_ras(peak_local)[0].tolist(),
         "peak_label": int(lm.labels_kji[k, j, i]),

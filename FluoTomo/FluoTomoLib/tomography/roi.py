@@ -48,8 +48,9 @@ def _roi(lo, hi, t_lo, t_hi):
     return np.array([lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]])
 
 
-def _data(lm, optics, roi, sources, detectors, mask, anchor, h):
-    """Emission data of a uniformly fluorescent tissue (yield 1 /mm) on a mesh of roi."""
+def _data(lm, optics, roi, sources, detectors, mask, anchor, h, cut_as_air=False):
+    """Emission data of a uniformly fluorescent tissue (yield 1 /mm) on a mesh of
+    roi (the label map's cut faces as tissue going on, or as air)."""
     from FluoTomoLib.fem.forward import FluorescenceModel
     from FluoTomoLib.tomography.model import membership, reconstruction_mesh
 
@@ -63,7 +64,8 @@ def _data(lm, optics, roi, sources, detectors, mask, anchor, h):
     with warnings.catch_warnings():     # a coarse estimate: resolution warnings are expected
         warnings.simplefilter("ignore")
         fm = FluorescenceModel(mesh, px, pm, sources, detectors,
-                               source_normals=surf.closest(sources)[1])
+                               source_normals=surf.closest(sources)[1],
+                               cut_facets=None if cut_as_air else lm.cut_facets(mesh))
         return fm.emission_data(np.ones(mesh.n_nodes))[mask], mesh
 
 
@@ -139,6 +141,73 @@ def choose_roi(lm, optics, sources, detectors, mask, target=None, tol_pct=1.0, a
     info["roi_local_mm"] = roi.tolist()
     info["seconds"] = time.perf_counter() - t0
     return roi, info
+
+
+#: a cut of the label map this many decay lengths from every optode is not
+#: estimated (its influence is below the estimate's own resolution)
+CUT_CHECK_DECAY_LENGTHS = 6.0
+#: the cut's influence above which the output warns [%]
+CUT_WARN_PCT = 10.0
+
+
+def label_map_cut(lm, optics, sources, detectors, mask, estimate_mm=ESTIMATE_MM, cancel=None):
+    """How much the tissue beyond the label map's cut faces matters to these data.
+
+    A label map cropped through tissue (a CBCT's field of view, a crop around the
+    target) ends in cut faces, which the model treats as the same tissue going on
+    (``DiffusionOperator``'s continuation condition, docs/physics.md section 2.5).
+    What lies beyond is unknown; the data of a uniformly fluorescent tissue with
+    the cut as air (nothing comes back) and as tissue going on bracket its
+    influence: ``influence_max_pct`` is their largest relative difference over
+    the measured pairs. On cropped ellipsoids graded against the uncropped map
+    (docs/tomography-own-scene.md, "Cut faces") the continuation's own error was
+    0.25-0.5 of that influence and the air condition's 0.3-0.65 of it.
+
+    Parameters
+    ----------
+    lm : LabelMap
+    optics : Optics
+    sources, detectors : (S, 3), (D, 3) surface points in the local frame
+    mask : (S, D) the pairs measured
+
+    Returns
+    -------
+    dict: ``sides`` (the cut sides, "I-", "K+", ...), ``nearest_optode_mm`` (the
+    closest optode's distance to a cut face plane), ``decay_length_mm``,
+    ``influence_max_pct`` / ``influence_median_pct`` (None when not estimated:
+    no cut, or every optode farther than CUT_CHECK_DECAY_LENGTHS decay lengths),
+    ``warnings`` (a list: one when the influence exceeds CUT_WARN_PCT).
+    """
+    sides = [f"{'IJK'[a]}{'-+'[s]}" for a, s in lm.cut_sides()]
+    info = {"sides": sides, "nearest_optode_mm": None, "decay_length_mm": None,
+            "influence_max_pct": None, "influence_median_pct": None, "warnings": []}
+    if not sides:
+        return info
+    pts = np.vstack([sources, detectors])
+    nearest = float(np.min(lm.distance_to_cut(pts)))
+    decay = 1.0 / max(optics.min_mueff(lm.labels), 1e-6)
+    info.update(nearest_optode_mm=nearest, decay_length_mm=decay)
+    if nearest > CUT_CHECK_DECAY_LENGTHS * decay:
+        return info
+    t_lo, t_hi = lm.tissue_bounds_local()
+    full = _roi(t_lo, t_hi, t_lo, t_hi)
+    anchor = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    check_cancel(cancel)
+    cont, _ = _data(lm, optics, full, sources, detectors, mask, anchor, estimate_mm)
+    check_cancel(cancel)
+    air, _ = _data(lm, optics, full, sources, detectors, mask, anchor, estimate_mm,
+                   cut_as_air=True)
+    rel = np.abs(air - cont) / np.maximum(np.abs(cont), 1e-300)
+    info.update(influence_max_pct=100.0 * float(np.max(rel)),
+                influence_median_pct=100.0 * float(np.median(rel)))
+    if info["influence_max_pct"] > CUT_WARN_PCT:
+        info["warnings"].append(
+            f"the label map is cut through tissue {nearest:.1f} mm from the nearest optode "
+            f"(side {', '.join(sides)}): the data depend on the unknown tissue beyond by up to "
+            f"{info['influence_max_pct']:.0f} % (modelled as the same tissue going on, whose "
+            "own error measured 0.2-0.5 of that); a larger crop, or optodes farther from "
+            "the cut, lowers it")
+    return info
 
 
 def roi_from_ras(lm, roi_ras):

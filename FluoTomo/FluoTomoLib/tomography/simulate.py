@@ -49,8 +49,12 @@ def _tangent_basis(n):
 def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
                  detectors_per_side=None, detector_pitch_mm=None):
     """Sources and detectors (RAS mm) on square grids in the tangent plane of the
-    surface point nearest the target's centre (the tissue's centre without a
-    target), dropped onto the surface along its normal."""
+    skin point nearest the target's centre (the tissue's centre without a
+    target), dropped onto the skin along its normal. Skin only: a cut face of
+    the label map (its border, where the tissue was cropped) is never scanned;
+    where the grids centred there would run off the skin (past the tissue's edge
+    or onto a cut), they move along the plane by the least amount that keeps
+    them on it (steps of half the source pitch, up to the grids' span)."""
     cfg = dict(DEFAULT_SCAN)
     for k, v in (("sources_per_side", sources_per_side), ("source_pitch_mm", source_pitch_mm),
                  ("detectors_per_side", detectors_per_side),
@@ -63,7 +67,11 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
     for k in ("source_pitch_mm", "detector_pitch_mm"):
         if not (np.isfinite(cfg[k]) and cfg[k] > 0):
             raise FluoInputError("must be a positive number", field=k, value=cfg[k])
-    surf = lm.surface()
+    surf = lm.surface().skin_only()
+    if len(surf.triangles) == 0:
+        raise FluoInputError("the label map has no skin: its tissue fills every side of the "
+                             "volume (every border is a cut face)", file=lm.source,
+                             field="labels")
     if target is not None:
         c = lm.region_centroid_local(target)
     else:
@@ -73,19 +81,31 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
     p, nrm = p[0], nrm[0]
     u, v = _tangent_basis(nrm)
 
-    def grid(n, pitch):
+    def grid(centre, n, pitch):
         t = (np.arange(int(n)) - 0.5 * (int(n) - 1)) * pitch
         a, b = np.meshgrid(t, t, indexing="ij")
-        pts = p + a.ravel()[:, None] * u + b.ravel()[:, None] * v
+        pts = centre + a.ravel()[:, None] * u + b.ravel()[:, None] * v
         hit, face = surf.cast(pts + 30.0 * nrm, np.tile(-nrm, (len(pts), 1)))
-        if np.any(face < 0):
-            raise FluoInputError("the scan runs off the tissue surface: use fewer or closer "
-                                 "positions", field="scan", value=float(pitch))
-        return hit
+        return None if np.any(face < 0) else hit
 
-    src = grid(cfg["sources_per_side"], cfg["source_pitch_mm"])
-    det = grid(cfg["detectors_per_side"], cfg["detector_pitch_mm"])
-    return lm.to_ras(src), lm.to_ras(det), cfg
+    span = max((cfg["sources_per_side"] - 1) * cfg["source_pitch_mm"],
+               (cfg["detectors_per_side"] - 1) * cfg["detector_pitch_mm"])
+    step = 0.5 * cfg["source_pitch_mm"]
+    reach = int(np.ceil(span / step))
+    shifts = sorted(((a * step, b * step) for a in range(-reach, reach + 1)
+                     for b in range(-reach, reach + 1)), key=lambda s: s[0] ** 2 + s[1] ** 2)
+    for da, db in shifts:
+        centre = p + da * u + db * v
+        src = grid(centre, cfg["sources_per_side"], cfg["source_pitch_mm"])
+        det = None if src is None else grid(centre, cfg["detectors_per_side"],
+                                            cfg["detector_pitch_mm"])
+        if det is not None:
+            cfg["shift_mm"] = float(np.hypot(da, db))
+            return lm.to_ras(src), lm.to_ras(det), cfg
+    raise FluoInputError("the scan does not fit on the skin near the target (past the tissue's "
+                         "edge or onto a cut face of the label map, wherever it is moved): use "
+                         "fewer or closer positions", field="scan",
+                         value=float(cfg["source_pitch_mm"]))
 
 
 def add_noise(y, noise_pct, rng):
@@ -139,6 +159,51 @@ def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, bur
     return fit_to_surface(mesh, lm.surface(), roi)
 
 
+#: the peak memory of the coupled excitation/emission FEM per mesh node [bytes]:
+#: assembly, the PARDISO factors of both operators (their fill grows a little
+#: faster than the nodes), source and detector fields. Measured (``fluo tomo
+#: simulate``, /usr/bin/time -v, peak less the 0.43 GB of imports; a 50 x 40 x
+#: 24 mm ellipsoid at 0.5 mm voxels, accuracy fast, balanced and fine: 26,266,
+#: 58,918 and 101,675 nodes; issue #17's scene at fine, 137,964 nodes): 9.3, 10.1,
+#: 11.3 and 12.3 kB a node; 14 kB is 1.14-1.51x (docs/reliability.md, "Memory
+#: estimates")
+FEM_BYTES_PER_NODE = 14e3
+#: the same for a reconstruction, besides its Jacobian-sized arrays
+#: (``reconstruct._PEAK_JACOBIAN_COPIES`` of measurements x nodes doubles): the
+#: tissue model, the prior and the solver's other arrays. Measured (``fluo tomo
+#: reconstruct``, the same ellipsoid, 684 measurements; HP at fast and balanced,
+#: 78,454 and 101,970 nodes: 1.90 and 2.60 GB above the imports, NP at fast 2.17,
+#: SP at fast 4.51; SP on issue #17's scene at balanced, 161,749 nodes: 10.0 GB);
+#: 20 kB a node plus the method's Jacobians is 1.12-1.28x the measured
+RECON_BYTES_PER_NODE = 20e3
+
+
+def check_fem_memory(n_nodes, jacobian_bytes, size_mm, per_node=FEM_BYTES_PER_NODE):
+    """Refuse a forward model (and a Jacobian of ``jacobian_bytes``) whose
+    estimated peak does not fit, once its mesh is known and before any solve.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Nodes of the mesh.
+    jacobian_bytes : float
+        The Jacobian arrays the solver will hold [bytes] (0 for a simulation).
+    size_mm : float
+        The element size, named in the message.
+    per_node : float
+        The estimate's bytes per node (:data:`FEM_BYTES_PER_NODE`, or
+        :data:`RECON_BYTES_PER_NODE` for a reconstruction).
+    """
+    from fluoguide.memory import check_fits
+
+    check_fits(per_node * n_nodes + jacobian_bytes,
+               f"the diffusion model on {n_nodes:,} nodes ({size_mm:.2g} mm elements)"
+               + (f" and its {jacobian_bytes / 1e9:.1f} GB Jacobian" if jacobian_bytes else ""),
+               "use accuracy 'fast' or a larger element size" +
+               (", or fewer source-detector pairs" if jacobian_bytes else ""),
+               field="size_mm", value=round(float(size_mm), 4))
+
+
 def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pct, seed,
                  settings, progress=None, cancel=None):
     """The FEM engine: emission boundary fluence per watt on a mesh of the whole
@@ -158,12 +223,14 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     h, mfp = cap_at_burial(settings["simulate_mm"], optics, lm.labels)
     mesh = simulation_mesh(lm, np.vstack([src, det]), target, h,
                            max(settings["simulate_coarse_mm"], h), margin, mfp, cancel)
+    check_fem_memory(mesh.n_nodes, 0, h)
     check_cancel(cancel)
     labs, F = membership(mesh, lm.labels_kji, lm.spacing_mm)
     y_nodes = F @ np.array([float(yield_by_label.get(int(v), 0.0)) for v in labs])
     px, pm = optics.nodal(labs, F, yield_nodes=y_nodes)
     report(progress, 0.3, f"forward model ({mesh.n_nodes} nodes)")
-    fm = FluorescenceModel(mesh, px, pm, src, det, source_normals=lm.surface().closest(src)[1])
+    fm = FluorescenceModel(mesh, px, pm, src, det, source_normals=lm.surface().closest(src)[1],
+                           cut_facets=lm.cut_facets(mesh))
     data = fm.emission_data(y_nodes)
     check_cancel(cancel)
     info = {"engine": "fem", "mesh_nodes": mesh.n_nodes, "mesh_elements": mesh.n_elements,
@@ -337,13 +404,25 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
     if not mask.any():
         raise FluoInputError("every pair is closer than this to its source: no measurement "
                              "left", field="exclude_mm", value=ex)
+    from FluoTomoLib.tomography.roi import label_map_cut
+
+    cut_info = label_map_cut(lm, optics, src_l, det_l, mask, cancel=cancel)
+    cut_warnings = cut_info.pop("warnings")
+    if engine == "mc" and cut_info["sides"]:
+        # MCX's photons leave the voxel grid at its border: a cut acts as air there
+        cut_warnings = [w.replace("modelled as the same tissue going on, whose own error "
+                                  "measured 0.2-0.5 of that", "the Monte Carlo's voxels end "
+                                  "there: light crossing the cut is lost, as at air")
+                        for w in cut_warnings]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         out = ENGINES[engine](lm, optics, sources_ras, detectors_ras, yield_by_label,
                               float(noise_pct), int(seed), settings, progress, cancel)
     info = out["info"]
     mesh, y_nodes = info.pop("_mesh", None), info.pop("_yield_nodes", None)
-    info["warnings"] = sorted({str(w.message) for w in caught}) + info.pop("mesh_warnings", [])
+    info["warnings"] = (sorted({str(w.message) for w in caught}) + info.pop("mesh_warnings", [])
+                        + cut_warnings)
+    info["label_map_cut"] = cut_info
     noisy = np.asarray(out["data"], float)
     clean = noisy if out.get("clean") is None else np.asarray(out["clean"], float)
     if noisy.shape != (len(sources_ras), len(detectors_ras)) or not np.all(np.isfinite(noisy)):

@@ -224,3 +224,35 @@ def test_yaml_batch_with_defaults_and_derived_names(scenes, tmp_path):
     assert {c["accuracy"] for c in cases} == {"balanced"}
     with pytest.raises(FluoInputError, match=r"^--lambda: .*\(got -1.0\)$"):
         load_batch(d / "b.yaml", lam=-1.0)          # the command line's value, named as such
+
+
+@pytest.mark.parametrize("behaviour, needle", [
+    ("silent", "did not answer within 2 s (waited for the Dask handshake"),
+    ("random_bytes", "is not a Dask scheduler"),
+])
+def test_batch_on_a_hostile_scheduler_is_one_line_exit_1_in_bounded_time(behaviour, needle,
+                                                                       scenes, tmp_path):
+    """``--scheduler`` names a TCP peer on 127.0.0.1 that accepts and never answers
+    (the batch hung until killed at 150 s), or sends 4 kB of random bytes and holds
+    (a TimeoutError traceback after 68 s): one line naming the address, exit 1,
+    within a few of the 2 s limits set by $FLUO_SCHEDULER_TIMEOUT, nothing written."""
+    import os
+    import time
+
+    import hostile_peers
+
+    d = scenes["dir"]
+    batch = _batch(d, GOOD[1:], "hostile.csv")
+    out = tmp_path / "run"
+    with hostile_peers.TCPPeer(getattr(hostile_peers, behaviour)) as peer:
+        t0 = time.monotonic()
+        r = forkserver.fluo("tomo", "batch", batch, "--accuracy", "fast", "--out", out,
+                            "--scheduler", peer.address, cwd=d, timeout=60,
+                            env=dict(os.environ, FLUO_SCHEDULER_TIMEOUT="2"))
+        took = time.monotonic() - t0
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert lines[0].startswith("fluo: error: ") and peer.address in lines[0], lines
+    assert needle in lines[0], lines
+    assert took < 15.0, took
+    assert not out.exists()
