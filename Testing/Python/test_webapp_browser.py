@@ -328,15 +328,13 @@ def test_hostile_names_show_as_text_in_every_panel(page, own_scene):
     assert (d / f"{XSS['node']}.mrml").is_file()
     _no_script_ran(pg, "FluoCalib: save")
     pg.screenshot(path=str(ARTIFACTS / "10-hostile-names-calib.png"))
-    # FluoNav: a surface from CBCTLabels; alone, this scene has none, and the
-    # message names the scene by its file (after the workflow test: a surface)
+    # FluoNav: the surface of the scene's label map, named in its info and message
+    # (the phantom's CBCTLabels where the workflow test made one, else the node above)
     pg.click("#tool-FluoNav")
-    before = _text(pg, "#fluo-message")
     pg.click("#nav-surface")
-    pg.wait_for_function("document.querySelector('#fluo-message').innerText !== "
-                         + json.dumps(before), timeout=120000)
-    message = _text(pg, "#fluo-message")
-    assert XSS["node"] in message or "TissueSurface" in message, message
+    _wait_text(pg, "#nav-surface-info", "TissueSurface of ", 120000)
+    info = _text(pg, "#nav-surface-info")
+    assert XSS["node"] in info or "TissueSurface of CBCTLabels" in info, info
     _no_script_ran(pg, "FluoNav")
     pg.screenshot(path=str(ARTIFACTS / "10-hostile-names-nav.png"))
     # leave the phantom's CBCT shown, as the earlier tests left the page
