@@ -340,6 +340,16 @@ def test_error_text_is_one_line_whatever_it_holds():
     assert one_line("é ok 中") == "é ok 中"
 
 
+def test_a_progress_line_is_one_line(capsys):
+    """A progress message naming a file with a newline split its line in two."""
+    from fluoguide.progress import TqdmProgress
+
+    progress = TqdmProgress("mesh", after_s=0)
+    progress(0.5, "reading bad\nname.nrrd")
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bad\\nname.nrrd" in err, err
+
+
 def test_the_last_resort_is_one_line_without_library_internals(capsys):
     """``fluo: internal error:`` kept the first line of a bug's message: ITK's
     build path, nothing of what followed a newline."""
