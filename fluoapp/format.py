@@ -27,6 +27,7 @@ import re
 
 import numpy as np
 
+from fluoguide.errors import one_line
 from fluoguide.jsonable import to_jsonable
 
 SIGNIFICANT = 4          # significant digits of every printed number
@@ -189,7 +190,8 @@ class _Writer:
         return name
 
     def emit(self, text, indent):
-        self.lines.append("  " * indent + text)
+        # a path or a name holding a newline must not make a line of its own
+        self.lines.append("  " * indent + one_line(text))
 
     def _group_columns(self, d):
         """The command's column groups: equal-length lists become one table."""

@@ -347,9 +347,10 @@ def staged_folder(out_dir, last=()):
     readers open first: a manifest, the ``.mrml``) last. Flat folders only.
     On an exception nothing of the new set is left behind.
     """
-    out_dir = Path(out_dir).resolve()
+    given = Path(out_dir)          # messages name the folder as the user gave it
+    out_dir = given.resolve()
     if out_dir.exists() and not out_dir.is_dir():
-        raise FluoInputError("output exists and is not a folder", file=out_dir)
+        raise FluoInputError("output exists and is not a folder", file=given)
     fresh = not out_dir.exists()
     if fresh:
         stage = stage_beside(out_dir)
@@ -357,7 +358,7 @@ def staged_folder(out_dir, last=()):
         try:
             stage = staging_folder(out_dir)
         except OSError as exc:
-            raise output_error(exc, out_dir) from None
+            raise output_error(exc, given) from None
     try:
         yield stage
         if fresh:

@@ -2,13 +2,42 @@
 
 A ``FluoInputError`` names the file, the field and the offending value; the
 CLI turns it into a one-line message and exit code 2.
+
+Every message is one line: :func:`one_line` escapes the control characters a
+file name or a value may carry (a newline in a path would split the message,
+an escape sequence would drive the terminal).
 """
 
 from __future__ import annotations
 
 
+def one_line(text, limit=None):
+    """``text`` with every non-printable character escaped as Python writes it
+    (a newline as ``\\n``, ESC as ``\\x1b``, a right-to-left override as
+    ``\\u202e``), so it shows as one line of what it holds.
+
+    Backslashes already there are kept as they are, so escaping twice changes
+    nothing (a message wrapped in another keeps its text). ``limit`` cuts the
+    result to that many characters (with ``...``).
+    """
+    text = str(text)
+    if not text.isprintable():
+        text = "".join(c if c.isprintable() else c.encode("unicode_escape", "backslashreplace")
+                       .decode("ascii") for c in text)
+    if limit is not None and len(text) > limit:
+        text = text[: max(0, limit - 3)] + "..."
+    return text
+
+
 class FluoError(Exception):
-    """Base class of the project's own errors."""
+    """Base class of the project's own errors.
+
+    Its text is what the user reads (``fluo: error: TEXT``): one line, see
+    :func:`one_line`.
+    """
+
+    def __str__(self):
+        return one_line(super().__str__())
 
 
 class FluoInputError(FluoError, ValueError):
@@ -24,6 +53,9 @@ class FluoInputError(FluoError, ValueError):
         The field, argument or node name.
     value : object, optional
         The offending value (shown with ``repr``).
+
+    The message is one line whatever the parts hold (:func:`one_line`); the
+    attributes keep them as given.
     """
 
     def __init__(self, problem, file=None, field=None, value=None):

@@ -21,14 +21,30 @@ MAX_IMAGE_PIXELS = 50_000_000
 
 
 def _header_size(path):
-    """(width, height) from the file's header, or None when PIL cannot tell."""
+    """(width, height) from the file's header, or None when PIL cannot tell.
+
+    Pillow refuses to open a header claiming more than twice its own limit
+    (``DecompressionBombError``, 179 Mpx) and warns above it (89 Mpx); both
+    are above :data:`MAX_IMAGE_PIXELS`, so the first is a size too large (its
+    pixel count read from Pillow's message) and the second is not said (the
+    image is refused here, in one line). Refused images had been left to
+    OpenCV, which decoded them and printed libpng's errors.
+    """
+    import re
+    import warnings
+
     try:
         from PIL import Image
     except ImportError:  # pragma: no cover - matplotlib brings Pillow
         return None
     try:
-        with Image.open(path) as im:  # lazy: reads the header only
-            return im.size
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:  # lazy: reads the header only
+                return im.size
+    except Image.DecompressionBombError as exc:
+        m = re.search(r"\((\d+) pixels\)", str(exc))
+        return (int(m.group(1)) if m else 2 * Image.MAX_IMAGE_PIXELS + 1, 1)
     except Exception:  # PIL does not know every format cv2 reads; cv2 decides below
         return None
 
@@ -60,7 +76,10 @@ def read_image(path, field=None, max_pixels=MAX_IMAGE_PIXELS, flags=None):
         if size is not None and size[0] * size[1] > max_pixels:
             raise FluoInputError(f"image too large (more than {max_pixels} pixels)", file=path,
                                  field=field, value=size)
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
+        from fluoguide.library_errors import native_stderr_quiet
+
+        with native_stderr_quiet():     # libpng/libjpeg/libtiff print their own errors
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
         if img is None:
             raise FluoInputError("cannot read image (corrupt or not an image file)", file=path,
                                  field=field)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoguide.errors import FluoInputError
+from fluoguide.library_errors import image_read_problem, image_write_problem, native_stderr_quiet
 
 _LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
 
@@ -63,10 +64,11 @@ def _read_image(p, what):
 
     check_volume_file(p, copies=READ_COPIES)
     try:
-        return sitk.ReadImage(str(p))
-    except RuntimeError as exc:
-        raise FluoInputError(f"cannot read {what} ({str(exc).splitlines()[0][:120]})",
-                             file=p) from None
+        with native_stderr_quiet():     # the readers' own lines (MetaIO, NIfTI, HDF5)
+            return sitk.ReadImage(str(p))
+    except RuntimeError as exc:         # ITK's text names its build's files: say it in words
+        problem, field = image_read_problem(exc)
+        raise FluoInputError(f"cannot read {what} ({problem})", file=p, field=field) from None
 
 
 def _geometry(img, p):
@@ -152,5 +154,7 @@ def write_volume_nrrd(path, array_kji, spacing_mm, origin_mm, direction=None):
         os.replace(tmp, p)
     except (OSError, RuntimeError) as exc:
         tmp.unlink(missing_ok=True)
-        raise FluoInputError(f"cannot write ({str(exc).splitlines()[0][:120]})", file=p) from None
+        problem = (image_write_problem(exc) if isinstance(exc, RuntimeError)
+                   else f"cannot write ({exc.strerror or exc})")
+        raise FluoInputError(problem, file=p) from None
     return p

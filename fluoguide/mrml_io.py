@@ -439,20 +439,21 @@ def save_scene(scene, path):
     Slicer writes them) and TSV (tables).  Everything is written into a
     staging folder first and moved in as one transaction (``fluoguide.atomic``):
     a crash at any moment leaves the old scene or the new one.
-    Returns the scene file path.
+    Returns the scene file path (resolved); messages name it as given.
     """
-    path = Path(path).resolve()
+    given = Path(path)
+    path = given.resolve()
     if path.suffix != ".mrml":
-        raise FluoInputError("scene file must end in .mrml", file=path)
+        raise FluoInputError("scene file must end in .mrml", file=given)
     out_dir = path.parent
     if out_dir.exists() and not out_dir.is_dir():
-        raise FluoInputError("output folder is a file", file=out_dir)
+        raise FluoInputError("output folder is a file", file=given.parent)
     if path.is_dir():
-        raise FluoInputError("scene path is a folder", file=path)
+        raise FluoInputError("scene path is a folder", file=given)
     try:
         tmp = atomic.staging_folder(out_dir)
     except OSError as exc:
-        raise FluoInputError(f"cannot write here ({exc.strerror})", file=out_dir) from None
+        raise FluoInputError(f"cannot write here ({exc.strerror})", file=given.parent) from None
     try:
         used = set()
         targets = []
@@ -481,7 +482,7 @@ def save_scene(scene, path):
                 sn.SetUseCompression(1)
             sn.SetFileName(str(tmp / fname))
             if not sn.WriteData(node):
-                raise FluoInputError("failed to write storage file", file=out_dir / fname,
+                raise FluoInputError("failed to write storage file", file=given.parent / fname,
                                      field=node.GetName())
             # the writer's file list holds paths into the staging folder (saved
             # relative to the wrong folder): one file per node, no list
@@ -492,7 +493,7 @@ def save_scene(scene, path):
         scene.SetRootDirectory(str(tmp))
         scene.SetURL(str(tmp / path.name))
         if not scene.Commit():
-            raise FluoInputError("failed to write scene file", file=path)
+            raise FluoInputError("failed to write scene file", file=given)
         # Some writers add companion files (a table's .schema.tsv): move all,
         # the .mrml last (readers open it first).
         data = sorted(f.name for f in tmp.iterdir() if f.name != path.name)
@@ -506,19 +507,21 @@ def save_scene(scene, path):
     return path
 
 
-def _check_storage_paths(path):
+def _check_storage_paths(path, given=None):
     """Refuse a scene whose storage nodes point outside its folder or at non-files.
 
     Checked on the XML before MRML opens anything: a hostile scene must not make
-    the loader read /etc/passwd or block forever on a FIFO.
+    the loader read /etc/passwd or block forever on a FIFO. Messages name the
+    scene as ``given`` (the path the user typed) and its files beside it.
     """
+    given = Path(path) if given is None else Path(given)
     root_dir = path.parent.resolve()
     try:
         tree = ET.parse(path)
     except ET.ParseError as exc:
-        raise FluoInputError(f"corrupt MRML scene (XML: {exc})", file=path) from None
+        raise FluoInputError(f"corrupt MRML scene (XML: {exc})", file=given) from None
     except RecursionError:
-        raise FluoInputError("corrupt MRML scene (XML nested too deeply)", file=path) from None
+        raise FluoInputError("corrupt MRML scene (XML nested too deeply)", file=given) from None
     for elem in tree.iter():
         for key, value in elem.attrib.items():
             if not (key == "fileName" or key.startswith("fileListMember")) or not value:
@@ -527,28 +530,29 @@ def _check_storage_paths(path):
             if rel.is_absolute():
                 raise FluoInputError("scene refers to a data file by an absolute path; "
                                      "only files inside the scene's folder are read",
-                                     file=path, field=elem.get("id") or elem.tag, value=value)
+                                     file=given, field=elem.get("id") or elem.tag, value=value)
             full = (root_dir / rel).resolve()
             try:
                 full.relative_to(root_dir)
             except ValueError:
                 raise FluoInputError("scene refers to a data file outside its folder",
-                                     file=path, field=elem.get("id") or elem.tag,
+                                     file=given, field=elem.get("id") or elem.tag,
                                      value=value) from None
             if not full.exists():
                 if key != "fileName":
                     continue  # a stale member of a file list (Slicer keeps them): not read
-                raise FluoInputError("data file of the scene is missing", file=full,
+                raise FluoInputError("data file of the scene is missing", file=given.parent / rel,
                                      field=elem.get("id") or elem.tag)
             if not stat.S_ISREG(full.stat().st_mode):
-                raise FluoInputError("data file of the scene is not a regular file", file=full,
+                raise FluoInputError("data file of the scene is not a regular file",
+                                     file=given.parent / rel,
                                      field=elem.get("id") or elem.tag)
             if key == "fileName" and "Volume" in elem.tag:
                 # MRML reads volumes through ITK, which trusts a lying header (a NaN
                 # voxel size becomes 1, extra data is cut): checked first
                 from fluoguide.volume_header import check_volume_file
 
-                check_volume_file(full)
+                check_volume_file(given.parent / rel)    # confined above; named as given
 
 
 def _check_transforms(scene, path):
@@ -591,22 +595,23 @@ def load_scene(path):
     Raises FluoInputError naming the file when the scene or one of its data
     files is missing or unreadable.
     """
-    path = Path(path).resolve()
+    given = Path(path)              # messages name the files as the user gave them
+    path = given.resolve()
     if path.parent.is_dir():
         atomic.recover(path.parent)  # finish a save that a crash interrupted
     if not path.is_file():
-        raise FluoInputError("scene file not found", file=path)
+        raise FluoInputError("scene file not found", file=given)
     with open(path, "rb") as fh:
         head = fh.read(4096)
     if b"<MRML" not in head:
-        raise FluoInputError("not an MRML scene (no <MRML> element)", file=path)
-    _check_storage_paths(path)
+        raise FluoInputError("not an MRML scene (no <MRML> element)", file=given)
+    _check_storage_paths(path, given)
     scene = new_scene()
     scene.SetURL(str(path))
     scene.SetRootDirectory(str(path.parent))
     imported = scene.Import()
     if scene.GetNumberOfNodes() == 0:
-        raise FluoInputError("corrupt MRML scene (no nodes)", file=path)
+        raise FluoInputError("corrupt MRML scene (no nodes)", file=given)
     # Import fails as a whole when one data file does: find and name that file.
     for node in _storable_nodes(scene):
         sn = node.GetStorageNode()
@@ -616,22 +621,27 @@ def load_scene(path):
         if not fname:
             continue
         full = Path(fname) if os.path.isabs(fname) else path.parent / fname
+        try:        # MRML holds it absolute: shown beside the scene as given
+            shown = given.parent / full.relative_to(path.parent)
+        except ValueError:
+            shown = full
         if not full.is_file():
-            raise FluoInputError("data file of the scene is missing", file=full, field=node.GetName())
+            raise FluoInputError("data file of the scene is missing", file=shown,
+                                 field=node.GetName())
         if node.IsA("vtkMRMLVolumeNode") and node.GetImageData() is None:
-            raise FluoInputError("corrupt volume file", file=full, field=node.GetName())
+            raise FluoInputError("corrupt volume file", file=shown, field=node.GetName())
         if node.IsA("vtkMRMLVolumeNode") and not node.IsA("vtkMRMLSequenceNode"):
             from fluoguide.volume_header import check_geometry
 
             geo = volume_geometry(node)
-            check_geometry(geo["spacing"], geo["origin"], geo["direction"], file=full,
+            check_geometry(geo["spacing"], geo["origin"], geo["direction"], file=shown,
                            field=node.GetName())
         # a model holds a surface (polydata) or a volume mesh (unstructured grid)
         if node.IsA("vtkMRMLModelNode") and (node.GetMesh() is None
                                             or node.GetMesh().GetNumberOfPoints() == 0
                                             or node.GetMesh().GetNumberOfCells() == 0):
-            raise FluoInputError("corrupt model file", file=full, field=node.GetName())
+            raise FluoInputError("corrupt model file", file=shown, field=node.GetName())
     if not imported:
-        raise FluoInputError("corrupt MRML scene", file=path)
-    _check_transforms(scene, path)
+        raise FluoInputError("corrupt MRML scene", file=given)
+    _check_transforms(scene, given)
     return scene

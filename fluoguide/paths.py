@@ -40,7 +40,7 @@ def _check_length(path, root, name, file, field, what):
                              value=f"{text[:40]}... ({len(text)} characters)")
 
 
-def inside(root, name, file=None, field=None, what="file", root_name="its folder"):
+def inside(root, name, file=None, field=None, what="file", root_name="its folder", given=False):
     """``root / name`` resolved, refused unless it stays inside ``root``.
 
     Parameters
@@ -57,14 +57,21 @@ def inside(root, name, file=None, field=None, what="file", root_name="its folder
         "file" or "folder", for the message.
     root_name : str
         What ``root`` is, for the message ("its folder", "the workspace").
+    given : bool
+        Return ``root / name`` as given (``acq/data.csv`` for a folder typed
+        ``acq``) rather than resolved, for the messages of the reader that
+        opens it: they name files as the user gave them, never the absolute
+        form (docs/reliability.md). The check is the same.
 
     Returns
     -------
     Path
-        The resolved path (not checked for existence).
+        The resolved path, or with ``given`` the path as given (not checked
+        for existence).
     """
     if not isinstance(name, (str, Path)) or not str(name).strip() or "\x00" in str(name):
         raise FluoInputError(f"expected a {what} name", file=file, field=field, value=name)
+    shown = Path(root) / str(name).strip()
     root = Path(root).resolve()
     path = (root / str(name).strip()).resolve()
     _check_length(path, root, name, file, field, what)
@@ -72,4 +79,4 @@ def inside(root, name, file=None, field=None, what="file", root_name="its folder
         # the value as given, never the resolved server path
         raise FluoInputError(f"{what} must be inside {root_name}", file=file, field=field,
                              value=str(name))
-    return path
+    return shown if given else path

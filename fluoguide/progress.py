@@ -133,7 +133,10 @@ class TqdmProgress:
 
     def _line(self, now):
         fraction, message = self._pending
-        text = f"{self._desc}: {100 * fraction:3.0f}% {message}".rstrip()
+        from fluoguide.errors import one_line
+
+        # one line whatever a name in the message holds (a newline, an escape sequence)
+        text = one_line(f"{self._desc}: {100 * fraction:3.0f}% {message}".rstrip())
         print(f"{text} ({now - self._t0:.0f} s)", file=sys.stderr, flush=True)
         self._printed = (message, now)
         self._pending = None

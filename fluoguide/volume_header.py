@@ -281,8 +281,9 @@ def _check_nrrd(p, field, copies):
     encoding = fields.get("encoding", "").lower()
     skipped = fields.get("line skip", "0") not in ("0", "") or \
         fields.get("byte skip", "0") not in ("0", "")
-    if skipped or encoding not in ("raw", "gzip", "gz", "bzip2", "bz2"):
-        return out              # text encodings and skips: the reader counts itself
+    text = encoding in ("ascii", "text", "txt")
+    if skipped or not (text or encoding in ("raw", "gzip", "gz", "bzip2", "bz2")):
+        return out              # hex and skips: the reader counts itself
     if "data file" in fields or "datafile" in fields:
         name = fields.get("data file", fields.get("datafile")).strip()
         if " " in name or name.upper().startswith("LIST"):
@@ -294,8 +295,40 @@ def _check_nrrd(p, field, copies):
         raise bad("header does not end (no blank line before the data)", "header")
     else:
         data_path, start = p, offset
+    if text:
+        _check_text_values(data_path, start, p, field)     # the reader counts the values
+        return out
     _check_data_length(data_path, start, declared, encoding, p, field, "sizes x type")
     return out
+
+
+#: the longest value text data may hold: a double with every digit is 24 characters
+MAX_TEXT_VALUE = 64
+
+
+def _check_text_values(data_path, start, header_path, field):
+    """Refuse a value longer than :data:`MAX_TEXT_VALUE` characters in a NRRD's
+    text (ascii) data: teem copies the value into a fixed buffer to report it,
+    and 1,500 characters crash ITK's reader (SIGSEGV: no message, and the web
+    app's server gone). Read 1 MiB at a time."""
+    import re
+
+    long_run = re.compile(rb"[^\s]{%d,}" % (MAX_TEXT_VALUE + 1))
+    key = f"{field}: data" if field else "data"
+    with open(data_path, "rb") as fh:
+        fh.seek(start)
+        tail = b""
+        while True:
+            chunk = fh.read(1 << 20)
+            if not chunk:
+                break
+            buf = tail + chunk
+            m = long_run.search(buf)
+            if m:
+                raise FluoInputError(f"text data hold a value of more than {MAX_TEXT_VALUE} "
+                                     "characters (not a number)", file=header_path, field=key,
+                                     value=m.group(0)[:20].decode("latin-1") + "...")
+            tail = buf[-MAX_TEXT_VALUE:]
 
 
 # ----------------------------------------------------------------- NIfTI

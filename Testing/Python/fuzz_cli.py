@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import shlex
 import shutil
@@ -121,6 +122,16 @@ def _hostile_files(f, fx):
     data = fx["labels"].read_bytes()
     (f / "truncated.nrrd").write_bytes(data[: len(data) // 2])
     fx["nrrd_truncated"] = f / "truncated.nrrd"
+    # ITK's own errors and lines (issue #34 item 8): a text NRRD with a 2,000-character
+    # "value" (ITK's reader crashed: SIGSEGV), a MetaImage header without its data
+    # (MetaIO printed its own lines), a .mha that is text
+    (f / "ascii_long.nrrd").write_bytes(b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\n"
+                                        b"encoding: ascii\n\n" + b"x" * 2000)
+    (f / "nodata.mha").write_text("ObjectType = Image\nNDims = 3\nDimSize = 4 4 4\n"
+                                  "ElementType = MET_UCHAR\nElementDataFile = LOCAL\n")
+    (f / "text.mha").write_text("not an image\n")
+    fx.update(nrrd_ascii_long=f / "ascii_long.nrrd", mha_nodata=f / "nodata.mha",
+              mha_text=f / "text.mha")
     # scenes: 3,000 transforms (scene info was quadratic: 2,000 took 59 s), a
     # FIFO as a data file (blocked forever), a storage path out of the folder
     big = mrml_io.new_scene()
@@ -466,7 +477,9 @@ SPECIAL = [
 
 # Hostile files made for one option (command words, option) -> fixture names.
 EXTRA = {
-    (("mesh",), "labelmap"): ["{label65535}", "{nrrd_truncated}"],
+    (("mesh",), "labelmap"): ["{label65535}", "{nrrd_truncated}", "{nrrd_ascii_long}",
+                              "{mha_nodata}", "{mha_text}"],
+    (("tomo", "simulate"), "--labels"): ["{nrrd_ascii_long}", "{mha_nodata}"],
     (("scene", "info"), "scene"): ["{scene_3000}", "{scene_fifo}", "{scene_escape}"],
     (("forward",), "--mesh"): ["{dup_tets}", "{unused_nodes}", "{vtu_truncated}"],
     (("forward",), "--sources"): ["{nan_csv}"],
@@ -668,6 +681,10 @@ def _run_process(argv, cwd, logs, serve):
     return p.returncode, peak_kb, hung, served, seconds, out, err
 
 
+# a progress line (fluoguide.progress): "calib camera:  20% detecting board 2/4 (3 s)"
+PROGRESS = re.compile(r"^[\w .-]+: +\d+% .*\(\d+ s\)$")
+
+
 def run_case(case, fx, work, server=None):
     """Run one case in a fresh folder and judge it; fills ``case.result``.
 
@@ -716,6 +733,10 @@ def run_case(case, fx, work, server=None):
             problems.append("exit 2 without a 'fluo: error:' line")
         elif sum(": error:" in ln for ln in lines) > 1:
             problems.append("more than one error line")
+        elif lines[-1].startswith("fluo: error:") and not all(map(PROGRESS.match, lines[:-1])):
+            # a library's own lines or a Python warning before the error (issue #34)
+            other = next(ln for ln in lines[:-1] if not PROGRESS.match(ln))
+            problems.append(f"a line before the error that is not progress: {other[:80]!r}")
     elif rc == 1:
         if "internal error" in err or not lines or not lines[-1].startswith("fluo: error:"):
             problems.append("exit 1: unexpected exception")

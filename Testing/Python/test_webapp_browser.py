@@ -252,6 +252,97 @@ def test_nav_panel_streams_tracked_frames(page):
     assert src and src.startswith("data:image/png;base64,")
 
 
+# Markup and a Vue template in names the app shows (issue #34, item 9): each sets
+# window.__xss if the page runs it (a handler's bare assignment makes a global);
+# the page must show each as text. No "." in them: a node is named by its file's
+# name up to the first dot.
+XSS = {
+    "node": "<img src=x onerror=__xss=1>",                        # a label map file -> its node
+    "region": "<svg onload=__xss=2>",                             # optics.json's region names
+    "template": "{{constructor.constructor('__xss=3')()}}",       # Vue would evaluate it
+    "segment": "<b onmouseover=__xss=4 id=xss-seg>bold</b>",      # a segment's name
+    "file": "<img src=y onerror=__xss=5>",                        # a file name in a message
+}
+
+
+def _no_script_ran(pg, where):
+    pg.wait_for_timeout(800)          # an <img onerror> fires after its failed load
+    assert pg.evaluate("window.__xss") is None, where
+    assert pg.query_selector("#xss-seg") is None, where        # no element made of a name
+
+
+def test_hostile_names_show_as_text_in_every_panel(page, own_scene):
+    """Names from files (a label map file and so its node, optics.json's region
+    names, a segment typed in the panel, file names in messages) hold markup and a
+    Vue template: shown as text in every panel (FluoTomo's own-scene info, regions,
+    segments and messages, the segment editor's list, FluoCalib's messages, FluoNav),
+    never run: ``window.__xss`` stays undefined and the literal text is on the page.
+    Screenshots: 10-hostile-names-*.png."""
+    pg = page
+    d = WORKSPACE["root"] / "xss"
+    d.mkdir(exist_ok=True)
+    shutil.copy(own_scene.labels, d / f"{XSS['node']}.nrrd")
+    optics = json.loads(own_scene.optics.read_text())
+    optics["names"] = {"3": XSS["region"], "7": XSS["template"]}
+    (d / "optics.json").write_text(json.dumps(optics))
+    shutil.copytree(own_scene.acq, d / "acq", dirs_exist_ok=True)
+
+    pg.click("#tool-FluoTomo") if not pg.is_visible("#tomo-own-load") else None
+    # a message naming a file the user typed (not found), then the scene itself
+    pg.fill("#tomo-own-labels", f"xss/{XSS['file']}.nrrd")
+    pg.fill("#tomo-own-optics", "xss/optics.json")
+    pg.fill("#tomo-own-acquisition", "xss/acq")
+    pg.click("#tomo-own-load")
+    _wait_text(pg, "#fluo-message", XSS["file"])
+    _no_script_ran(pg, "FluoTomo: a message naming a file")
+    pg.fill("#tomo-own-labels", f"xss/{XSS['node']}.nrrd")
+    pg.click("#tomo-own-load")
+    _wait_text(pg, "#tomo-own-info", XSS["node"], 120000)
+    _wait_text(pg, "#fluo-message", "Loaded your scene: " + XSS["node"])
+    regions = _text(pg, "#tomo-regions")
+    assert XSS["region"] in regions and XSS["template"] in regions, regions
+    # a segment named by markup, by threshold on the label map (labels 3 and 7)
+    pg.fill("#tomo-seg-name", XSS["segment"])
+    pg.fill("#tomo-seg-min", "0.5")
+    pg.fill("#tomo-seg-max", "100")
+    pg.click("#tomo-threshold")
+    _wait_text(pg, "#tomo-segments", XSS["segment"])
+    _wait_text(pg, "#fluo-message", f"Segment '{XSS['segment']}'")
+    _no_script_ran(pg, "FluoTomo")
+    pg.screenshot(path=str(ARTIFACTS / "10-hostile-names-tomo.png"))
+    # the segment editor lists the segment by its name
+    pg.click("#tool-segment-editor")
+    pg.wait_for_function("document.body.innerText.includes(%s)" % json.dumps(XSS["segment"]),
+                         timeout=20000)
+    _no_script_ran(pg, "segment editor")
+    pg.screenshot(path=str(ARTIFACTS / "10-hostile-names-segment-editor.png"))
+    # FluoCalib: a glob and a scene file named by markup, in its messages
+    pg.click("#tool-FluoCalib")
+    pg.fill("#calib-images", f"xss/{XSS['file']}*.png")
+    pg.click("#calib-run")
+    _wait_text(pg, "#fluo-message", XSS["file"])
+    _no_script_ran(pg, "FluoCalib: images")
+    pg.fill("#calib-save-path", f"xss/{XSS['node']}.mrml")
+    pg.click("#calib-save")
+    _wait_text(pg, "#fluo-message", f"Scene saved to xss/{XSS['node']}.mrml", 60000)
+    assert (d / f"{XSS['node']}.mrml").is_file()
+    _no_script_ran(pg, "FluoCalib: save")
+    pg.screenshot(path=str(ARTIFACTS / "10-hostile-names-calib.png"))
+    # FluoNav: the surface of the scene's label map, named in its info and message
+    # (the phantom's CBCTLabels where the workflow test made one, else the node above)
+    pg.click("#tool-FluoNav")
+    pg.click("#nav-surface")
+    _wait_text(pg, "#nav-surface-info", "TissueSurface of ", 120000)
+    info = _text(pg, "#nav-surface-info")
+    assert XSS["node"] in info or "TissueSurface of CBCTLabels" in info, info
+    _no_script_ran(pg, "FluoNav")
+    pg.screenshot(path=str(ARTIFACTS / "10-hostile-names-nav.png"))
+    # leave the phantom's CBCT shown, as the earlier tests left the page
+    pg.click("#tool-FluoTomo")
+    pg.click("#tomo-load")
+    _wait_text(pg, "#fluo-message", "Loaded the")
+
+
 def test_one_browser_session_at_a_time(page, server):
     """trame shares one state per server: a second browser context is refused while
     the first is open (a page that says so), and gets in by itself once the first

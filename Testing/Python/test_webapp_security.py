@@ -57,6 +57,8 @@ def test_workspace_resolves_inside_and_refuses_the_rest(tmp_path):
     assert text == "cal/stack.json: not valid JSON; see …/x.conf"
     assert ws.scrub("mua 0.01 1/mm, ratio 3/4, yield [1e-3 / mm]") == \
         "mua 0.01 1/mm, ratio 3/4, yield [1e-3 / mm]"
+    # a name holding markup is shown as it is ("</b>" was cut to "<…/b>", issue #34)
+    assert ws.scrub("Segment '<b>x</b>': 3 voxels") == "Segment '<b>x</b>': 3 voxels"
     with pytest.raises(FluoInputError, match="root"):
         Workspace("/")
 

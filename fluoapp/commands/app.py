@@ -62,4 +62,4 @@ def register(subparsers):
     p.add_argument("--allow-origin", action="append", default=None, metavar="ORIGIN",
                    help="also accept pages from this origin (scheme://host:port), e.g. behind a "
                    "proxy; repeatable (default: none; only the app's own address)")
-    p.set_defaults(func=_app)
+    p.set_defaults(func=_app, serves=True)   # its warnings: its log, as they come (cli.py)

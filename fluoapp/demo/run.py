@@ -124,7 +124,8 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
         probe.write_text("")
         probe.unlink()
     except OSError as exc:
-        raise FluoInputError(f"output folder is not writable ({exc.strerror})", file=out) from None
+        raise FluoInputError(f"output folder is not writable ({exc.strerror})",
+                             file=out_dir) from None      # as the user gave it
     ctx = DemoContext(out=out, quick=quick, seed=seed, cancel=cancel, executor=executor,
                       threads=threads, resume=bool(resume), case_options=dict(case_options or {}))
     stages = [s for s in _stages() if s[0] in names]

@@ -75,6 +75,9 @@ class FluoGuideApp:
         self.state.fluo_message_visible = False
         self.state.job = self._job_state()
         self.state.ping_count = 0
+        # declared before the page is built: a key the client first sees later is
+        # not reactive there, and the segment editor's button stayed disabled
+        self.state.is_volume_loaded = False
         self.ctrl.fluo_ping = self._ping
         self.ctrl.fluo_cancel_job = self.guarded(self.jobs.cancel)
         self.panels = self._make_panels()

@@ -126,7 +126,8 @@ class Workspace:
             return prefix + (str(rel) if str(rel) != "." else ".")
         return p.name
 
-    _ABS = re.compile(r"(?<![\w.~-])/(?:[^\s/:'\"(),;]+/)*[^\s/:'\"(),;]*")
+    # a "/" after "<" closes a tag in a name ("<b>x</b>"), it starts no server path
+    _ABS = re.compile(r"(?<![\w.~<-])/(?:[^\s/:'\"(),;]+/)*[^\s/:'\"(),;]*")
 
     def scrub(self, text):
         """``text`` with server paths made workspace-relative (others cut to their name)."""

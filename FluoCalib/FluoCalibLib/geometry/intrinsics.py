@@ -261,9 +261,11 @@ def _fit(views, board, size, model, fix_k3):
             std = {k: float(sd[i]) for i, k in enumerate(["fx", "fy", "cx", "cy", "k1", "k2",
                                                           "p1", "p2", "k3"])}
     except cv2.error as exc:
-        msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "OpenCV error"
-        raise FluoInputError(f"calibration failed (ill-conditioned views?): {msg}",
-                             field="images") from None
+        from fluoguide.library_errors import opencv_problem
+
+        # OpenCV's text names its build's source file, line and function: in words
+        raise FluoInputError(f"calibration failed (ill-conditioned views?): "
+                             f"{opencv_problem(exc)}", field="images") from None
     for v, r, t in zip(views, rvecs, tvecs):
         v.board_to_camera = tf.make_rigid(tf.rotvec_to_matrix(np.ravel(r)), np.ravel(t))
     return cam, std

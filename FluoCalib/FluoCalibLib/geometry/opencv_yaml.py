@@ -81,8 +81,13 @@ def read_calibration_yaml(path):
         _check_duplicate_keys(path)
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error:
-        raise FluoInputError("not an OpenCV FileStorage file", file=path) from None
+    except (cv2.error, SystemError) as exc:
+        # the binding wraps the parser's cv2.error in a SystemError (its cause)
+        from fluoguide.library_errors import opencv_problem
+
+        cause = exc.__cause__ if isinstance(exc.__cause__, cv2.error) else exc
+        raise FluoInputError(f"not an OpenCV FileStorage file ({opencv_problem(cause)})",
+                             file=path) from None
     if not fs.isOpened():
         raise FluoInputError("not an OpenCV FileStorage file", file=path)
     try:

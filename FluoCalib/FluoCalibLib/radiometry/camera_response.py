@@ -93,7 +93,8 @@ def load_stack(folder):
                 optional[key] = check_number(f"{where}.{key}", e[key], 0.0, hi, lo_open=True,
                                              file=meta_path)
         # the manifest names files in its own folder, never ../ or absolute paths
-        img = _read_image(inside(folder, e["file"], file=meta_path, field=f"{where}.file"))
+        img = _read_image(inside(folder, e["file"], file=meta_path, field=f"{where}.file",
+                                  given=True))   # messages name it as given
         frames.append(Frame(img, float(t), kind, optional.get("f_number"),
                             optional.get("wavelength_nm"), optional.get("radiance_w_per_mm2_sr"),
                             str(e["file"])))

@@ -44,6 +44,7 @@ def read_dataset(folder, name, required=()):
     if not isinstance(doc.get("images"), list) or not doc["images"]:
         raise FluoInputError("needs a non-empty 'images' list", file=p, field="images")
     # a manifest names files in its own folder, never ../ or absolute paths
-    images = [_read_image(inside(folder, f, file=p, field=f"images[{i}]")).astype(float)
+    images = [_read_image(inside(folder, f, file=p, field=f"images[{i}]", given=True))
+              .astype(float)
               for i, f in enumerate(doc["images"])]
     return images, doc

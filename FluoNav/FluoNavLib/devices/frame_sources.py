@@ -84,7 +84,12 @@ class OpenCVSource(_Source):
                 check_number(name, v, 1, 20000, integer=True)
         if fps is not None:
             check_number("fps", fps, 0.0, 1000.0, lo_open=True)
-        self.cap = cv2.VideoCapture(str(device) if self.is_file else device)
+        from fluoguide.library_errors import native_stderr_quiet
+
+        # OpenCV logs "[ WARN:0@...] global cap_v4l.cpp:914 open VIDEOIO(...)" on
+        # stderr for a camera it cannot open: the one-line error below says it
+        with native_stderr_quiet():
+            self.cap = cv2.VideoCapture(str(device) if self.is_file else device)
         if not self.cap.isOpened():
             self.cap.release()
             raise FluoInputError("cannot open camera or video (OpenCV VideoCapture)",

@@ -132,7 +132,7 @@ def _frame_doc(doc, folder, log, line, tools):
             raise FluoInputError("a pose must be 16 finite numbers (4x4, row-major)", file=log,
                                  field=f"{where}.poses.{tool}")
         poses[tool] = m.reshape(4, 4)
-    path = inside(folder, doc["file"], file=log, field=f"{where}.file")
+    path = inside(folder, doc["file"], file=log, field=f"{where}.file", given=True)
     if not path.is_file():
         raise FluoInputError("frame file of the log is missing", file=path)
     return {"frame": doc.get("frame", line - 2), "file": doc["file"], "path": path,

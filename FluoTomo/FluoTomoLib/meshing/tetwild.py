@@ -546,7 +546,11 @@ def mesh_labelmap_quality(labels_kji, spacing_mm, origin_mm, size_mm, roi=None, 
             stop_energy=float(stop_energy), num_opt_iter=int(optimize_iterations),
             num_threads=int(n_threads), disable_filtering=True, quiet=True, **kw)
     except (RuntimeError, ValueError) as exc:
-        raise FluoInputError(f"fTetWild failed ({str(exc)[:160]})", field="labels") from None
+        from fluoguide.library_errors import scrub
+
+        # its text may carry the library's source files: scrubbed, one line
+        raise FluoInputError(f"fTetWild failed ({scrub(exc, limit=160)})",
+                             field="labels") from None
     timing["tetwild_s"] = time.perf_counter() - t
     check_cancel(cancel)
 

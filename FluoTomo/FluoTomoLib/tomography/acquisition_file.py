@@ -339,12 +339,14 @@ def read_acquisition(folder, labelmap=None, optics=None):
 
 
 def _inside(base, name, jpath, field):
-    """A data file named in acquisition.json: inside the acquisition folder."""
+    """A data file named in acquisition.json: inside the acquisition folder
+    (checked on the resolved paths); returned as given (``acq/data.csv``), the
+    name its reader's messages show."""
     q = (base / name).resolve()
     if base.resolve() not in q.parents:
         raise FluoInputError("files must lie in the acquisition folder", file=jpath, field=field,
                              value=name)
-    return q
+    return base / name
 
 
 def _to_fluence_per_watt(data, units, doc, S, file, optics=None):

@@ -198,7 +198,6 @@ def load_batch(path, methods=None, lam=None, accuracy=None):
     if len(rows) > MAX_TASKS:
         raise FluoInputError(f"the batch has {len(rows)} cases; at most {MAX_TASKS} in one run",
                              file=p, value=len(rows))
-    base = p.resolve().parent
     check_settings(methods, lam, accuracy, where="--")      # the command line's, named so
     # a row's own value, else the command line's, else the file's default
     defaults = check_settings(*(file_defaults.get(k) if v is None else v for k, v in (
@@ -216,8 +215,10 @@ def load_batch(path, methods=None, lam=None, accuracy=None):
                                      "acquisition)", file=p, field=f"{at}, {k}")
 
         def path_of(key, kind):
-            q = inside(base, row[key], file=p, field=f"{at}, {key}", what=kind,
-                       root_name="the batch file's folder")
+            # as given (beside the batch file as the user named it): the readers'
+            # messages name it so; the case records hold the resolved path
+            q = inside(p.parent, row[key], file=p, field=f"{at}, {key}", what=kind,
+                       root_name="the batch file's folder", given=True)
             ok = q.is_dir() if kind == "folder" else q.is_file()
             if key == "acquisition":
                 ok = q.is_dir() or (q.is_file() and q.suffix.lower() == ".json")
@@ -277,9 +278,10 @@ def load_batch(path, methods=None, lam=None, accuracy=None):
             if q not in digests:
                 digests[q] = _digest(q)
         sha = hashlib.sha1("".join(digests[q] for q in hashed).encode()).hexdigest()[:16]
+        lab_abs, opt_abs, acq_abs = (q.resolve() for q in (lab_path, opt_path, acq_path))
         cases.append({"name": None if name is None else str(name), "_derived": _derived(
-            lab_path, acq_path), "_at": at, "labels": str(lab_path), "optics": str(opt_path),
-            "acquisition": str(acq_path), "methods": ",".join(m), "lambda": lam_i,
+            lab_abs, acq_abs), "_at": at, "labels": str(lab_abs), "optics": str(opt_abs),
+            "acquisition": str(acq_abs), "methods": ",".join(m), "lambda": lam_i,
             "accuracy": acc, "target": target, "truth": truth, "inputs_sha1": sha})
     _name_cases(cases, p)
     return cases

@@ -111,7 +111,10 @@ class Optics:
         W = np.zeros((mesh.n_nodes, len(labels)))
         np.add.at(W, (mesh.elements.ravel(), np.repeat(idx, mesh.dim + 1)),
                   np.repeat(mesh.measures, mesh.dim + 1))
-        W /= W.sum(axis=1, keepdims=True)
+        with np.errstate(invalid="ignore"):
+            # a node no element uses has no weight: NaN properties, and the mesh
+            # check refuses the mesh ("node(s) belong to no element") in one line
+            W /= W.sum(axis=1, keepdims=True)
         y = None
         if yield_by_label is not None:
             unknown = [int(k) for k in yield_by_label if int(k) not in col]
