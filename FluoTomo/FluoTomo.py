@@ -685,8 +685,10 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             tgt = lm.default_target() if target is None else int(target)
             roi_info = None
             if acq is not None:
-                src, _ = place_on_surface(lm, acq.sources_ras_mm, "sources")
-                det, _ = place_on_surface(lm, acq.detectors_ras_mm, "detectors")
+                src, _ = place_on_surface(lm, acq.sources_ras_mm, "sources",
+                                          file=acq.file_of("sources"))
+                det, _ = place_on_surface(lm, acq.detectors_ras_mm, "detectors",
+                                          file=acq.file_of("detectors"))
                 anchor = lm.region_centroid_local(tgt) if tgt is not None else None
                 box, roi_info = choose_roi(lm, optics, src, det, acq.mask, tgt,
                                            settings["truncation_pct"], anchor=anchor,

@@ -40,7 +40,8 @@ def test_simulate_writes_a_folder_a_person_can_read(small):
     assert sum(r.count("-") for r in rows) > 0            # near-source pairs marked unused
 
 
-@pytest.mark.parametrize("case", ["labels-missing", "off-surface", "wrong-shape", "nan",
+@pytest.mark.parametrize("case", ["labels-missing", "off-surface", "off-surface-detector",
+                                  "wrong-shape", "nan",
                                   "negative-log", "bad-yield", "bad-accuracy-size"])
 def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
     d, sc, _ = small
@@ -62,7 +63,14 @@ def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
         x, y, z = (float(v) for v in lines[2].split(","))
         lines[2] = f"{x},{y},{z + 25.0}"               # 25 mm above the tissue (+z is up)
         (acq / "sources.csv").write_text("\n".join(lines) + "\n")
-        needle = "sources[1]"
+        # the point's own file, not data.csv (issue #33)
+        needle = "sources.csv: sources[1]"
+    elif case == "off-surface-detector":
+        lines = (acq / "detectors.csv").read_text().splitlines()
+        x, y, z = (float(v) for v in lines[3].split(","))
+        lines[3] = f"{x},{y},{z + 25.0}"
+        (acq / "detectors.csv").write_text("\n".join(lines) + "\n")
+        needle = "detectors.csv: detectors[2]"
     elif case == "wrong-shape":
         rows = (acq / "data.csv").read_text().splitlines()
         (acq / "data.csv").write_text("\n".join(rows[:-1]) + "\n")

@@ -152,8 +152,8 @@ def _reconstruct(args):
                              field="--target", value=args.target)
     if args.data_model == "log":
         acq.check_for_log()
-    place_on_surface(lm, acq.sources_ras_mm, "sources", file=acq.source)
-    place_on_surface(lm, acq.detectors_ras_mm, "detectors", file=acq.source)
+    place_on_surface(lm, acq.sources_ras_mm, "sources", file=acq.file_of("sources"))
+    place_on_surface(lm, acq.detectors_ras_mm, "detectors", file=acq.file_of("detectors"))
     with TqdmProgress(f"reconstruct {args.method}") as bar:
         result = reconstruct_labelmap(
             lm, optics, acq, method=args.method, lam=args.lam, target=args.target,

@@ -85,6 +85,9 @@ class Acquisition:
     mask : (S, D) bool, the pairs measured and used
     units : the units the data were given in (converted to 1/mm^2 here)
     meta : anything else the file said (``simulation``: how it was simulated)
+    source : the file the data came from (named in messages about the data)
+    files : the files the points came from, ``{"sources": .., "detectors": ..}``,
+        as the user gave them (a message about a point names its CSV, not the data's)
     """
 
     sources_ras_mm: np.ndarray
@@ -94,6 +97,12 @@ class Acquisition:
     units: str = "1/mm^2"
     meta: dict = field(default_factory=dict)
     source: str | None = None
+    files: dict = field(default_factory=dict)
+
+    def file_of(self, what):
+        """The file to name in a message about ``what`` ("sources", "detectors",
+        "data"): its own CSV when it had one, else the acquisition's file."""
+        return self.files.get(what, self.source)
 
     def __post_init__(self):
         f = self.source
@@ -276,14 +285,17 @@ def read_acquisition(folder, labelmap=None, optics=None):
     if extra:
         raise FluoInputError("unknown key", file=jpath, field=sorted(extra)[0])
     pts = {}
+    files = {}
     for key in ("sources_ras_mm", "detectors_ras_mm"):
         v = doc.get(key)
         if v is None:
             raise FluoInputError("missing (a CSV file name or a list of [x, y, z])", file=jpath,
                                  field=key)
         if isinstance(v, str):
-            rows, _ = _read_csv_rows(_inside(base, v, jpath, key), key)
-            pts[key] = _points(rows, base / v, key)
+            given = _inside(base, v, jpath, key)
+            rows, _ = _read_csv_rows(given, key)
+            pts[key] = _points(rows, given, key)
+            files[key.split("_")[0]] = str(given)
         else:
             try:
                 pts[key] = _points(v, jpath, key)
@@ -334,8 +346,11 @@ def read_acquisition(folder, labelmap=None, optics=None):
                               axis=2)
         mask &= dist > ex
     meta = {k: doc[k] for k in ("simulation", "comment", "exclude_mm") if k in doc}
+    files.setdefault("sources", str(jpath))
+    files.setdefault("detectors", str(jpath))
     return Acquisition(pts["sources_ras_mm"], pts["detectors_ras_mm"], np.where(mask, y, 0.0),
-                       mask, units, meta, source=str(where if where != jpath else jpath))
+                       mask, units, meta, source=str(where if where != jpath else jpath),
+                       files=files)
 
 
 def _inside(base, name, jpath, field):

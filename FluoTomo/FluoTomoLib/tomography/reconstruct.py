@@ -164,9 +164,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         warnings.simplefilter("always")
         report(progress, 0.01, "optodes onto the tissue surface")
         src, d_src = place_on_surface(lm, acquisition.sources_ras_mm, "sources", max_offset_mm,
-                                      acquisition.source)
+                                      acquisition.file_of("sources"))
         det, d_det = place_on_surface(lm, acquisition.detectors_ras_mm, "detectors",
-                                      max_offset_mm, acquisition.source)
+                                      max_offset_mm, acquisition.file_of("detectors"))
         moved = float(max(d_src.max(), d_det.max()))
         if moved > 0.5:
             notes.append(f"optodes were moved up to {moved:.2f} mm onto the tissue surface")
