@@ -4,6 +4,7 @@ fluorescence tomography of any label map from the shell
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from pathlib import Path
@@ -150,6 +151,10 @@ def _reconstruct(args):
     if args.target is not None and args.target not in lm.labels:
         raise FluoInputError("target label is not in the label map", file=args.labels,
                              field="--target", value=args.target)
+    if args.noise_pct is not None and not (math.isfinite(args.noise_pct)
+                                           and 0 < args.noise_pct < 100):
+        raise FluoInputError("the data's relative noise must be within 0..100 % (one SD per "
+                             "measurement)", field="--noise-pct", value=args.noise_pct)
     if args.data_model == "log":
         acq.check_for_log()
     place_on_surface(lm, acq.sources_ras_mm, "sources", file=acq.file_of("sources"))
@@ -160,7 +165,7 @@ def _reconstruct(args):
             accuracy=args.accuracy, size_mm=args.element_mm, roi_ras=roi,
             truncation_pct=args.truncation_pct, data_model=args.data_model,
             self_absorption=("HP", "SP") if args.self_absorption else (),
-            grading=args.grading, progress=bar)
+            grading=args.grading, progress=bar, noise_pct=args.noise_pct)
     summary = write_reconstruction(args.out, lm, result)
     summary["seconds"] = time.perf_counter() - t0
     return summary
@@ -274,6 +279,11 @@ def register(subparsers):
     p.add_argument("--data-model", choices=["linear", "log"], default="linear",
                    help="fit the data (linear, default) or their logarithm (log: every used "
                    "measurement must be > 0)")
+    p.add_argument("--noise-pct", type=float, default=None,
+                   help="the data's relative noise, one SD per measurement [%%]: the fit is "
+                   "tested against it and the intervals widen when the model explains the "
+                   "data worse (default: the acquisition's noise_pct, or its simulation's; "
+                   "else judged from the residual)")
     p.add_argument("--grading", action="store_true",
                    help="optode-aware grading: cells twice as large away from the optodes and "
                    "the target (about half the nodes, default off: it moved the data of the "

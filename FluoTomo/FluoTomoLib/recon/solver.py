@@ -408,17 +408,74 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
                           lam_final=cached_lam)
     if diag["over_regularised"]:
         stop = f"{stop} (stalled by the damping)"
+    # for the intervals: what the damped iterations kept of the start (the
+    # solver's bias at its own result), and how much of the residual the stated
+    # noise cannot explain (the model's own error, in the data's units)
+    resolution = None
+    if not nonlinear and ds is not None:
+        Kb = np.eye(A_s.shape[1]) if K is not None else prior.K()
+        resolution = (Kb, _unresolved(method, prior, Jm, np.column_stack([Kb, x_start]),
+                                      len(history) - 1, lam, lambda_decay,
+                                      {cached_lam: (RJt, ds)}))
+    excess = None
+    if sigma is not None:
+        s_fit = sigma / np.abs(y) if log_data else np.ldexp(sigma, -b_exp)
+        expected = float(np.sum(s_fit ** 2)) * max(diag["residual_dof"], 0.0) / len(y)
+        excess = float(np.sqrt(max(float(resid @ resid) - expected, 0.0)))
     x = np.ldexp(x, -x_exp)
     x_nodes = K @ x if K is not None else x
     conf = _region_confidence(Jc, Rinv, ds, resid, prior, x_nodes, method, col,
                               diag["residual_dof"], diag.get("noise_variance_fit"),
                               undetermined=diag["underdetermined"],
                               x_scale=2.0 ** (-x_exp), region_weights=region_weights,
-                              region_values=x if K is not None else None)
+                              region_values=x if K is not None else None,
+                              resolution=resolution, x_scaled=np.ldexp(x, x_exp),
+                              model_excess=excess)
     diag.pop("noise_variance_fit", None)
     history = [float(np.ldexp(h, 2 * b_exp)) for h in history]    # in the data's units
     return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
                        conf, clipped, stop, diag, warn)
+
+
+def _unresolved(method, prior, Jm, V, iterations, lam, decay, cache):
+    """(I - T_k) ... (I - T_1) V for the columns of V, T_j = H_j^-1 J^T J the step
+    operator of iteration j (damping lambda / decay^(j-1)). For linear data the
+    solver's result from the start x0 is, in expectation, x0 + (I - P)(x - x0)
+    for a truth x, P = (I - T_k)...(I - T_1): what the iterations leave
+    unresolved of the truth. The non-negativity clip is not modelled.
+    ``cache``: {lambda: (R^-1 J^T, data-space system)} already built."""
+    V = np.array(V, float)
+    lam_j = float(lam)
+    for _ in range(max(int(iterations), 0)):
+        if lam_j not in cache:
+            _, _, _, RJt, ds = _step_system(method, prior, Jm, np.zeros(Jm.shape[1]), False,
+                                            lam_j)
+            cache = {lam_j: (RJt, ds)}              # one at a time: (N, M) each
+        RJt, ds = cache[lam_j]
+        V = V - RJt @ ds.solve(Jm @ V)
+        lam_j /= decay
+    return V
+
+
+#: two-sided 95 % point of the normal distribution: the intervals' noise part
+Z95 = 1.959964
+
+
+def _interval(mean, sd, corrected, model_bound):
+    """The 95 % interval of a region's yield [1/mm] (None where no SD can be given):
+    it reaches from the result to the value corrected for what the damped
+    iterations leave unresolved of a region-wise constant truth (``corrected``),
+    widened by the noise part +-Z95 sd and the model's error bound
+    (``model_bound``: the largest change of this value a data error of the
+    unexplained residual's size can make) on both sides; clipped at zero (a
+    yield is not negative)."""
+    if not np.isfinite(sd):
+        return None
+    lo_c = hi_c = mean
+    if corrected is not None and np.isfinite(corrected):
+        lo_c, hi_c = min(mean, corrected), max(mean, corrected)
+    half = Z95 * sd + (model_bound or 0.0)
+    return [max(lo_c - half, 0.0), hi_c + half]
 
 
 def _step_system(method, prior, Jm, x, normalise, lam):
@@ -534,6 +591,11 @@ def _data_to_model(A, y, x, log_data):
 PLAUSIBLE_YIELD_PER_MM = (1e-9, 1.0)   # ~1 pM ICG (eta 4 %) up to mua_f 1/mm at quantum yield 1
 MISFIT_WARN = 0.10        # rms relative residual without a noise model
 CHI2_WARN = 4.0           # residual rms > 2 x the stated noise
+#: the fit graded by the residual's rms over the stated noise's (sqrt(chi^2/dof)):
+#: up to FIT_GOOD "good"; to FIT_FAIR "fair" (the model's own error shows, and the
+#: intervals count it: a note); to FIT_POOR "poor" (a warning: the model's error
+#: dominates the data's); beyond, "fails" (the model does not explain the data)
+FIT_GOOD, FIT_FAIR, FIT_POOR = 2.0, 5.0, 15.0
 STALL_FRACTION = 0.1      # a damped step doing < 10 % of what a 1e4x weaker one would
 WEAK_DAMPING = 1e4
 P_EFF_WARN = 0.1          # effective parameters > 10 % of the measurements
@@ -712,10 +774,20 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
         diag["chi2_per_dof"] = chi2 / max(nu, 1.0)
         noise_var_fit = float(np.mean(s_fit ** 2))
         diag["noise_variance_fit"] = noise_var_fit
-        if diag["chi2_per_dof"] > CHI2_WARN:
-            warn.append(f"poor fit: the residual is {np.sqrt(diag['chi2_per_dof']):.3g} times "
-                        "the stated noise; the model (mesh, optical properties, geometry, "
-                        "units) does not explain these data")
+        ratio = float(np.sqrt(diag["chi2_per_dof"]))
+        grade = ("good" if ratio <= FIT_GOOD else "fair" if ratio <= FIT_FAIR
+                 else "poor" if ratio <= FIT_POOR else "fails")
+        diag["fit"] = {"residual_over_noise": ratio, "grade": grade}
+        if grade == "poor":
+            warn.append(f"poor fit: the residual is {ratio:.3g} times the stated noise: the "
+                        "model's own error (mesh, optical properties, geometry, the prior's "
+                        "regions) dominates the data's; the intervals include a bound for it, "
+                        "but the values may be off by more than they say")
+        elif grade == "fails":
+            warn.append(f"poor fit: the residual is {ratio:.3g} times the stated noise: the "
+                        "model does not explain these data (optical properties, geometry, "
+                        "units or the prior's regions are wrong); the values are not "
+                        "measurements")
     elif misfit > MISFIT_WARN:
         warn.append(f"poor fit: the model leaves {100 * misfit:.3g} % rms of the data "
                     "unexplained; the result does not describe these data (wrong geometry, "
@@ -831,9 +903,38 @@ def _region_matrix(J, K, region_jacobian, prior):
     return A
 
 
+#: the region system W (B - U_B) is taken as singular beyond this condition number
+RESOLUTION_COND_MAX = 1e6
+
+
+def _resolution_corrected(resolution, x_scaled, prior, method, weighted, region_weights, n,
+                          x_scale):
+    """Region values [1/mm] whose region-wise constant yield the damped solver
+    would have turned into the result's region means (:func:`_region_confidence`),
+    or None (no resolution given, or the regions not resolved)."""
+    if resolution is None or x_scaled is None:
+        return None
+    B, U = resolution
+    R = len(prior.labels)
+    if method == "HP":
+        W = np.eye(n)
+    elif weighted:
+        W = np.stack([np.asarray(region_weights.get(int(lab), np.zeros(n)), float)
+                      for lab in prior.labels])
+    else:
+        W = (prior.K() / prior.counts).T
+    P = W @ (B - U[:, :R])
+    rhs = W @ (x_scaled - U[:, R])
+    if P.shape[0] != P.shape[1] or not np.all(np.isfinite(P)) or \
+            np.linalg.cond(P) > RESOLUTION_COND_MAX:
+        return None
+    return np.linalg.solve(P, rhs) * x_scale
+
+
 def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof=None,
                        noise_var=None, undetermined=False, x_scale=1.0, region_weights=None,
-                       region_values=None):
+                       region_values=None, resolution=None, x_scaled=None,
+                       model_excess=None):
     """Per-region mean yield and its standard deviation from the regularised
     Hessian H = J^T J + R:  var(w^T x) = sigma^2 w^T H^-1 w, w = region-averaging
     weights, sigma^2 the residual variance rss / (M - p) with p the effective
@@ -846,7 +947,20 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
     ``region_weights`` (NP, SP): {label: nodal weights} defining each region's
     mean instead of the node region's plain mean; the SD is of that mean. With
     them, HP's region means are its unknowns (``region_values``, 1/mm): the
-    volume-weighted mean over each label of the partial-volume model's yield."""
+    volume-weighted mean over each label of the partial-volume model's yield.
+
+    The 95 % interval (``ci95_yield_per_mm``, :func:`_interval`) adds to the noise
+    part the resolution's bias: ``resolution`` = (B, U), B the region basis (its
+    columns a region-wise constant yield) and U the unresolved part
+    (:func:`_unresolved`) of [B, x_start]; the region values v that the solver
+    would turn into the result's region means solve W (B - U_B) v = W (x - U_x0),
+    W the regions' averaging functionals (``bias_corrected_per_mm``; none where
+    that system is near-singular: the data do not resolve the regions). And the
+    model's error: ``model_excess`` is
+    the norm of the residual the stated noise cannot explain (None without a noise
+    model: then the interval cannot include it), and a data error of that norm
+    changes the region's value by at most ||S^-1 J R^-1 w|| times it (the
+    estimator's gain along its most sensitive direction)."""
     if prior is None:
         return {}
     rss = float(resid @ resid)
@@ -858,6 +972,8 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
     out = {}
     means = prior.region_mean(x_nodes)
     weighted = region_weights is not None and method != "HP"
+    corrected = _resolution_corrected(resolution, x_scaled, prior, method, weighted,
+                                      region_weights, A.shape[1], x_scale)
     for r, lab in enumerate(prior.labels):
         mean = float(means[r])
         if region_weights is not None and method == "HP" and region_values is not None:
@@ -879,8 +995,19 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
                 w = w * col
             Rinv_w = Rinv(w)
             JRw = A @ Rinv_w
-            var = float(w @ Rinv_w - JRw @ ds.solve(JRw)) * sigma2
+            SJRw = ds.solve(JRw)
+            var = float(w @ Rinv_w - JRw @ SJRw) * sigma2
             sd = float(np.sqrt(max(var, 0.0))) * x_scale
-        out[int(lab)] = {"mean_yield_per_mm": mean, "sd_yield_per_mm": sd,
-                         "relative_sd": sd / mean if mean > 0 else float("inf")}
+        row = {"mean_yield_per_mm": mean, "sd_yield_per_mm": sd,
+               "relative_sd": sd / mean if mean > 0 else float("inf")}
+        c = None if corrected is None else float(corrected[r])
+        if np.isfinite(sd):
+            bound = None if model_excess is None else \
+                float(np.linalg.norm(SJRw)) * model_excess * x_scale
+            row.update({"ci95_yield_per_mm": _interval(mean, sd, c, bound),
+                        "resolution_corrected_per_mm": c, "model_error_bound_per_mm": bound})
+        else:
+            row.update({"ci95_yield_per_mm": None, "resolution_corrected_per_mm": c,
+                        "model_error_bound_per_mm": None})
+        out[int(lab)] = row
     return out

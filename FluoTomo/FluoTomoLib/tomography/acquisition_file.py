@@ -26,6 +26,11 @@
   counts above the offset scale with exposure).
 - ``exclude_mm`` (optional): pairs closer than this to their source are left out
   (diffusion is not valid there), on top of those marked unused.
+- ``noise_pct`` (optional): the data's relative noise, one standard deviation
+  per measurement [%] (shot and read noise of the ROI means, laser power
+  jitter): the reconstruction tests its fit against it and widens its intervals
+  when the model explains the data worse than this noise would allow. A
+  simulated acquisition states its own (``simulation.noise_pct``).
 
 The raw route, ``"kind": "tracked-frames"`` (what the cylinder-tube demo
 records): camera frames of the emission light, one per laser position, the
@@ -66,7 +71,7 @@ UNITS = ("1/mm^2", "W/mm^2", "counts")
 _FLUENCE_KEYS = {"format", "version", "kind", "units", "sources_ras_mm", "detectors_ras_mm",
                  "data", "laser_power_w", "exposure_s", "reference_exposure_s",
                  "camera_gain_adu_per_radiance", "camera_offset_adu", "exclude_mm", "comment",
-                 "simulation"}
+                 "simulation", "noise_pct"}
 _RAW_KEYS = {"format", "version", "kind", "frames", "laser_poses", "laser_beam", "camera",
              "camera_to_ras", "camera_gain_adu_per_radiance", "camera_offset_adu",
              "laser_power_w", "detector_factor", "exclude_mm", "roi_area_mm2", "saturation_adu",
@@ -129,6 +134,15 @@ class Acquisition:
                                  file=f, field="data")
         self.data = np.where(mask, data, 0.0)
         self.mask = mask
+
+    def noise_pct(self):
+        """The data's stated relative noise [%] (one SD per measurement): the
+        acquisition file's ``noise_pct``, else its simulation's; None when neither
+        says (the reconstruction then judges its fit from the residual alone)."""
+        for v in (self.meta.get("noise_pct"), (self.meta.get("simulation") or {}).get("noise_pct")):
+            if v is not None:
+                return float(v)
+        return None
 
     @property
     def n_measurements(self):
@@ -345,7 +359,12 @@ def read_acquisition(folder, labelmap=None, optics=None):
         dist = np.linalg.norm(pts["sources_ras_mm"][:, None] - pts["detectors_ras_mm"][None],
                               axis=2)
         mask &= dist > ex
-    meta = {k: doc[k] for k in ("simulation", "comment", "exclude_mm") if k in doc}
+    if doc.get("noise_pct") is not None:
+        nz = _number(doc, "noise_pct", jpath, positive=False)
+        if nz.ndim != 0 or not float(nz) < 100.0:
+            raise FluoInputError("must be a relative noise within 0..100 %", file=jpath,
+                                 field="noise_pct", value=doc["noise_pct"])
+    meta = {k: doc[k] for k in ("simulation", "comment", "exclude_mm", "noise_pct") if k in doc}
     files.setdefault("sources", str(jpath))
     files.setdefault("detectors", str(jpath))
     return Acquisition(pts["sources_ras_mm"], pts["detectors_ras_mm"], np.where(mask, y, 0.0),

@@ -227,6 +227,37 @@ def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
     return out, notes
 
 
+#: 95 % point of chi^2 with one degree of freedom
+CHI2_1_95 = 3.841
+
+
+def perturb_regions(labels_kji, spacing_mm, delta_mm, background):
+    """A segmentation whose boundaries moved by ``delta_mm`` [mm]: every labelled
+    region but ``background`` dilated (``delta_mm`` > 0, into the background only:
+    other regions and air keep their voxels) or eroded (< 0, its rim handed to the
+    background; a region keeps at least its deepest voxels), by distance in mm
+    on the anisotropic grid."""
+    from scipy import ndimage
+
+    labels = np.asarray(labels_kji)
+    out = labels.copy()
+    sampling = np.asarray(spacing_mm, float)[::-1]           # (K, J, I) axes
+    for lab in np.unique(labels):
+        if lab in (0, background):
+            continue
+        m = labels == lab
+        if delta_mm > 0:
+            grow = ndimage.distance_transform_edt(~m, sampling=sampling) <= delta_mm
+            out[grow & (labels == background)] = lab
+        elif delta_mm < 0:
+            depth = ndimage.distance_transform_edt(m, sampling=sampling)
+            keep = depth > -delta_mm
+            if not keep.any():
+                keep = depth >= depth.max()
+            out[m & ~keep] = background
+    return out
+
+
 def label_mean_weights(mesh, labels_kji, spacing_mm, origin_mm, region_labels):
     """{label: (N,) nodal weights}: the mean over a label's voxels (those inside
     the mesh) of a P1 field sampled at the voxel centres, as weights on its nodal
@@ -284,8 +315,6 @@ class TissueModel:
                  origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None,
                  cut_facets=None, progress=None):
         from FluoTomoLib.fem.forward import FluorescenceModel
-        from FluoTomoLib.meshing.voxel import node_regions_volume_preserving
-        from FluoTomoLib.recon.partial_volume import PartialVolumePrior
 
         timings = {} if timings is None else timings
         t0 = time.perf_counter()
@@ -301,12 +330,10 @@ class TissueModel:
         optics.check_labels(self.region_labels)
         self.props_x, self.props_m = optics.nodal(self.region_labels, self.fractions)
         vols = {int(v): int(np.count_nonzero(labels == v)) for v in self.region_labels}
-        background = max(vols, key=vols.get)
-        node_region = node_regions_volume_preserving(mesh, labels, spacing_mm, origin_mm,
-                                                     background=background)
-        self.prior = PartialVolumePrior(node_region, self.region_labels, self.fractions)
-        self.region_weights = label_mean_weights(mesh, labels, spacing_mm, origin_mm,
-                                                 self.region_labels)
+        self.background = max(vols, key=vols.get)
+        self.labels_kji, self.spacing_mm = labels, np.asarray(spacing_mm, float)
+        self.origin_mm = np.asarray(origin_mm, float)
+        self.prior, self.region_weights = self.prior_for(labels)
         timings["prior"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         self.model = FluorescenceModel(mesh, self.props_x, self.props_m, self.sources_mm,
@@ -315,6 +342,68 @@ class TissueModel:
         self.model.progress = progress
         self.J = self.model.jacobian_yield()[self.mask.ravel()]
         timings["jacobian"] = time.perf_counter() - t0
+
+    def prior_for(self, labels_kji, spacing_mm=None, origin_mm=None):
+        """(PartialVolumePrior, region_weights) of a segmentation on this model's mesh:
+        this model's own, or a perturbed one on this grid or a finer one with the
+        same extent (``spacing_mm``, ``origin_mm``; :meth:`segmentation_shifts`)."""
+        from FluoTomoLib.meshing.voxel import node_regions_volume_preserving
+        from FluoTomoLib.recon.partial_volume import PartialVolumePrior
+
+        sp = self.spacing_mm if spacing_mm is None else np.asarray(spacing_mm, float)
+        org = self.origin_mm if origin_mm is None else np.asarray(origin_mm, float)
+        labs, fractions = membership(self.mesh, labels_kji, sp, org)
+        if list(labs) != list(self.region_labels):
+            raise FluoInputError("a perturbed segmentation lost or gained a region",
+                                 field="segmentation_mm", value=sorted(set(labs) ^ set(
+                                     self.region_labels)))
+        node_region = node_regions_volume_preserving(self.mesh, labels_kji, sp, org,
+                                                     background=self.background)
+        return (PartialVolumePrior(node_region, self.region_labels, fractions),
+                label_mean_weights(self.mesh, labels_kji, sp, org, self.region_labels))
+
+    def segmentation_shifts(self, y, method, lam, delta_mm, log_data=False, noise_rel=None,
+                            cancel=None):
+        """How far each region's value moves when the segmentation's boundaries move
+        by ``delta_mm`` [mm] (the CBCT segmentation's accuracy): every region but the
+        background dilated, then eroded, by ``delta_mm`` (:func:`perturb_regions`),
+        and the data solved again on the same mesh and Jacobian (no self-absorption
+        feedback: the shifts are differences of like solves).
+        Returns ({label: (shift when eroded, shift when dilated)} [1/mm], [eroded
+        ruled out, dilated ruled out]): a moved segmentation whose fit is worse than
+        the base's by more than chi^2's 95 % point is ruled out by the data, and
+        its shift is 0."""
+        from fluoguide.progress import check_cancel
+        from FluoTomoLib.recon.solver import reconstruct
+
+        def solve(prior, weights):
+            check_cancel(cancel)
+            res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
+                              region_weights=weights, noise_rel=noise_rel)
+            return res, {int(k): v["mean_yield_per_mm"]
+                         for k, v in res.region_confidence.items()}
+
+        res0, base = solve(self.prior, self.region_weights)
+        # a boundary moved by less than a voxel: on a grid f times finer (each voxel
+        # split, labels kept), where delta_mm is at least one fine voxel
+        f = int(min(max(np.ceil(np.max(self.spacing_mm) / delta_mm - 1e-9), 1), 3))
+        fine = self.labels_kji
+        for ax in range(3):
+            fine = np.repeat(fine, f, axis=ax)
+        sp = self.spacing_mm / f
+        org = self.origin_mm - 0.5 * self.spacing_mm + 0.5 * sp
+        moved = [solve(*self.prior_for(perturb_regions(fine, sp, d, self.background), sp, org))
+                 for d in (-delta_mm, delta_mm)]
+        # the data may rule a moved boundary out: a fit worse by more than the 95 %
+        # point of chi^2 with one degree of freedom (3.84 residual variances, the
+        # variance from the base fit's own residual, so model error widens it)
+        dof = max(len(y) - res0.diagnostics.get("effective_parameters", 0.0), 1.0)
+        var = res0.residual / dof
+        excluded = [bool(var > 0 and (r.residual - res0.residual) / var > CHI2_1_95)
+                    for r, _ in moved]
+        shifts = {lab: tuple(0.0 if ex else v[lab] - base[lab]
+                             for (_, v), ex in zip(moved, excluded)) for lab in base}
+        return shifts, excluded
 
     def make_model(self, dye_mua_x_nodes, dye_mua_m_nodes):
         """The model with the fluorophore's absorption added (self_absorption.py
@@ -327,11 +416,13 @@ class TissueModel:
                                  source_normals=self.source_normals, cut_facets=self.cut_facets)
 
     def solve(self, y, method="HP", lam=10.0, self_absorption=("HP",), log_data=False,
-              cancel=None, progress=None):
+              cancel=None, progress=None, noise_rel=None):
         """NP / SP / HP of the used data ``y``; the methods in ``self_absorption``
         (HP by default: it took the tube's HP from 23 % to 5 % mean error, SP from
         10.5 % to 13.7 %) feed the fluorophore's absorption back when the optics
-        give its slopes.  Returns (ReconResult, per-pass peaks)."""
+        give its slopes. ``noise_rel``: the data's relative noise (a fraction; None:
+        unknown), against which the solver tests its fit.
+        Returns (ReconResult, per-pass peaks)."""
         from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
         from FluoTomoLib.recon.solver import reconstruct
 
@@ -344,11 +435,11 @@ class TissueModel:
             res, passes = reconstruct_self_absorbing(
                 method, self.J, y, self.mask, self.prior, self.make_model, (0.0, 0.0), 0.0,
                 slopes, lam=lam, cancel=cancel, progress=progress,
-                region_weights=self.region_weights)
+                region_weights=self.region_weights, noise_rel=noise_rel)
         else:
             res = reconstruct(self.J, y, method=method, lam=lam, prior=self.prior,
                               log_data=log_data, cancel=cancel, progress=progress,
-                              region_weights=self.region_weights)
+                              region_weights=self.region_weights, noise_rel=noise_rel)
             passes = []
         res.seconds = time.perf_counter() - t0
         return res, passes

@@ -81,7 +81,7 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
                          accuracy="balanced", size_mm=None, refine_factor=None, roi_ras=None,
                          truncation_pct=None, data_model="linear", self_absorption=("HP", "SP"),
                          mesh=None, max_offset_mm=MAX_OFFSET_MM, grading=False, progress=None,
-                         cancel=None):
+                         cancel=None, noise_pct=None, segmentation_mm=None):
     """Reconstruct the yield of a label map from an acquisition.
 
     Parameters
@@ -109,6 +109,15 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
     grading : optode-aware grading: ``recon_coarse_mm`` cells away from the box of
         the optodes and the target (about half the nodes; the data moved by up
         to 11 % on the issue's scene, docs)
+    noise_pct : the data's relative noise, one SD per measurement [%]; None: the
+        acquisition's own statement (``Acquisition.noise_pct``), else unknown.
+        The fit is tested against it and the intervals widen when the model
+        explains the data worse than this noise allows (docs/reconstruction.md,
+        "Intervals")
+    segmentation_mm : how far the label map's boundaries may be off [mm] (the CBCT
+        segmentation's accuracy; None: half the largest voxel size, the label
+        map's own quantisation; 0: taken as exact). The regions are solved again
+        with their boundaries moved by it, and the intervals reach the values found
 
     Returns
     -------
@@ -119,7 +128,7 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
     return reconstruct_labelmap_methods(
         lm, optics, acquisition, (method,), lam, target, accuracy, size_mm, refine_factor,
         roi_ras, truncation_pct, data_model, self_absorption, mesh, max_offset_mm, grading,
-        progress, cancel)[str(method).upper()]
+        progress, cancel, noise_pct, segmentation_mm)[str(method).upper()]
 
 
 def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "HP"), lam=None,
@@ -127,7 +136,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                  refine_factor=None, roi_ras=None, truncation_pct=None,
                                  data_model="linear", self_absorption=("HP", "SP"), mesh=None,
                                  max_offset_mm=MAX_OFFSET_MM, grading=False, progress=None,
-                                 cancel=None):
+                                 cancel=None, noise_pct=None, segmentation_mm=None):
     """:func:`reconstruct_labelmap` for several methods on one model (one mesh,
     one Jacobian).  Returns {method: result}."""
     from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
@@ -138,6 +147,19 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     t_all = time.perf_counter()
     timings = {}
     methods = [str(m).upper() for m in methods]
+    seg_mm = 0.5 * float(np.max(lm.spacing_mm)) if segmentation_mm is None \
+        else float(segmentation_mm)
+    if not (np.isfinite(seg_mm) and 0 <= seg_mm <= 5):
+        raise FluoInputError("the segmentation's accuracy must be within 0..5 mm (0: its "
+                             "boundaries taken as exact)", field="segmentation_mm",
+                             value=segmentation_mm)
+    noise_from = "given" if noise_pct is not None else "acquisition"
+    if noise_pct is None:
+        noise_pct = acquisition.noise_pct()
+    if noise_pct is not None and not (np.isfinite(noise_pct) and 0 < noise_pct < 100):
+        raise FluoInputError("the data's relative noise must be within 0..100 % (one SD per "
+                             "measurement; 0 is no noise model: leave it out)",
+                             field="noise_pct", value=noise_pct)
     for m in methods:
         if m not in ("NP", "SP", "HP"):
             raise FluoInputError("method must be NP, SP or HP", field="method", value=m)
@@ -234,14 +256,19 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                              mesh.meta.get("labelmap_volumes_mm3", {}))
         notes.extend(prior_notes)
         y = acquisition.y()
-        solved = {}
+        solved, shifts = {}, {}
         for i, method in enumerate(methods):
             check_cancel(cancel)
             part = scaled(progress, 0.6 + 0.38 * i / len(methods),
                           0.6 + 0.38 * (i + 1) / len(methods), f"reconstruction {method}")
             report(part, 0.0, "start")
+            noise_rel = None if noise_pct is None else noise_pct / 100
             solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
-                                      cancel, progress=part)
+                                      cancel, progress=scaled(part, 0.0, 0.7), noise_rel=noise_rel)
+            if seg_mm > 0:
+                report(part, 0.7, f"segmentation moved by +-{seg_mm:.2g} mm")
+                shifts[method] = tm.segmentation_shifts(y, method, lam, seg_mm,
+                                                        data_model == "log", noise_rel, cancel)
     for text in _once(str(w.message) for w in caught):
         if text not in notes:
             notes.append(text)
@@ -253,8 +280,70 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                               dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
                               t_common + res.seconds)
         out[method]["summary"]["label_map_cut"] = cut_info
-        out[method]["summary"]["notes"] = list(remarks)
+        _add_segmentation(out[method]["summary"], shifts.get(method), seg_mm)
+        out[method]["summary"]["noise"] = {
+            "pct": noise_pct, "source": None if noise_pct is None else noise_from,
+            "note": "one SD per measurement [%], tested against the fit" if noise_pct
+            is not None else "not stated: the fit is judged from its own residual"}
+        out[method]["summary"]["notes"] = list(remarks) + _fit_notes(out[method]["summary"],
+                                                                      settings)
+        if noise_pct is None:
+            out[method]["summary"]["warnings"].append(
+                "the data's noise is not stated (acquisition.json's noise_pct, or "
+                "--noise-pct): the 95 % intervals count the whole misfit as noise and leave "
+                "out the model's own error, so they may not hold the truth")
     report(progress, 1.0, "done")
+    return out
+
+
+def _with_feedback(ci, pending):
+    """The interval reaching on towards where the self-absorption feedback, stopped
+    after its passes (SP: one), was still heading (``pending`` [1/mm], signed)."""
+    if ci is None or not pending:
+        return ci
+    return [max(ci[0] + min(pending, 0.0), 0.0), ci[1] + max(pending, 0.0)]
+
+
+def _add_segmentation(summary, shifts, seg_mm):
+    """The segmentation's part of each region's 95 % interval: the interval reaches
+    the values the region took with its boundaries moved by +-``seg_mm``."""
+    summary["segmentation_mm"] = seg_mm
+    if not shifts:
+        return
+    shifts, excluded = shifts
+    summary["segmentation_ruled_out"] = {"eroded": excluded[0], "dilated": excluded[1]}
+    for lab, r in summary["regions"].items():
+        moved = shifts.get(int(lab))
+        v = r.get("yield_per_mm")
+        if moved is None or v is None:
+            continue
+        r["interval_parts"]["segmentation_shift_per_mm"] = [float(m) for m in moved]
+        ci = r.get("ci95_per_mm")
+        if ci is None:
+            continue
+        # added to the other parts (as they are to each other): a boundary off by
+        # seg_mm moves the value whatever the noise did
+        lo, hi = min(0.0, *moved), max(0.0, *moved)
+        r["ci95_per_mm"] = [max(ci[0] + lo, 0.0), ci[1] + hi]
+
+
+def _fit_notes(summary, settings):
+    """Notes on a fit the solver graded "fair" (its residual 2-5 times the stated
+    noise: the model's own error shows, and the intervals count it), and where
+    the fit is worse than good at a coarse level, the level that models the light
+    more closely."""
+    fit = summary["solver"]["diagnostics"].get("fit")
+    if not fit or fit["grade"] == "good":
+        return []
+    out = []
+    ratio = fit["residual_over_noise"]
+    if fit["grade"] == "fair":
+        out.append(f"the model explains the data to {ratio:.2g} times the stated noise: its own "
+                   "error is counted in the 95 % intervals (interval_parts."
+                   "model_error_bound_per_mm)")
+    if settings.get("level") in ("fast", "balanced"):
+        out.append(f"accuracy '{settings['level']}': a finer level meshes the light's paths "
+                   "more finely; the mesh's own error is a likely part of the misfit")
     return out
 
 
@@ -305,6 +394,13 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         regions[str(int(lab))] = {
             "yield_per_mm": c.get("mean_yield_per_mm"),
             "sd_per_mm": c.get("sd_yield_per_mm"),
+            "ci95_per_mm": _with_feedback(c.get("ci95_yield_per_mm"),
+                                          c.get("feedback_pending_per_mm")),
+            "interval_parts": {"noise_sd_per_mm": c.get("sd_yield_per_mm"),
+                               "feedback_pending_per_mm": c.get("feedback_pending_per_mm"),
+                               "resolution_corrected_per_mm":
+                               c.get("resolution_corrected_per_mm"),
+                               "model_error_bound_per_mm": c.get("model_error_bound_per_mm")},
             "volume_mean_per_mm": float(vol[vox].mean()) if vox.any() else None,
             "name": optics.names.get(int(lab)),
         }
@@ -316,7 +412,10 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         "target": target,
         "regions": regions,
         "regions_note": ("yield_per_mm: the region's yield, the volume-weighted mean over its "
-                         "label (HP: the region's value), and sd_per_mm its standard deviation; "
+                         "label (HP: the region's value), and sd_per_mm its standard deviation "
+                         "from the noise; ci95_per_mm its 95 % interval (the noise, what the "
+                         "damped solver leaves unresolved, the model's error bound: "
+                         "interval_parts; docs/reconstruction.md, 'Intervals'); "
                          "volume_mean_per_mm: the yield volume's mean over the label (the P1 "
                          "field at voxel centres; for HP lower than the region's value where "
                          "the label is small: quote yield_per_mm)"),
