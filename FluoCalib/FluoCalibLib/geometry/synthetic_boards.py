@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from fluoguide.errors import FluoInputError, check_number, seeded_rng
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 from FluoCalibLib.geometry.boards import parse_board
 from FluoCalibLib.geometry.camera_model import CameraModel
@@ -259,13 +259,13 @@ def make_dataset(out_dir=None, camera=None, board="chessboard:9x6:20", n_views=1
     board_to_tracker = np.asarray(board_to_tracker, float)
     poses = random_board_poses(camera, board, n_views, rng, distance_mm=distance_mm,
                                max_tilt_deg=max_tilt_deg, motion=motion)
-    rays = _RayCache(camera, supersample, progress, cancel)
+    rays = _RayCache(camera, supersample, scaled(progress, 0.0, 0.2), cancel)
     ppm = 12.0
     texture = (*board.texture(ppm), ppm)
     views = []
     for i, b2c in enumerate(poses):
         check_cancel(cancel)
-        report(progress, i / n_views, f"rendering view {i + 1}/{n_views}")
+        report(progress, 0.2 + 0.8 * i / n_views, f"rendering view {i + 1}/{n_views}")
         cam_to_tracker = board_to_tracker @ tf.invert_rigid(b2c)
         tool_true = cam_to_tracker @ tf.invert_rigid(X)
         tool_meas = _perturb(tool_true, rng, tracker_noise_mm, tracker_noise_deg)
