@@ -66,18 +66,23 @@ def _angles_from_axis(n):
     return float(np.arccos(np.clip(n[2], -1, 1))), float(np.arctan2(n[1], n[0]))
 
 
-def _watched(fun, progress, fraction, message, cancel, every_s=0.5):
+#: an optimisation reports its evaluation count at most this often [s]
+REPORT_EVERY_S = 0.5
+
+
+def _watched(fun, progress, fraction, message, cancel):
     """``fun`` as ``least_squares`` calls it, checking ``cancel`` at every call and
-    saying ``message`` with the evaluations so far at most every ``every_s``
-    seconds: one optimisation runs for seconds (1-2 s each on the synthetic set),
-    and a desktop panel must hear from it, and be able to stop it, meanwhile."""
+    saying ``message`` with the evaluations so far at most every
+    ``REPORT_EVERY_S``: one optimisation runs for seconds (1-2 s each on the
+    synthetic set), and a desktop panel must hear from it, and be able to stop
+    it, meanwhile."""
     calls = [0, time.monotonic()]
 
     def watched(x):
         check_cancel(cancel)
         calls[0] += 1
         now = time.monotonic()
-        if now - calls[1] >= every_s:
+        if now - calls[1] >= REPORT_EVERY_S:
             calls[1] = now
             report(progress, fraction, f"{message} ({calls[0]} evaluations)")
         return fun(x)
