@@ -8,6 +8,8 @@
   the exit code, stdout and stderr of a real process without its start-up.
 - Shared small inputs: ``own_scene`` and ``issue_acquisition`` (built once per
   test process; ``Testing/Python/small_cases.py``).
+- ``qt_app``: a PySide6 ``QCoreApplication`` for the tests that watch a
+  background job from a Qt event loop (``Testing/Python/event_loop.py``).
 - The time guard: a test not marked ``slow`` that takes longer than
   ``FAST_TEST_LIMIT_S`` (set-up, call and tear-down together) fails, so the
   fast suite stays fast and CI's budget is spent where it is declared.
@@ -245,6 +247,15 @@ def fluo():
     import forkserver
 
     return forkserver.fluo
+
+
+@pytest.fixture(scope="session")
+def qt_app():
+    """The process's Qt application (PySide6; the test is skipped without it)."""
+    pytest.importorskip("PySide6")
+    from PySide6.QtCore import QCoreApplication
+
+    return QCoreApplication.instance() or QCoreApplication([])
 
 
 @pytest.fixture(scope="session")

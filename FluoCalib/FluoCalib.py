@@ -108,22 +108,35 @@ class FluoCalibWidget(FluoModuleWidget):
         self._parameterNode.SetNodeReferenceID("Calibration", node.GetID())
 
     # -- actions ---------------------------------------------------------------------
+    # Every calibration runs as FluoModuleWidget.runJob does it: the parameters and
+    # nodes are read on Slicer's thread, the logic's prepareX job computes on a
+    # worker thread (Slicer keeps answering, Cancel works), storeX writes the
+    # calibration node back on Slicer's thread. Each result goes to its label and
+    # to ``results`` (headless, the only place).
     def onLoadJson(self):
         path = self.logic.parameter("CalibrationJson")
         if self.run("Load calibration JSON", self.logic.loadCalibrationJson, path,
                     calibrationNode=self._outputs()["calibrationNode"]) is not None:
             self._afterStore()
-            self.ui.statusLabel.text = f"Loaded {path}"
+            self.results.append(f"Loaded {path}")
+            if self.ui is not None:
+                self.ui.statusLabel.text = f"Loaded {path}"
 
     def onSyntheticData(self):
         import tempfile
 
-        folder = tempfile.mkdtemp(prefix="FluoCalib-synthetic-")
-        sets = self.runWithProgress("Synthetic calibration data",
-                                    lambda progress, cancel: self.logic.writeSyntheticData(
-                                        folder, progress=progress, cancel=cancel))
-        if sets is None:
+        def prepare():
+            folder = tempfile.mkdtemp(prefix="FluoCalib-synthetic-")
+
+            def job(progress, cancel):      # files only, no MRML node: the job as it is
+                return self.logic.writeSyntheticData(folder, progress=progress, cancel=cancel)
+
+            return job, lambda sets: (folder, sets)
+
+        out = self.runJob("Synthetic calibration data", prepare)
+        if out is None:
             return
+        folder, sets = out
         node = self._parameterNode
         was = node.StartModify()
         for key, value in (("CameraImages", sets["board_images"]),
@@ -135,44 +148,54 @@ class FluoCalibWidget(FluoModuleWidget):
                            ("LaserFolder", sets["laser"])):
             node.SetParameter(key, value)
         node.EndModify(was)
-        self.ui.statusLabel.text = f"Synthetic data (known truth) in {folder}"
+        text = f"Synthetic data (known truth) in {folder}"
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.statusLabel.text = text
 
     def onCalibrateCamera(self):
         p = self.logic.parameter
-        res = self.runWithProgress("Camera calibration", lambda progress, cancel:
-                                   self.logic.calibrateCamera(
-                                       p("CameraImages"), p("Board"),
-                                       "fisheye" if p("Fisheye") else "pinhole", p("Holdout"),
-                                       fixK3=p("FixK3"), progress=progress, cancel=cancel,
-                                       **self._outputs()))
+
+        def prepare():
+            outputs = self._outputs()
+            job = self.logic.prepareCameraCalibration(
+                p("CameraImages"), p("Board"), holdout=p("Holdout"),
+                model="fisheye" if p("Fisheye") else "pinhole", fixK3=p("FixK3"))
+            return job, lambda res: self.logic.storeCameraCalibration(res, **outputs)
+
+        res = self.runJob("Camera calibration", prepare)
         if res is None:
             return
         self._afterStore()
         c = res.camera
         rejected = "; ".join(f"{v.name}: {v.reason}" for v in res.rejected)
-        self.ui.cameraResultLabel.text = (
-            f"fx {c.fx:.2f}, fy {c.fy:.2f} px, centre ({c.cx:.1f}, {c.cy:.1f}) px; "
-            f"RMS {res.rms_px:.3f} px over {len(res.used)} views"
-            + (f", held out {res.holdout_rms_px:.3f} px" if res.holdout else "")
-            + (f"\nrejected: {rejected}" if rejected else ""))
+        text = (f"fx {c.fx:.2f}, fy {c.fy:.2f} px, centre ({c.cx:.1f}, {c.cy:.1f}) px; "
+                f"RMS {res.rms_px:.3f} px over {len(res.used)} views"
+                + (f", held out {res.holdout_rms_px:.3f} px" if res.holdout else "")
+                + (f"\nrejected: {rejected}" if rejected else ""))
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.cameraResultLabel.text = text
 
     def onCalibrateHandEye(self):
         from FluoCalibLib.geometry.files import read_handeye_poses
 
         p = self.logic.parameter
 
-        def work(progress, cancel):
+        def prepare():
+            outputs = self._outputs()
+            transform = self._parameterNode.GetNodeReference("HandEyeTransform")
             poses = read_handeye_poses(p("HandEyePoses"), field="HandEyePoses")
-            return self.logic.calibrateHandEye(
+            job = self.logic.prepareHandEyeCalibration(
                 p("HandEyeImages"), p("Board"), poses["tool_to_tracker"],
-                camera=self.logic.cameraModel(self._outputs()["calibrationNode"]),
+                camera=self.logic.cameraModel(outputs["calibrationNode"]),
                 boardToTracker=poses["board_to_tracker"], methods=p("HandEyeMethod"),
                 storeMethod=p("HandEyeStoreMethod"), holdout=p("HandEyeHoldout"),
-                truthCameraToTool=poses["camera_to_tool"],
-                outputTransformNode=self._parameterNode.GetNodeReference("HandEyeTransform"),
-                progress=progress, cancel=cancel, **self._outputs())
+                truthCameraToTool=poses["camera_to_tool"])
+            return job, lambda out: self.logic.storeHandEyeCalibration(
+                out, outputTransformNode=transform, **outputs)
 
-        out = self.runWithProgress("Hand-eye calibration", work)
+        out = self.runJob("Hand-eye calibration", prepare)
         if out is None:
             return
         self._afterStore()
@@ -183,49 +206,67 @@ class FluoCalibWidget(FluoModuleWidget):
         if "translation_error_mm" in row:
             text += (f"; against the truth {row['translation_error_mm']:.3f} mm, "
                      f"{row['rotation_error_deg']:.3f} deg")
-        self.ui.handEyeResultLabel.text = text
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.handEyeResultLabel.text = text
 
     def onCharacterize(self):
         p = self.logic.parameter
-        res = self.runWithProgress("Camera response", lambda progress, cancel:
-                                   self.logic.characterizeCamera(
-                                       p("RadiometryStack"), bitDepth=p("BitDepth"),
-                                       progress=progress, cancel=cancel, **self._outputs()))
+
+        def prepare():
+            outputs = self._outputs()
+            job = self.logic.prepareCameraCharacterization(p("RadiometryStack"),
+                                                           bitDepth=p("BitDepth"))
+            return job, lambda res: self.logic.storeCameraCharacterization(res, **outputs)
+
+        res = self.runJob("Camera response", prepare)
         if res is None:
             return
         self._afterStore()
-        self.ui.radiometryResultLabel.text = (
-            f"gain {res['gain_adu_per_e']:.4f} ADU/e-, read noise {res['read_noise_e']:.2f} e-, "
-            f"dark current {res['dark_current_e_per_s']:.2f} e-/s, "
-            f"non-linearity {res['nonlinearity_pct']:.2f} %")
+        text = (f"gain {res['gain_adu_per_e']:.4f} ADU/e-, read noise {res['read_noise_e']:.2f} "
+                f"e-, dark current {res['dark_current_e_per_s']:.2f} e-/s, "
+                f"non-linearity {res['nonlinearity_pct']:.2f} %")
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.radiometryResultLabel.text = text
 
     def onCalibrateIllumination(self):
         p = self.logic.parameter
-        res = self.runWithProgress("Illumination calibration", lambda progress, cancel:
-                                   self.logic.calibrateIllumination(
-                                       p("IlluminationFolder"),
-                                       tryAsymmetric=not p("Axisymmetric"), progress=progress,
-                                       cancel=cancel, **self._outputs()))
+
+        def prepare():
+            outputs = self._outputs()
+            job = self.logic.prepareIlluminationCalibration(
+                p("IlluminationFolder"), tryAsymmetric=not p("Axisymmetric"))
+            return job, lambda res: self.logic.storeIlluminationCalibration(res, **outputs)
+
+        res = self.runJob("Illumination calibration", prepare)
         if res is None:
             return
         self._afterStore()
-        self.ui.illuminationResultLabel.text = (
-            f"half-angle {res['half_angle_deg']:.2f} deg, alpha {res['alpha']:.3f}, gamma "
-            f"{res['gamma_per_mm']:.4f} /mm; measured/model {res['ratio_mean']:.3f} "
-            f"+- {res['ratio_sd']:.3f} ({res['model']})")
+        text = (f"half-angle {res['half_angle_deg']:.2f} deg, alpha {res['alpha']:.3f}, gamma "
+                f"{res['gamma_per_mm']:.4f} /mm; measured/model {res['ratio_mean']:.3f} "
+                f"+- {res['ratio_sd']:.3f} ({res['model']})")
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.illuminationResultLabel.text = text
 
     def onCalibrateLaser(self):
         p = self.logic.parameter
-        res = self.runWithProgress("Laser calibration", lambda progress, cancel:
-                                   self.logic.calibrateLaser(
-                                       p("LaserFolder"), holdout=p("LaserHoldout"),
-                                       progress=progress, cancel=cancel, **self._outputs()))
+
+        def prepare():
+            outputs = self._outputs()
+            job = self.logic.prepareLaserCalibration(p("LaserFolder"), holdout=p("LaserHoldout"))
+            return job, lambda res: self.logic.storeLaserCalibration(res, **outputs)
+
+        res = self.runJob("Laser calibration", prepare)
         if res is None:
             return
         self._afterStore()
-        self.ui.laserResultLabel.text = (
-            f"held-out error {res['error_3d_mm']:.3f} mm (3D), {res['error_2d_px']:.2f} px (2D); "
-            f"line fit RMS {res['line_fit_rms_mm']:.3f} mm")
+        text = (f"held-out error {res['error_3d_mm']:.3f} mm (3D), {res['error_2d_px']:.2f} px "
+                f"(2D); line fit RMS {res['line_fit_rms_mm']:.3f} mm")
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.laserResultLabel.text = text
 
 
 #
@@ -241,8 +282,23 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     into that JSON file; long calls take ``progress`` and ``cancel``. For a
     worker thread, ``prepareX`` returns the computation as a job
     ``job(progress, cancel)`` that touches no MRML node, and ``storeX`` puts
-    its result on the scene (on the scene's thread). Nodes written are listed
-    in docs/scene.md (section FluoCalib).
+    its result on the scene (on the scene's thread); ``calibrateX`` is the two
+    in one call. The pairs (the desktop panel runs each job off Slicer's GUI
+    thread, ``FluoModuleWidget.runJob``):
+
+    - :meth:`prepareCameraCalibration` / :meth:`storeCameraCalibration`
+      (:meth:`calibrateCamera`)
+    - :meth:`prepareHandEyeCalibration` / :meth:`storeHandEyeCalibration`
+      (:meth:`calibrateHandEye`)
+    - :meth:`prepareCameraCharacterization` / :meth:`storeCameraCharacterization`
+      (:meth:`characterizeCamera`)
+    - :meth:`prepareIlluminationCalibration` / :meth:`storeIlluminationCalibration`
+      (:meth:`calibrateIllumination`)
+    - :meth:`prepareLaserCalibration` / :meth:`storeLaserCalibration`
+      (:meth:`calibrateLaser`)
+
+    :meth:`writeSyntheticData` writes files only and is a job as it is. Nodes
+    written are listed in docs/scene.md (section FluoCalib).
     """
 
     PARAMETERS = {
@@ -651,13 +707,15 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     def writeSyntheticData(self, folder, boardViews=10, seed=0, progress=None, cancel=None):
         """Board images with tracked poses, a camera stack, illumination and laser
         sets, all with known truth, under ``folder`` (to try every calibration).
+        It writes files and touches no MRML node, so it may run on a worker thread;
+        it reports each board view as it renders it (about 0.7 s each).
 
         Returns {``board_images`` (glob), ``board``, ``poses``, ``stack``,
         ``illumination``, ``laser``}.
         """
         from pathlib import Path
 
-        from fluoguide.progress import check_cancel, report
+        from fluoguide.progress import check_cancel, report, scaled
         from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
         from FluoCalibLib.radiometry.camera_response import write_stack
         from FluoCalibLib.radiometry.synthetic import (
@@ -670,8 +728,9 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         root = Path(folder)
         board = "chessboard:9x6:20"
-        report(progress, 0.05, "board images")
-        make_dataset(root / "boards", default_camera(640, 480), board, boardViews, seed)
+        report(progress, 0.0, "board images")
+        make_dataset(root / "boards", default_camera(640, 480), board, boardViews, seed,
+                     progress=scaled(progress, 0.0, 0.5, "board images"), cancel=cancel)
         check_cancel(cancel)
         report(progress, 0.5, "camera stack")
         frames, truth = synthetic_stack(seed=seed)

@@ -113,16 +113,26 @@ class FluoNavWidget(FluoModuleWidget):
         return self._parameterNode.GetNodeReference(role)
 
     # -- surface -----------------------------------------------------------------
+    # Long work runs as FluoModuleWidget.runJob does it: the scene is read on
+    # Slicer's thread, the logic's prepareX job computes on a worker thread
+    # (Slicer keeps answering, Cancel works), storeX writes the nodes back on
+    # Slicer's thread. Each result goes to its label and to ``results``.
     def onBuildSurface(self):
         p = self.logic.parameter
-        model = self.run("Surface from label map", self.logic.buildSurface,
-                         labelMapNode=self._node("LabelMap"),
-                         targetTriangles=p("TargetTriangles") or None,
-                         outputModelNode=self._node("Surface"))
+
+        def prepare():
+            output = self._node("Surface")
+            job = self.logic.prepareBuildSurface(labelMapNode=self._node("LabelMap"),
+                                                 targetTriangles=p("TargetTriangles") or None)
+            return job, lambda poly: self.logic.storeBuiltSurface(poly, outputModelNode=output)
+
+        model = self.runJob("Surface from label map", prepare)
         if model is not None:
             self._parameterNode.SetNodeReferenceID("Surface", model.GetID())
-            self.ui.statusLabel.text = (f"{model.GetName()}: "
-                                        f"{model.GetPolyData().GetNumberOfCells()} triangles")
+            text = f"{model.GetName()}: {model.GetPolyData().GetNumberOfCells()} triangles"
+            self.results.append(text)
+            if self.ui is not None:
+                self.ui.statusLabel.text = text
 
     # -- tracker -------------------------------------------------------------------
     def onConnect(self):
@@ -164,9 +174,11 @@ class FluoNavWidget(FluoModuleWidget):
             self.ui.statusLabel.text = f"Recording with {n} frames in the scene"
 
     def onSyntheticScene(self):
-        info = self.runWithProgress("Synthetic navigated scene", lambda progress, cancel:
-                                    self.logic.makeSyntheticAcquisition(
-                                        views=4, binning=4, progress=progress, cancel=cancel))
+        def prepare():
+            job = self.logic.prepareSyntheticAcquisition(views=4, binning=4)
+            return job, self.logic.storeSyntheticAcquisition
+
+        info = self.runJob("Synthetic navigated scene", prepare)
         if info is None:
             return
         node = self._parameterNode
@@ -174,16 +186,23 @@ class FluoNavWidget(FluoModuleWidget):
         node.SetNodeReferenceID("Surface", info["surface_node_id"])
         node.SetNodeReferenceID("Calibration", info["calibration_node_id"])
         node.EndModify(was)
-        self.ui.frameSpinBox.maximum = info["frames"] - 1
-        self.ui.statusLabel.text = (f"Oral-cavity scene: {info['frames']} tracked frames of "
-                                    f"homogeneous tissue (transport {info['transport_truth']})")
+        text = (f"Oral-cavity scene: {info['frames']} tracked frames of homogeneous tissue "
+                f"(transport {info['transport_truth']})")
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.frameSpinBox.maximum = info["frames"] - 1
+            self.ui.statusLabel.text = text
 
     def onCorrectFrame(self):
         p = self.logic.parameter
-        r = self.runWithProgress("Correct frame", lambda progress, cancel: self.logic.correctFrame(
-            p("Frame"), surfaceModelNode=self._node("Surface"),
-            calibration=self._node("Calibration"), transportNode=self._node("Transport"),
-            fluxNode=self._node("Flux")))
+
+        def prepare():
+            outputs = {"transportNode": self._node("Transport"), "fluxNode": self._node("Flux")}
+            job = self.logic.prepareCorrectFrame(p("Frame"), surfaceModelNode=self._node("Surface"),
+                                                 calibration=self._node("Calibration"))
+            return job, lambda r: self.logic.storeCorrectedFrame(r, **outputs)
+
+        r = self.runJob("Correct frame", prepare)
         if r is None:
             return
         node = self._parameterNode
@@ -193,30 +212,36 @@ class FluoNavWidget(FluoModuleWidget):
         node.EndModify(was)
         self.logic.showFrameImage(r.nodes["transport"])
         n = r.numbers
-        self.ui.frameResultLabel.text = (
-            f"frame {n['frame']}: {n['mapped']} of {n['pixels']} pixels mapped, transport "
-            f"median {n['transport_median']:.3f}" if n["transport_median"] is not None
-            else f"frame {n['frame']}: no pixel mapped")
+        text = (f"frame {n['frame']}: {n['mapped']} of {n['pixels']} pixels mapped, transport "
+                f"median {n['transport_median']:.3f}" if n["transport_median"] is not None
+                else f"frame {n['frame']}: no pixel mapped")
         if n.get("miss_rate_corrected_pct") is not None:
-            self.ui.frameResultLabel.text += (
-                f"; 40 % contour miss rate {n['miss_rate_raw_pct']:.1f} % raw -> "
-                f"{n['miss_rate_corrected_pct']:.1f} % corrected")
+            text += (f"; 40 % contour miss rate {n['miss_rate_raw_pct']:.1f} % raw -> "
+                     f"{n['miss_rate_corrected_pct']:.1f} % corrected")
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.frameResultLabel.text = text
 
     def onMapFrames(self):
-        out = self.runWithProgress("Map frames onto the surface", lambda progress, cancel:
-                                   self.logic.mapFrames(
-                                       surfaceModelNode=self._node("Surface"),
-                                       calibration=self._node("Calibration"),
-                                       outputModelNode=self._node("SurfaceFlux"),
-                                       progress=progress, cancel=cancel))
+        def prepare():
+            output = self._node("SurfaceFlux")
+            job = self.logic.prepareMapFrames(surfaceModelNode=self._node("Surface"),
+                                              calibration=self._node("Calibration"))
+            return job, lambda mapped: self.logic.storeMappedFrames(mapped,
+                                                                     outputModelNode=output)
+
+        out = self.runJob("Map frames onto the surface", prepare)
         if out is None:
             return
         self._parameterNode.SetNodeReferenceID("SurfaceFlux", out["model"].GetID())
         median = out["surface_transport_median"]
-        self.ui.mapResultLabel.text = (
-            f"{len(out['frames_on_surface'])} frames on the surface, {len(out['frames_skipped'])} "
-            f"without a valid pose skipped; {out['faces_seen']} of {out['faces']} faces seen"
-            + (f", transport median {median:.3f}" if median is not None else ""))
+        text = (f"{len(out['frames_on_surface'])} frames on the surface, "
+                f"{len(out['frames_skipped'])} without a valid pose skipped; "
+                f"{out['faces_seen']} of {out['faces']} faces seen"
+                + (f", transport median {median:.3f}" if median is not None else ""))
+        self.results.append(text)
+        if self.ui is not None:
+            self.ui.mapResultLabel.text = text
 
 
 #
@@ -233,6 +258,21 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     (transport and surface-flux images), :meth:`mapFrames` (accumulated
     results on the surface model's point and cell data),
     :meth:`classifyContours`.
+
+    Long calls are a ``prepareX`` that reads the scene and returns the
+    computation as a job ``job(progress, cancel)`` touching no MRML node (the
+    desktop panel runs it on a worker thread, ``FluoModuleWidget.runJob``), and
+    a ``storeX`` that writes its result into the scene (on the scene's thread);
+    the public call is the two in one:
+
+    - :meth:`prepareBuildSurface` / :meth:`storeBuiltSurface` (:meth:`buildSurface`)
+    - :meth:`prepareSyntheticAcquisition` / :meth:`storeSyntheticAcquisition`
+      (:meth:`makeSyntheticAcquisition`)
+    - :meth:`prepareCorrectFrame` / :meth:`storeCorrectedFrame` (:meth:`correctFrame`)
+    - :meth:`prepareMapFrames` / :meth:`storeMappedFrames` (:meth:`mapFrames`)
+
+    :meth:`prepareFrameCorrection` is for a live stream: a callable that
+    corrects frame after frame on a worker thread.
     """
 
     PARAMETERS = {
@@ -256,22 +296,44 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         self._contextKey = None
 
     # -- surface -------------------------------------------------------------------
-    def buildSurface(self, labelNodeName="CBCTLabels", targetTriangles=None, labelMapNode=None,
-                     outputModelNode=None):
-        """Air-tissue surface of a label map (``labelMapNode``, else the node called
-        ``labelNodeName``) into ``outputModelNode`` (else ``TissueSurface``)."""
+    def prepareBuildSurface(self, labelNodeName="CBCTLabels", targetTriangles=None,
+                            labelMapNode=None):
+        """A job ``job(progress, cancel) -> vtkPolyData`` (no MRML) of :meth:`buildSurface`:
+        the label map's voxels and geometry are read now; the job extracts, smooths
+        and decimates (a minute for a 0.4 mm CBCT decimated to 62,000 triangles).
+        Hand its result to :meth:`storeBuiltSurface`."""
         from fluoguide import mrml_io
-        from FluoNavLib.mapping import surface
+        from FluoNavLib.mapping.surface import surface_from_labelmap
 
         node = labelMapNode or mrml_io.get_node(self.scene, labelNodeName,
                                                 "vtkMRMLLabelMapVolumeNode")
-        poly = surface.surface_from_labelmap_node(node, target_triangles=targetTriangles)
+        labels = mrml_io.volume_array(node)                  # a copy: the job owns it
+        ijk_to_ras = mrml_io.volume_geometry(node)["ijk_to_ras"]
+
+        def job(progress=None, cancel=None):
+            return surface_from_labelmap(labels, ijk_to_ras, target_triangles=targetTriangles,
+                                         progress=progress, cancel=cancel)
+
+        return job
+
+    def storeBuiltSurface(self, poly, outputModelNode=None):
+        """The surface into ``outputModelNode`` (else ``TissueSurface``); the model node."""
+        from fluoguide import mrml_io
+
         if outputModelNode is None:
             model = mrml_io.add_model(self.scene, "TissueSurface", poly)
         else:
             model = mrml_io.set_model_polydata(outputModelNode, poly)
         logging.info("FluoNav: %s with %d triangles", model.GetName(), poly.GetNumberOfCells())
         return model
+
+    def buildSurface(self, labelNodeName="CBCTLabels", targetTriangles=None, labelMapNode=None,
+                     outputModelNode=None, progress=None, cancel=None):
+        """Air-tissue surface of a label map (``labelMapNode``, else the node called
+        ``labelNodeName``) into ``outputModelNode`` (else ``TissueSurface``),
+        decimated to about ``targetTriangles`` (None: not decimated)."""
+        job = self.prepareBuildSurface(labelNodeName, targetTriangles, labelMapNode)
+        return self.storeBuiltSurface(job(progress, cancel), outputModelNode)
 
     # -- tracking ------------------------------------------------------------------
     def cameraToolNode(self, node=None):
@@ -397,35 +459,37 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         to_scene(folder, self.scene)
         return frame_store.number_of_frames(self.scene)
 
-    def makeSyntheticAcquisition(self, views=4, binning=4, triangles=62000, transport=0.3,
-                                 trackingMm=0.25, trackingDeg=0.1, handEyeMm=0.3,
-                                 handEyeDeg=0.15, progress=None, cancel=None):
-        """The oral-cavity phantom navigated with known truth, in this scene, as
-        the operating room would give it: ``views`` tracked frames of homogeneous
-        tissue (transport ``transport``) rendered on the phantom's analytic surface
-        from the true poses, and what the software is told: ``TissueSurface``
-        (extracted from the CBCT intensities, ``triangles`` triangles), the
-        calibration (``FluoCalibration``: intrinsics, illumination cone,
-        radiometric camera), ``TrackerToReference``, tool poses with tracking
-        error (``trackingMm`` / ``trackingDeg`` SD per axis) and a hand-eye
-        ``CameraToCameraTool`` off by ``handEyeMm`` / ``handEyeDeg``
-        (``FluoNavLib.mapping.synthetic.tracked_acquisition``).
-        """
+    def prepareSyntheticAcquisition(self, views=4, binning=4, triangles=62000, transport=0.3,
+                                    trackingMm=0.25, trackingDeg=0.1, handEyeMm=0.3,
+                                    handEyeDeg=0.15):
+        """A job ``job(progress, cancel) -> dict`` (no MRML) of
+        :meth:`makeSyntheticAcquisition`: the CBCT surface and the rendered views
+        (``FluoNavLib.mapping.synthetic.tracked_acquisition``, with ``transport``
+        added). Hand its result to :meth:`storeSyntheticAcquisition`."""
+        from FluoNavLib.mapping.synthetic import PoseError, tracked_acquisition
+
+        tracking, hand_eye = PoseError(trackingMm, trackingDeg), PoseError(handEyeMm, handEyeDeg)
+
+        def job(progress=None, cancel=None):
+            acq = tracked_acquisition(views, binning, transport, tracking=tracking,
+                                      hand_eye=hand_eye, surface_triangles=triangles,
+                                      progress=progress, cancel=cancel)
+            acq["transport"] = transport
+            return acq
+
+        return job
+
+    def storeSyntheticAcquisition(self, acq):
+        """The acquisition of :meth:`prepareSyntheticAcquisition`'s job in this scene:
+        ``TissueSurface``, the calibration node, ``TrackerToReference``, the hand-eye
+        and the recording. Returns what :meth:`makeSyntheticAcquisition` returns."""
         import numpy as np
 
         from fluoguide import mrml_io
-        from fluoguide.progress import check_cancel, report, scaled
         from FluoCalibLib.geometry.scene import calibration_node, store_handeye, store_intrinsics
         from FluoCalibLib.radiometry import scene as light_scene
         from FluoNavLib.devices import frame_store
-        from FluoNavLib.mapping.synthetic import PoseError, tracked_acquisition
 
-        acq = tracked_acquisition(views, binning, transport,
-                                  tracking=PoseError(trackingMm, trackingDeg),
-                                  hand_eye=PoseError(handEyeMm, handEyeDeg),
-                                  surface_triangles=triangles, progress=scaled(progress, 0.0, 0.9),
-                                  cancel=cancel)
-        check_cancel(cancel)
         cam, rc = acq["camera"], acq["radiometric"]
         surface = mrml_io.add_model(self.scene, "TissueSurface", acq["surface"])
         store_intrinsics(self.scene, cam, {"rms_px": 0.0})
@@ -440,14 +504,37 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             frame_store.append_tracked_frame(self.scene, counts, 1.0 + k / 10,
                                              {"CameraToolToTracker": tool},
                                              exposure_s=rc.exposure_s)
-        report(progress, 1.0, "done")
-        return {"frames": len(acq["frames"]), "transport_truth": transport,
+        return {"frames": len(acq["frames"]), "transport_truth": acq["transport"],
                 "triangles": int(acq["surface"].GetNumberOfPolys()),
                 "image": [cam.width, cam.height],
                 "rendered_on": "analytic phantom surface, true poses",
                 "scene_holds": "CBCT-intensity surface, tracked poses, hand-eye with error",
                 "surface_node_id": surface.GetID(),
                 "calibration_node_id": calibration_node(self.scene).GetID()}
+
+    def makeSyntheticAcquisition(self, views=4, binning=4, triangles=62000, transport=0.3,
+                                 trackingMm=0.25, trackingDeg=0.1, handEyeMm=0.3,
+                                 handEyeDeg=0.15, progress=None, cancel=None):
+        """The oral-cavity phantom navigated with known truth, in this scene, as
+        the operating room would give it: ``views`` tracked frames of homogeneous
+        tissue (transport ``transport``) rendered on the phantom's analytic surface
+        from the true poses, and what the software is told: ``TissueSurface``
+        (extracted from the CBCT intensities, ``triangles`` triangles), the
+        calibration (``FluoCalibration``: intrinsics, illumination cone,
+        radiometric camera), ``TrackerToReference``, tool poses with tracking
+        error (``trackingMm`` / ``trackingDeg`` SD per axis) and a hand-eye
+        ``CameraToCameraTool`` off by ``handEyeMm`` / ``handEyeDeg``
+        (``FluoNavLib.mapping.synthetic.tracked_acquisition``).
+        """
+        from fluoguide.progress import check_cancel, report, scaled
+
+        job = self.prepareSyntheticAcquisition(views, binning, triangles, transport, trackingMm,
+                                               trackingDeg, handEyeMm, handEyeDeg)
+        acq = job(scaled(progress, 0.0, 0.9), cancel)
+        check_cancel(cancel)
+        info = self.storeSyntheticAcquisition(acq)
+        report(progress, 1.0, "done")
+        return info
 
     # -- correction --------------------------------------------------------------------
     def correctionContext(self, surfaceModelNode=None, calibration=None):
@@ -488,8 +575,70 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         correct.context = ctx
         return correct
 
+    def prepareCorrectFrame(self, frame, cameraPose=None, surfaceModelNode=None,
+                            calibration=None, maxModelError="default"):
+        """A job ``job(progress, cancel) -> FrameResult`` (no MRML) of :meth:`correctFrame`:
+        the frame, its pose and the correction context are read now. Hand its
+        result to :meth:`storeCorrectedFrame`."""
+        import numpy as np
+
+        from fluoguide import mrml_io
+        from fluoguide.errors import FluoInputError
+        from fluoguide.progress import check_cancel, report
+        from FluoNavLib.mapping.correct import correct_image, read_frame
+        from FluoNavLib.mapping.flux_map import DEFAULT_MAX_MODEL_ERROR
+
+        if isinstance(maxModelError, str) and maxModelError == "default":
+            maxModelError = DEFAULT_MAX_MODEL_ERROR
+        ctx = self.correctionContext(surfaceModelNode, calibration)
+        index = 0
+        if isinstance(frame, (int, np.integer)):
+            index = int(frame)
+            frame, cameraPose = read_frame(self.scene, index)
+        else:
+            if hasattr(frame, "IsA"):
+                frame = mrml_io.volume_array(frame)
+                if frame.shape[0] != 1:
+                    raise FluoInputError("frame volume must have one slice", field="frame",
+                                         value=frame.shape)
+                frame = frame[0]
+            if cameraPose is None:
+                raise FluoInputError("an image needs its camera pose", field="cameraPose")
+            if hasattr(cameraPose, "IsA"):
+                cameraPose = mrml_io.transform_matrix(cameraPose)
+            frame = np.array(frame)          # the caller's array may change meanwhile
+
+        def job(progress=None, cancel=None):
+            check_cancel(cancel)
+            report(progress, 0.0, f"ray casting and correcting frame {index}")
+            r = correct_image(ctx, frame, cameraPose, frame=index, max_model_error=maxModelError)
+            report(progress, 1.0, "done")
+            return r
+
+        return job
+
+    def storeCorrectedFrame(self, result, transportNode=None, fluxNode=None, rawNode=None):
+        """The frame images of a FrameResult (``FluoNavTransport``, ``FluoNavFlux``,
+        ``FluoNavRaw``, or the caller's nodes); the result, with ``nodes`` =
+        {"transport", "flux", "raw"} the output nodes."""
+        from fluoguide import mrml_io
+        from FluoNavLib.mapping.scene import FLUX_NODE, RAW_NODE, write_frame_images
+
+        r = result
+        S = r.counts - r.offset_adu
+        transport = write_frame_images(self.scene, r.transport, r.mapped, S, dict(r.numbers),
+                                       flux_w_per_mm2=r.flux_w_per_mm2,
+                                       flux_mask=r.flux_valid & r.hits.visible,
+                                       transport_node=transportNode, raw_node=rawNode,
+                                       flux_node=fluxNode)
+        r.nodes = {"transport": transport,
+                   "flux": fluxNode or mrml_io.get_node(self.scene, FLUX_NODE),
+                   "raw": rawNode or mrml_io.get_node(self.scene, RAW_NODE)}
+        return r
+
     def correctFrame(self, frame, cameraPose=None, surfaceModelNode=None, calibration=None,
-                     transportNode=None, fluxNode=None, rawNode=None, maxModelError="default"):
+                     transportNode=None, fluxNode=None, rawNode=None, maxModelError="default",
+                     progress=None, cancel=None):
         """Optical transport and surface-flux images of one camera frame.
 
         Parameters
@@ -512,41 +661,83 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         FrameResult (``transport``, ``flux_w_per_mm2``, masks, ``numbers``), with
         ``nodes`` = {"transport", "flux", "raw"} the output nodes.
         """
+        job = self.prepareCorrectFrame(frame, cameraPose, surfaceModelNode, calibration,
+                                       maxModelError)
+        return self.storeCorrectedFrame(job(progress, cancel), transportNode, fluxNode, rawNode)
+
+    def prepareMapFrames(self, surfaceModelNode=None, calibration=None, frames=None,
+                         precomputed=()):
+        """A job ``job(progress, cancel) -> dict`` (no MRML) of :meth:`mapFrames`:
+        every frame's counts and pose and the correction context are read now
+        (a frame without a valid pose is listed as skipped); the job corrects the
+        frames, one report each, and accumulates them on the surface's faces.
+        Hand its result to :meth:`storeMappedFrames`."""
+        from fluoguide.errors import FluoInputError
+        from FluoNavLib.devices import frame_store
+        from FluoNavLib.mapping.correct import read_frame
+
+        ctx = self.correctionContext(surfaceModelNode, calibration)
+        precomputed = list(precomputed)
+        done = {r.frame for r in precomputed}
+        todo = (list(range(frame_store.number_of_frames(self.scene))) if frames is None
+                else list(frames))
+        # every frame is read here, on the scene's thread: the job owns copies
+        # (a full-resolution recording of N frames holds N x 2.6 MB here)
+        read, skipped = [], []
+        for n in todo:
+            if n in done:
+                continue
+            try:
+                read.append((n, *read_frame(self.scene, n)))
+            except FluoInputError as exc:          # no valid pose: not mapped, say so
+                skipped.append({"frame": n, "reason": exc.problem})
+
+        def job(progress=None, cancel=None):
+            from fluoguide.progress import check_cancel, report
+            from FluoNavLib.mapping.correct import correct_image, map_frames_to_surface
+
+            results, refused = list(precomputed), list(skipped)
+            for k, (n, counts, pose) in enumerate(read):
+                check_cancel(cancel)
+                report(progress, 0.95 * k / max(len(read), 1),
+                       f"correcting frame {n} ({k + 1} of {len(read)})")
+                try:
+                    results.append(correct_image(ctx, counts, pose, frame=n))
+                except FluoInputError as exc:      # e.g. not the calibrated camera's size
+                    refused.append({"frame": n, "reason": exc.problem})
+            if not results:
+                raise FluoInputError("no frame with a valid pose to map", field="frames",
+                                     value=len(todo))
+            check_cancel(cancel)
+            report(progress, 0.95, f"accumulating {len(results)} frames on "
+                                   f"{ctx.caster.n_faces:,} faces")
+            T_face, J_face, w_face, views = map_frames_to_surface(ctx, results)
+            report(progress, 1.0, "done")
+            order = {n: i for i, n in reversed(list(enumerate(todo)))}
+            return {"context": ctx, "results": results, "transport": T_face, "flux": J_face,
+                    "weight": w_face, "views": views,
+                    "skipped": sorted(refused, key=lambda s: order.get(s["frame"], 0))}
+
+        return job
+
+    def storeMappedFrames(self, mapped, outputModelNode=None):
+        """The accumulated results of :meth:`prepareMapFrames`'s job on the surface
+        model ``outputModelNode`` (default ``FluoNavSurfaceFlux``); returns what
+        :meth:`mapFrames` returns."""
         import numpy as np
 
-        from fluoguide import mrml_io
-        from fluoguide.errors import FluoInputError
-        from FluoNavLib.mapping.correct import correct_frame, correct_image
-        from FluoNavLib.mapping.flux_map import DEFAULT_MAX_MODEL_ERROR
-        from FluoNavLib.mapping.scene import FLUX_NODE, RAW_NODE, write_frame_images
+        from FluoNavLib.mapping.scene import write_surface_flux
 
-        if isinstance(maxModelError, str) and maxModelError == "default":
-            maxModelError = DEFAULT_MAX_MODEL_ERROR
-        ctx = self.correctionContext(surfaceModelNode, calibration)
-        if isinstance(frame, (int, np.integer)):
-            r = correct_frame(self.scene, ctx, int(frame), max_model_error=maxModelError)
-        else:
-            if hasattr(frame, "IsA"):
-                frame = mrml_io.volume_array(frame)
-                if frame.shape[0] != 1:
-                    raise FluoInputError("frame volume must have one slice", field="frame",
-                                         value=frame.shape)
-                frame = frame[0]
-            if cameraPose is None:
-                raise FluoInputError("an image needs its camera pose", field="cameraPose")
-            if hasattr(cameraPose, "IsA"):
-                cameraPose = mrml_io.transform_matrix(cameraPose)
-            r = correct_image(ctx, frame, cameraPose, max_model_error=maxModelError)
-        S = r.counts - r.offset_adu
-        transport = write_frame_images(self.scene, r.transport, r.mapped, S, dict(r.numbers),
-                                       flux_w_per_mm2=r.flux_w_per_mm2,
-                                       flux_mask=r.flux_valid & r.hits.visible,
-                                       transport_node=transportNode, raw_node=rawNode,
-                                       flux_node=fluxNode)
-        r.nodes = {"transport": transport,
-                   "flux": fluxNode or mrml_io.get_node(self.scene, FLUX_NODE),
-                   "raw": rawNode or mrml_io.get_node(self.scene, RAW_NODE)}
-        return r
+        T_face, w_face = mapped["transport"], mapped["weight"]
+        model = write_surface_flux(self.scene, mapped["context"].polydata, T_face, mapped["flux"],
+                                   w_face, mapped["views"], node=outputModelNode)
+        results = mapped["results"]
+        seen = w_face > 0
+        return {"model": model, "results": results,
+                "frames_on_surface": [r.frame for r in results],
+                "frames_skipped": mapped["skipped"],
+                "faces_seen": int(seen.sum()), "faces": int(len(w_face)),
+                "surface_transport_median": float(np.median(T_face[seen])) if seen.any() else None}
 
     def mapFrames(self, recording=None, surfaceModelNode=None, calibration=None,
                   outputModelNode=None, frames=None, precomputed=(), progress=None, cancel=None):
@@ -566,42 +757,10 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         ``frames_on_surface``, ``frames_skipped``, ``faces_seen``, ``faces``,
         ``surface_transport_median``.
         """
-        import numpy as np
-
-        from fluoguide.errors import FluoInputError
-        from fluoguide.progress import check_cancel, report
-        from FluoNavLib.devices import frame_store
-        from FluoNavLib.mapping.correct import correct_frame, map_frames_to_surface
-        from FluoNavLib.mapping.scene import write_surface_flux
-
         if recording is not None:
             self.importRecording(recording)
-        ctx = self.correctionContext(surfaceModelNode, calibration)
-        results = list(precomputed)
-        done = {r.frame for r in results}
-        todo = list(range(frame_store.number_of_frames(self.scene))) if frames is None else list(frames)
-        skipped = []
-        for k, n in enumerate(todo):
-            check_cancel(cancel)
-            report(progress, 0.9 * k / max(len(todo), 1), f"frame {n}")
-            if n in done:
-                continue
-            try:
-                results.append(correct_frame(self.scene, ctx, n))
-            except FluoInputError as exc:          # no valid pose: not mapped, say so
-                skipped.append({"frame": n, "reason": exc.problem})
-        if not results:
-            raise FluoInputError("no frame with a valid pose to map", field="frames",
-                                 value=len(todo))
-        T_face, J_face, w_face, views = map_frames_to_surface(ctx, results)
-        model = write_surface_flux(self.scene, ctx.polydata, T_face, J_face, w_face, views,
-                                   node=outputModelNode)
-        report(progress, 1.0, "done")
-        seen = w_face > 0
-        return {"model": model, "results": results,
-                "frames_on_surface": [r.frame for r in results], "frames_skipped": skipped,
-                "faces_seen": int(seen.sum()), "faces": int(len(w_face)),
-                "surface_transport_median": float(np.median(T_face[seen])) if seen.any() else None}
+        job = self.prepareMapFrames(surfaceModelNode, calibration, frames, precomputed)
+        return self.storeMappedFrames(job(progress, cancel), outputModelNode)
 
     def classifyContours(self, result, contourFraction=0.4):
         """Contour classification (docs/physics.md section 6.3) of a corrected frame: the

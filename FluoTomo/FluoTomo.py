@@ -368,6 +368,19 @@ class FluoTomoWidget(FluoModuleWidget):
 class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     """Tomography on one MRML scene (passed in; never the global one).
 
+    Long calls come in two halves too: ``prepareX`` reads the scene and returns
+    the computation as a job ``job(progress, cancel)`` that touches no MRML
+    node (the desktop panel runs it on a worker thread), ``storeX`` writes its
+    result into the scene (on the scene's thread):
+
+    - :meth:`prepareBuildMesh` / :meth:`storeBuiltMesh` (:meth:`buildMesh`)
+    - :meth:`prepareSimulation` (:meth:`simulateAcquisition`; the acquisition
+      is no node: nothing to store)
+    - :meth:`prepareReconstruction` / :meth:`storeReconstructionResult`
+      (:meth:`reconstruct`)
+    - :meth:`prepareMesh` / :meth:`storeMesh` and :meth:`prepareTubeReconstruction`
+      / :meth:`storeReconstruction` (the web app's cylinder-tube phantom route)
+
     Nodes read and written are listed in docs/scene.md (section FluoTomo).
     ``PARAMETERS``: the desktop panel's state in the module's parameter node.
     """

@@ -12,6 +12,9 @@ desktop widget built from a Qt Designer file.
   with it), runs long work with a progress dialog whose Cancel button stops
   it, and shows errors in a dialog (never swallowed, never a traceback for
   bad input). A module widget adds its buttons in ``setupConnections``.
+  Long work runs off Slicer's GUI thread (:meth:`FluoModuleWidget.runJob`):
+  the scene is read on it, the logic's ``prepare*`` job computes on a worker
+  thread (``fluoguide.jobs``), the logic's ``store*`` writes the nodes back on it.
 
 Outside the Slicer application (``slicer_compat``) there is no Qt: ``setup``
 returns before touching a widget, and everything else here is plain Python.
@@ -88,6 +91,7 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
         self._sceneObservers = []
         self._updatingGUI = False
         self.errors = []  # headless: the messages a dialog would have shown
+        self.results = []  # the results the panel showed, newest last (what headless tests read)
         self._installOffer = None   # the panel's offer to install missing packages
         self._installText = None
 
@@ -343,6 +347,28 @@ class FluoModuleWidget(ScriptedLoadableModuleWidget):
             return None
         finally:
             dialog.close()
+
+    def runJob(self, title, prepare):
+        """Long work the panel way (issue #33), in three steps.
+
+        ``prepare()`` runs here, on Slicer's thread: it reads the parameter node
+        and the scene and returns ``(job, store)``, ``job`` a logic's ``prepare*``
+        job ``job(progress, cancel)`` that touches no MRML node and no Qt. The job
+        runs on a worker thread with the progress dialog
+        (``runWithProgress(background=True)``), Slicer answering all along;
+        ``store(result)`` writes its nodes, back on Slicer's thread.
+
+        Returns what ``store`` returns, or None when a step failed (the error is
+        shown) or the job was cancelled.
+        """
+        ready = self.run(title, prepare)
+        if ready is None:
+            return None
+        job, store = ready
+        result = self.runWithProgress(title, job, background=True)
+        if result is None:
+            return None
+        return self.run(title, store, result)
 
     def _runInBackground(self, title, work, dialog):
         """``runWithProgress(background=True)``: the job on its thread, this thread in a

@@ -10,15 +10,8 @@ import time
 
 import pytest
 
+from event_loop import watch
 from fluoguide.jobs import BackgroundJob
-
-
-@pytest.fixture(scope="module")
-def qt_app():
-    pytest.importorskip("PySide6")
-    from PySide6.QtCore import QCoreApplication
-
-    return QCoreApplication.instance() or QCoreApplication([])
 
 
 @pytest.fixture
@@ -33,42 +26,11 @@ def reconstruction_job(own_scene):
                                               accuracy="fast")
 
 
-def _watch(job, until=lambda state: state.finished, on_state=None):
-    """Run a Qt event loop while ``job`` works: a 20 ms timer records its ticks
-    (the loop's heartbeat), a 100 ms timer polls the job as the panel does and
-    ends the loop when ``until(state)``. Returns (tick times, polled states)."""
-    from PySide6.QtCore import QEventLoop, QTimer
-
-    loop, ticks, states = QEventLoop(), [], []
-    beat = QTimer()
-    beat.setInterval(20)
-    beat.timeout.connect(lambda: ticks.append(time.monotonic()))
-    poll = QTimer()
-    poll.setInterval(100)
-
-    def check():
-        state = job.poll()
-        states.append(state)
-        if on_state is not None:
-            on_state(state)
-        if until(state) or state.finished:
-            loop.quit()
-
-    poll.timeout.connect(check)
-    beat.start()
-    poll.start()
-    QTimer.singleShot(300_000, loop.quit)          # a hung job ends the test, not CI
-    loop.exec()
-    beat.stop()
-    poll.stop()
-    return ticks, states
-
-
 @pytest.mark.slow      # a whole reconstruction (5-12 s) plus the shared scene's simulation
 def test_the_event_loop_keeps_turning_during_a_reconstruction(qt_app, reconstruction_job):
     logic, work = reconstruction_job
     job = BackgroundJob(work, name="Reconstruction").start()
-    ticks, states = _watch(job)
+    ticks, states = watch(job)
     final = job.wait(60)
     assert final.status == "done", final.error
     gaps = [b - a for a, b in zip(ticks, ticks[1:])]
@@ -100,7 +62,7 @@ def test_a_reconstruction_is_cancelled_mid_way(qt_app, reconstruction_job):
             asked["asked"] = time.monotonic()
             job.cancel()                       # what the dialog's Cancel button does
 
-    _, states = _watch(job, on_state=cancel_in_the_jacobian)
+    _, states = watch(job, on_state=cancel_in_the_jacobian)
     final = job.wait(60)
     assert "asked" in asked, [s.message for s in states]
     assert final.status == "cancelled" and final.result is None

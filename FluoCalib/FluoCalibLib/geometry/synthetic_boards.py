@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from fluoguide.errors import FluoInputError, check_number, seeded_rng
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 from FluoCalibLib.geometry.boards import parse_board
 from FluoCalibLib.geometry.camera_model import CameraModel
@@ -138,7 +138,7 @@ def random_board_poses(camera, board, n_views, rng, distance_mm=None, max_tilt_d
 class _RayCache:
     """Sub-pixel sample rays of one camera (shared across views)."""
 
-    def __init__(self, camera, supersample):
+    def __init__(self, camera, supersample, progress=None, cancel=None, chunks=8):
         s = int(supersample)
         offs = (np.arange(s) + 0.5) / s - 0.5
         u = (np.arange(camera.width)[:, None] + offs[None]).ravel()
@@ -146,7 +146,15 @@ class _RayCache:
         uu, vv = np.meshgrid(u, v)
         self.shape = uu.shape
         self.s = s
-        self.rays = camera.pixel_rays(np.column_stack([uu.ravel(), vv.ravel()]))
+        uv = np.column_stack([uu.ravel(), vv.ravel()])
+        # in chunks (each ray is its own): undistorting millions of samples takes
+        # seconds, and the caller hears from it (and may stop it) in between
+        parts = []
+        for k, block in enumerate(np.array_split(uv, chunks)):
+            check_cancel(cancel)
+            report(progress, k / chunks, f"sample rays, part {k + 1} of {chunks}")
+            parts.append(camera.pixel_rays(block))
+        self.rays = np.concatenate(parts)
 
 
 def render_view(camera, board, board_to_camera, rng=None, blur_sigma_px=0.6, noise_sigma=2.0,
@@ -251,13 +259,13 @@ def make_dataset(out_dir=None, camera=None, board="chessboard:9x6:20", n_views=1
     board_to_tracker = np.asarray(board_to_tracker, float)
     poses = random_board_poses(camera, board, n_views, rng, distance_mm=distance_mm,
                                max_tilt_deg=max_tilt_deg, motion=motion)
-    rays = _RayCache(camera, supersample)
+    rays = _RayCache(camera, supersample, scaled(progress, 0.0, 0.2), cancel)
     ppm = 12.0
     texture = (*board.texture(ppm), ppm)
     views = []
     for i, b2c in enumerate(poses):
         check_cancel(cancel)
-        report(progress, i / n_views, f"rendering view {i + 1}/{n_views}")
+        report(progress, 0.2 + 0.8 * i / n_views, f"rendering view {i + 1}/{n_views}")
         cam_to_tracker = board_to_tracker @ tf.invert_rigid(b2c)
         tool_true = cam_to_tracker @ tf.invert_rigid(X)
         tool_meas = _perturb(tool_true, rng, tracker_noise_mm, tracker_noise_deg)

@@ -21,6 +21,8 @@ for a separately tracked light, pass ``light_from_camera`` per image.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from scipy import ndimage, optimize
 
@@ -62,6 +64,30 @@ def _axis_from_angles(th, ph):
 def _angles_from_axis(n):
     n = np.asarray(n, float) / np.linalg.norm(n)
     return float(np.arccos(np.clip(n[2], -1, 1))), float(np.arctan2(n[1], n[0]))
+
+
+#: an optimisation reports its evaluation count at most this often [s]
+REPORT_EVERY_S = 0.5
+
+
+def _watched(fun, progress, fraction, message, cancel):
+    """``fun`` as ``least_squares`` calls it, checking ``cancel`` at every call and
+    saying ``message`` with the evaluations so far at most every
+    ``REPORT_EVERY_S``: one optimisation runs for seconds (1-2 s each on the
+    synthetic set), and a desktop panel must hear from it, and be able to stop
+    it, meanwhile."""
+    calls = [0, time.monotonic()]
+
+    def watched(x):
+        check_cancel(cancel)
+        calls[0] += 1
+        now = time.monotonic()
+        if now - calls[1] >= REPORT_EVERY_S:
+            calls[1] = now
+            report(progress, fraction, f"{message} ({calls[0]} evaluations)")
+        return fun(x)
+
+    return watched
 
 
 def _fit_geometry(points):
@@ -134,7 +160,8 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
     edge_margin_deg : optimisation 2 uses pixels at least this far inside the
         cone edge of optimisation 1
     progress, cancel : ``progress(fraction, message)`` and a CancelToken
-        (``fluoguide.progress``), checked between the steps
+        (``fluoguide.progress``), checked between the steps and, in the
+        optimisations, at every residual evaluation (a report every 0.5 s)
 
     Returns
     -------
@@ -234,8 +261,10 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
     lo = [0, 0, 0, th0 - 0.1, ph0 - np.pi]
     hi = [50, 5, np.inf, th0 + 0.1, ph0 + np.pi]
     check_cancel(cancel)
-    report(progress, 0.4, "optimisation 2: alpha, gamma, system gain")
-    sol2 = optimize.least_squares(resid2, x0, x_scale="jac", bounds=(lo, hi))
+    step = "optimisation 2: alpha, gamma, system gain"
+    report(progress, 0.4, step)
+    sol2 = optimize.least_squares(_watched(resid2, progress, 0.4, step, cancel), x0,
+                                  x_scale="jac", bounds=(lo, hi))
     xbest, asym_best = sol2.x, False
     rss = float(np.sum(sol2.fun ** 2))
     nobs = len(S)
@@ -266,10 +295,12 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         sol3 = None
         for i, x in enumerate((sol2.x, np.r_[sol2.x[:3], th0, ph0])):
             check_cancel(cancel)
-            report(progress, 0.6 + 0.15 * i, f"crescent model, start {i + 1} of 2")
-            s3 = optimize.least_squares(lambda x: resid2(x, True), crescent_start(x),
-                                        x_scale="jac", bounds=(lo + [0, -2 * np.pi],
-                                                               hi + [0.95, 2 * np.pi]))
+            step = f"crescent model, start {i + 1} of 2"
+            report(progress, 0.6 + 0.15 * i, step)
+            s3 = optimize.least_squares(
+                _watched(lambda x: resid2(x, True), progress, 0.6 + 0.15 * i, step, cancel),
+                crescent_start(x), x_scale="jac",
+                bounds=(lo + [0, -2 * np.pi], hi + [0.95, 2 * np.pi]))
             if sol3 is None or s3.cost < sol3.cost:
                 sol3 = s3
         rss3 = float(np.sum(sol3.fun ** 2))

@@ -21,7 +21,7 @@ from fluoguide.lazy import attach
 __getattr__, __dir__, __all__ = attach(__name__, {
     "benchmark": ["run_mapping_benchmark"],
     "contours": ["miss_rate", "overlay_png"],
-    "correct": ["NavContext", "FrameResult", "load_context", "correct_image", "correct_frame", "map_frames_to_surface"],
+    "correct": ["NavContext", "FrameResult", "load_context", "read_frame", "correct_image", "correct_frame", "map_frames_to_surface"],
     "flux_map": ["ViewModel", "view_model", "forward_image", "transport_image", "surface_flux", "accumulate_on_faces", "plane_hits"],
     "illumination_kernel": ["cone_factors_from_cast"],
     "mismatch": ["MISMATCH_CASES", "mapping_under_mismatch", "mismatch_figure"],

@@ -10,8 +10,9 @@ surface model (``TissueSurface`` unless the caller picks another);
 ``FluoNavLogic`` writes the results back as ``FluoNavSurfaceFlux``,
 ``FluoNavTransport``, ``FluoNavFlux`` and ``FluoNavRaw`` (``mapping.scene``).
 
-:func:`load_context` reads the scene (the caller's thread); :func:`correct_image`
-touches no MRML node, so a live stream may run it on a worker thread.
+:func:`load_context` and :func:`read_frame` read the scene (the caller's thread);
+:func:`correct_image` and :func:`map_frames_to_surface` touch no MRML node, so a
+live stream or a desktop panel may run them on a worker thread.
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ from FluoNavLib.mapping.flux_map import (
 )
 from FluoNavLib.mapping.pixel_cast import PixelHits, SurfaceCaster, cast_camera
 
-__all__ = ["NavContext", "FrameResult", "load_context", "correct_image", "correct_frame",
-           "map_frames_to_surface"]
+__all__ = ["NavContext", "FrameResult", "load_context", "read_frame", "correct_image",
+           "correct_frame", "map_frames_to_surface"]
 
 
 @dataclass
@@ -107,17 +108,26 @@ def load_context(scene, surface_node=None, calibration_node=None):
     return NavContext(cam, IlluminationCone.from_dict(il["cone"]), rc, caster, poly, t2r, c2t)
 
 
+def read_frame(scene, n):
+    """Recorded frame ``n`` as :func:`correct_image` takes it: ``(counts (H, W) [ADU],
+    CameraToolToTracker (4, 4) [mm])``, read from the scene (its thread); a frame
+    without a valid camera pose is refused (FluoInputError)."""
+    img, info, poses = frame_store.read_tracked_frame(scene, n)
+    tool = poses.get("CameraToolToTracker")
+    if tool is None or not info.get("pose_valid", True):
+        raise FluoInputError("frame has no valid camera pose: not mapped", field="frame", value=n)
+    return img, tool
+
+
 def correct_frame(scene, ctx, n, min_intensity=0.05, max_model_error=DEFAULT_MAX_MODEL_ERROR):
-    """Transport image, surface flux, weights and miss rates of recorded frame ``n``.
+    """Transport image, surface flux, weights and miss rates of recorded frame ``n``
+    (:func:`read_frame`, then :func:`correct_image`).
 
     Pixels whose predicted model error (``flux_map.model_error``: the surface
     normal's uncertainty through the light's incidence angle, occluding rims)
     exceeds ``max_model_error`` are not corrected; they are counted in
     ``numbers["unreliable"]`` (None: no guard)."""
-    img, info, poses = frame_store.read_tracked_frame(scene, n)
-    tool = poses.get("CameraToolToTracker")
-    if tool is None or not info.get("pose_valid", True):
-        raise FluoInputError("frame has no valid camera pose: not mapped", field="frame", value=n)
+    img, tool = read_frame(scene, n)
     return correct_image(ctx, img, tool, frame=n, min_intensity=min_intensity,
                          max_model_error=max_model_error)
 

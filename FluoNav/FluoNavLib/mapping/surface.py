@@ -23,10 +23,11 @@ from __future__ import annotations
 import numpy as np
 
 from fluoguide.errors import FluoInputError
+from fluoguide.progress import check_cancel, report
 
 
 def surface_from_labelmap(labels_kji, ijk_to_ras, smoothing_iterations=20, pass_band=0.1,
-                          target_triangles=None):
+                          target_triangles=None, progress=None, cancel=None):
     """vtkPolyData of the boundary of ``labels > 0``.
 
     Parameters
@@ -36,6 +37,9 @@ def surface_from_labelmap(labels_kji, ijk_to_ras, smoothing_iterations=20, pass_
     smoothing_iterations : windowed-sinc iterations (0 = none)
     pass_band : windowed-sinc pass band (smaller = smoother)
     target_triangles : decimate to about this many triangles (None = keep)
+    progress, cancel : ``progress(fraction, message)`` and a CancelToken
+        (``fluoguide.progress``): each VTK filter's own progress is relayed, and
+        a cancel aborts the running filter at its next progress event
     """
     lab = np.asarray(labels_kji)
     if lab.ndim != 3:
@@ -44,11 +48,11 @@ def surface_from_labelmap(labels_kji, ijk_to_ras, smoothing_iterations=20, pass_
     if not mask.any():
         raise FluoInputError("label map has no tissue (all zero)", field="labels")
     return _iso_surface(mask, 0.5, 0, ijk_to_ras, smoothing_iterations, pass_band,
-                        target_triangles)
+                        target_triangles, progress, cancel)
 
 
 def surface_from_cbct(hu_kji, ijk_to_ras, threshold_hu=None, smoothing_iterations=20,
-                      pass_band=0.1, target_triangles=None):
+                      pass_band=0.1, target_triangles=None, progress=None, cancel=None):
     """vtkPolyData of the air-tissue boundary of a CBCT (HU), at sub-voxel accuracy.
 
     Parameters
@@ -57,7 +61,7 @@ def surface_from_cbct(hu_kji, ijk_to_ras, threshold_hu=None, smoothing_iteration
     ijk_to_ras : (4, 4) voxel index to RAS mm
     threshold_hu : iso-level; default half-way between the air and the tissue
         peaks of the histogram (Otsu's threshold over -1024..3071 HU)
-    smoothing_iterations, pass_band, target_triangles : as
+    smoothing_iterations, pass_band, target_triangles, progress, cancel : as
         :func:`surface_from_labelmap`
     """
     hu = np.asarray(hu_kji, dtype=np.float32)
@@ -73,7 +77,7 @@ def surface_from_cbct(hu_kji, ijk_to_ras, threshold_hu=None, smoothing_iteration
                              field="threshold_hu", value=threshold_hu)
     # air beyond the volume's edge, so tissue touching it still closes
     return _iso_surface(hu, threshold_hu, min(float(hu.min()), -1000.0), ijk_to_ras,
-                        smoothing_iterations, pass_band, target_triangles)
+                        smoothing_iterations, pass_band, target_triangles, progress, cancel)
 
 
 def _otsu(values, bins=512):
@@ -90,8 +94,31 @@ def _otsu(values, bins=512):
     return float(edges[int(np.argmax(between)) + 1])
 
 
+def _update(algorithm, progress, start, stop, message, cancel):
+    """``algorithm.Update()`` with VTK's own progress events relayed to ``progress``
+    (as ``start..stop``) and ``cancel`` aborting the filter at its next event
+    (FluoCancelled then). A filter reports as often as VTK makes it: the quadric
+    decimation every 10,000 edge collapses, seconds apart on a large surface."""
+    check_cancel(cancel)
+    report(progress, start, message)
+
+    def on_progress(caller, _event):
+        done = caller.GetProgress()
+        report(progress, start + (stop - start) * done, f"{message} ({100 * done:.0f} %)")
+        if cancel is not None and cancel.cancelled:
+            caller.AbortExecuteOn()
+
+    tag = algorithm.AddObserver("ProgressEvent", on_progress)
+    try:
+        algorithm.Update()
+    finally:
+        algorithm.RemoveObserver(tag)
+    check_cancel(cancel)      # an aborted filter's output is partial: never returned
+    return algorithm.GetOutput()
+
+
 def _iso_surface(volume_kji, level, pad_value, ijk_to_ras, smoothing_iterations, pass_band,
-                 target_triangles):
+                 target_triangles, progress=None, cancel=None):
     import vtk
     from vtk.util import numpy_support as ns
 
@@ -104,8 +131,9 @@ def _iso_surface(volume_kji, level, pad_value, ijk_to_ras, smoothing_iterations,
     fe.SetInputData(img)
     fe.SetValue(0, float(level))
     fe.ComputeNormalsOff()
-    fe.Update()
-    poly = fe.GetOutput()
+    # fractions: decimation (when asked) is by far the longest step
+    ends = (0.05, 0.2, 0.9) if target_triangles is not None else (0.2, 0.8, 0.8)
+    poly = _update(fe, progress, 0.0, ends[0], "iso-surface", cancel)
     if poly.GetNumberOfPolys() == 0:
         raise FluoInputError("no surface at this level", field="iso-level", value=level)
     if smoothing_iterations > 0:
@@ -117,8 +145,8 @@ def _iso_surface(volume_kji, level, pad_value, ijk_to_ras, smoothing_iterations,
         sm.FeatureEdgeSmoothingOff()
         sm.NonManifoldSmoothingOn()
         sm.NormalizeCoordinatesOn()
-        sm.Update()
-        poly = sm.GetOutput()
+        poly = _update(sm, progress, ends[0], ends[1],
+                       f"smoothing {poly.GetNumberOfPolys():,} triangles", cancel)
     if target_triangles is not None:
         n = poly.GetNumberOfPolys()
         if target_triangles < 4:
@@ -129,8 +157,8 @@ def _iso_surface(volume_kji, level, pad_value, ijk_to_ras, smoothing_iterations,
             dec.SetInputData(poly)
             dec.SetTargetReduction(1.0 - float(target_triangles) / n)
             dec.VolumePreservationOn()
-            dec.Update()
-            poly = dec.GetOutput()
+            poly = _update(dec, progress, ends[1], ends[2],
+                           f"decimating {n:,} to {int(target_triangles):,} triangles", cancel)
     # index space -> RAS
     m = vtk.vtkMatrix4x4()
     for i in range(4):
@@ -141,22 +169,23 @@ def _iso_surface(volume_kji, level, pad_value, ijk_to_ras, smoothing_iterations,
     tf = vtk.vtkTransformPolyDataFilter()
     tf.SetInputData(poly)
     tf.SetTransform(tr)
-    tf.Update()
+    moved = _update(tf, progress, ends[2], ends[2], "to RAS", cancel)
     normals = vtk.vtkPolyDataNormals()
-    normals.SetInputData(tf.GetOutput())
+    normals.SetInputData(moved)
     normals.ComputeCellNormalsOn()
     normals.ComputePointNormalsOn()
     normals.ConsistencyOn()
     normals.AutoOrientNormalsOn()  # outward for a closed surface
     normals.SplittingOff()
-    normals.Update()
+    oriented = _update(normals, progress, ends[2], 1.0, "outward normals", cancel)
     out = vtk.vtkPolyData()
-    out.DeepCopy(normals.GetOutput())
+    out.DeepCopy(oriented)
     return out
 
 
 def surface_from_labelmap_node(node, target_triangles=None, **kwargs):
-    """Surface of a label-map MRML node (RAS mm)."""
+    """Surface of a label-map MRML node (RAS mm); reads the node, so on its thread
+    (``FluoNavLogic.prepareBuildSurface`` reads first and computes on a worker)."""
     from fluoguide import mrml_io
 
     geo = mrml_io.volume_geometry(node)

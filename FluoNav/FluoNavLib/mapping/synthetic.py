@@ -257,7 +257,7 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
     (vtkPolyData), ``camera``, ``cone``, ``radiometric``, ``geometry``.
     """
     from fluoguide.phantoms import make_phantom
-    from fluoguide.progress import check_cancel, report
+    from fluoguide.progress import check_cancel, report, scaled
 
     from FluoNavLib.mapping.surface import surface_from_cbct
 
@@ -271,11 +271,13 @@ def tracked_acquisition(n_views=4, binning=4, transport=0.3, tracking=PoseError(
     if surface_triangles is not None:
         check_number("surface_triangles", surface_triangles, 0, 10_000_000, integer=True,
                      what="must be 0 (keep all) .. 10,000,000")
-    report(progress, 0.0, "the CBCT surface")
+    report(progress, 0.0, "the phantom's CBCT")
     phantom = make_phantom("oral-cavity", seed=seed)
     ijk = np.diag([*phantom.spacing_mm, 1.0])
     ijk[:3, 3] = phantom.origin_mm
-    poly = surface_from_cbct(phantom.cbct_hu, ijk, target_triangles=surface_triangles)
+    poly = surface_from_cbct(phantom.cbct_hu, ijk, target_triangles=surface_triangles,
+                             progress=scaled(progress, 0.02, 0.2, "the CBCT surface"),
+                             cancel=cancel)
     geometry = phantom.truth()["geometry"]
     cam = open_field_camera(binning)
     cone = coupled_light()
