@@ -73,6 +73,38 @@ def test_the_walk_sees_a_bad_option():
     assert [a.dest for _, a in found] == ["size"]
 
 
+def _parsers(parser, path=("fluo",)):
+    """(command path, parser) of the parser and every subcommand under it."""
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _parsers(sub, (*path, name))
+
+
+# a year, a date, "measured on" / "measured:" and a machine: numbers of one run on
+# one machine, which belong in docs/ next to the command that measures them
+DATED = re.compile(r"\b20\d\d\b|measured( on|:)|\d-core machine", re.IGNORECASE)
+
+
+def test_no_help_prints_dated_measurements(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "1000")     # one line per paragraph: no match split
+    found = [f"{' '.join(path)}: ...{m.group(0)}..." for path, p in _parsers(build_parser())
+             for m in re.finditer(r".{0,40}(" + DATED.pattern + r").{0,40}", p.format_help(),
+                                  re.IGNORECASE)]
+    assert len(list(_parsers(build_parser()))) > 30
+    assert not found, "\n".join(found)
+
+
+def test_the_dated_pattern_finds_a_measurement():
+    # the pattern above must catch the forms that were printed before
+    for text in ("HP 88 s on a shared 2-core machine", "run of 2026-11-24",
+                 "Measured on the issue's ellipsoid scene", "(measured: HP +0.2 %)"):
+        assert DATED.search(text), text
+    for text in ("20000 photons per run", "beyond the measured range", "default 100000"):
+        assert not DATED.search(text), text
+
+
 def test_demo_help_lists_the_stages():
     text = build_parser()._subparsers._group_actions[0].choices["demo"].format_help()
     for name in STAGE_NAMES:
