@@ -15,7 +15,7 @@ import pytest
 from fluoapp.cli import build_parser, main
 from fluoapp.demo.run import STAGE_NAMES, run_demo, stages_to_run
 from small_cases import SMALL_TUBE
-from fluoapp.format import format_result, has_unit
+from fluoapp.format import CELL_WIDTH, LINE_WIDTH, format_result, has_unit
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress, mark_command_start, scaled
 
@@ -197,6 +197,28 @@ def test_warnings_are_always_printed_last():
                           "seconds": 1.0})
     assert text.splitlines()[-1] == "warning: mesh coarse for mueff"
     assert format_result({"warnings": []}).splitlines()[-1] == "warnings: none"
+
+
+def test_no_printed_line_is_longer_than_the_limit():
+    """A long value (a path without spaces, a long message), a wide table and a
+    long cell: every line within LINE_WIDTH, nothing lost but the cut cell."""
+    path = "/data/" + "a_very_long_folder_name_" * 20 + "labels.nrrd"
+    message = "the region of interest was cut below the target " * 8
+    rows = [{"case": f"case {i}", **{f"quantity_{j}_mm": 1000.5 * j + i for j in range(30)},
+             "stop_reason": f"{i} " + "x" * 300} for i in range(35)]
+    text = format_result({"labels": path, "rows": rows, "warnings": [message.strip()]})
+    lines = text.splitlines()
+    assert max(len(ln) for ln in lines) <= LINE_WIDTH, max(lines, key=len)
+    # the long values continue on indented lines, every character kept
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("labels:"))
+    assert path in lines[at].split()[-1] + "".join(ln.strip() for ln in lines[at + 1:at + 3])
+    assert " ".join(message.split()) in " ".join(text.split())
+    # the wide table in parts, each opening with the row's name; every column printed
+    assert sum(ln.lstrip().startswith("case 7 ") for ln in lines) >= 2
+    assert all(f"quantity_{j}_mm" in text for j in range(30))
+    # a cell too long for a table is cut, and says so
+    cut = [c for ln in lines for c in ln.split() if c.startswith("xxx")]
+    assert cut and all(c.endswith("...") and len(c) < CELL_WIDTH for c in cut)
 
 
 def test_study_table_reads_on_a_terminal():
