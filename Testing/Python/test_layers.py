@@ -215,15 +215,18 @@ def test_the_cycle_finder_sees_lazy_and_relative_imports(tmp_path, monkeypatch):
     # package's lazy table, must both be found; a one-way chain must not
     pkg = tmp_path / "fluoguide"
     (pkg / "sub").mkdir(parents=True)
-    (pkg / "__init__.py").write_text("")
-    (pkg / "a.py").write_text("from fluoguide.b import x\n")
-    (pkg / "b.py").write_text("def f():\n    from . import a\n")
-    (pkg / "c.py").write_text("import fluoguide.a\n")
-    (pkg / "sub" / "__init__.py").write_text(
-        "from fluoguide.lazy import attach\n"
-        "__getattr__, __dir__, __all__ = attach(__name__, {'d': ['g']})\n")
-    (pkg / "sub" / "d.py").write_text("def g():\n    from fluoguide.e import h\n")
-    (pkg / "e.py").write_text("from fluoguide.sub import g\n")
+    sources = {
+        "__init__": "",
+        "a": "from fluoguide.b import x\n",
+        "b": "def f():\n    from . import a\n",
+        "c": "import fluoguide.a\n",
+        "sub/__init__": "from fluoguide.lazy import attach\n"
+                        "__getattr__, __dir__, __all__ = attach(__name__, {'d': ['g']})\n",
+        "sub/d": "def g():\n    from fluoguide.e import h\n",
+        "e": "from fluoguide.sub import g\n",
+    }
+    for module, text in sources.items():
+        (pkg / module).with_suffix(".py").write_text(text)
     monkeypatch.setitem(SOURCES, "fluoguide", pkg)
     for top in [t for t in SOURCES if t != "fluoguide"]:
         monkeypatch.setitem(SOURCES, top, tmp_path / "none")
