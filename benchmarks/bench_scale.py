@@ -55,7 +55,7 @@ def _one(study, config, out_dir, seeds=1):
     t_import = time.perf_counter()
     from fluoguide.runs.cluster import executor
     from FluoTomoLib.studies.spec import study_spec
-    from FluoTomoLib.studies.thesis import run_spec
+    from FluoTomoLib.studies.run import run_spec
 
     cfg = CONFIGS[config]
     t0 = time.perf_counter()

@@ -12,7 +12,11 @@ Every handler returns a dict (the JSON result, unchanged by anything here);
   list is printed inline, a long one or a large matrix as its size and range
   (``--json`` gives every value);
 - a ``warnings`` list is always printed, after everything else (``warnings: none``
-  when it is empty), so a result that may be wrong never looks clean.
+  when it is empty), so a result that may be wrong never looks clean;
+- no line is longer than :data:`LINE_WIDTH`: a table cell longer than
+  :data:`CELL_WIDTH` is cut (``...``), a table too wide is split into several
+  side by side parts, each repeating its first column, and a long ``key: value``
+  or warning continues on indented lines.
 
 A command may add its own presentation in :data:`COMMANDS` (columns printed
 together as one table, key names that differ from the global ones).  New result
@@ -24,6 +28,7 @@ from __future__ import annotations
 
 import math
 import re
+import textwrap
 
 import numpy as np
 
@@ -34,6 +39,9 @@ SIGNIFICANT = 4          # significant digits of every printed number
 INLINE_ITEMS = 8         # longer lists are summarised
 TABLE_ROWS = 40          # longer tables are cut (the rest: --json)
 MATRIX_CELLS = 16        # larger matrices are summarised (4 x 4 transforms print whole)
+LINE_WIDTH = 200         # characters of the longest printed line (a terminal or a log)
+CELL_WIDTH = 48          # a longer table cell is cut: a table stays a table (all of it: --json)
+WRAP_INDENT = "    "     # continuation lines of a wrapped value, under its key
 
 # JSON key -> printed key, for keys whose name does not say their unit or meaning.
 KEYS = {
@@ -191,7 +199,14 @@ class _Writer:
 
     def emit(self, text, indent):
         # a path or a name holding a newline must not make a line of its own
-        self.lines.append("  " * indent + one_line(text))
+        line = "  " * indent + one_line(text)
+        if len(line) <= LINE_WIDTH:
+            self.lines.append(line)
+            return
+        # a long message or path: continued under its key, cut nowhere (a long
+        # word, a path without spaces, is broken where the line ends)
+        self.lines += textwrap.wrap(line, width=LINE_WIDTH, subsequent_indent="  " * indent
+                                    + WRAP_INDENT, break_on_hyphens=False)
 
     def _group_columns(self, d):
         """The command's column groups: equal-length lists become one table."""
@@ -275,7 +290,7 @@ class _Writer:
         cols = []
         for r in rows:
             cols += [k for k in r if k not in cols]
-        text = [{k: _inline(r[k]) if k in r else "" for k in cols} for r in rows]
+        text = [{k: _cell(_inline(r[k])) if k in r else "" for k in cols} for r in rows]
         hidden = [k for k in cols if k != "" and any(t[k] is None for t in text)]
         cols = [k for k in cols if k not in hidden]
         if len(rows) >= 3:
@@ -285,14 +300,17 @@ class _Writer:
                 self.block({k: rows[0][k] for k in same}, indent)
                 cols = [k for k in cols if k not in same]
         shown = text[:TABLE_ROWS]
-        heads = ["" if k == "" else self.label(k, rows[0].get(k)) for k in cols]
+        heads = ["" if k == "" else _cell(self.label(k, rows[0].get(k))) for k in cols]
         grid = [heads] + [[t[k] for k in cols] for t in shown]
         if len(cols) > 6 and len(cols) > len(shown) + 1:
             # few rows, many columns: one line per column reads better
             grid = [list(r) for r in zip(*grid)]
         widths = [max(len(row[j]) for row in grid) for j in range(len(grid[0]))]
-        for row in grid:
-            self.emit("  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip(), indent)
+        for i, part in enumerate(_column_parts(widths, LINE_WIDTH - 2 * indent)):
+            if i:
+                self.emit("", 0)      # a blank line between the parts of a wide table
+            for row in grid:
+                self.emit("  ".join(row[j].ljust(widths[j]) for j in part).rstrip(), indent)
         if len(rows) > len(shown):
             self.emit(f"... {len(rows) - len(shown)} more rows (all of them: --json)", indent)
         if hidden:
@@ -304,6 +322,31 @@ class _Writer:
             return
         for x in (w if isinstance(w, list) else [w]):
             self.emit(f"warning: {x if isinstance(x, str) else _inline(x) or x}", 0)
+
+
+def _cell(text):
+    """A table cell of at most :data:`CELL_WIDTH` characters (None: not a one-liner)."""
+    if text is None or len(text) <= CELL_WIDTH:
+        return text
+    return text[:CELL_WIDTH - 3] + "..."
+
+
+def _column_parts(widths, room):
+    """Column indices of a table in parts whose lines fit ``room`` characters.
+
+    The first column (the row's name, or the column names of a table printed one
+    line per column) opens every part, so each part reads on its own; the others
+    are taken in order while the line (two spaces between columns) fits.
+    """
+    parts, part, used = [], [0], widths[0]
+    for j in range(1, len(widths)):
+        if len(part) > 1 and used + 2 + widths[j] > room:
+            parts.append(part)
+            part, used = [0], widths[0]
+        part.append(j)
+        used += 2 + widths[j]
+    parts.append(part)
+    return parts
 
 
 class _Table:

@@ -15,7 +15,7 @@ import pytest
 from fluoapp.cli import build_parser, main
 from fluoapp.demo.run import STAGE_NAMES, run_demo, stages_to_run
 from small_cases import SMALL_TUBE
-from fluoapp.format import format_result, has_unit
+from fluoapp.format import CELL_WIDTH, LINE_WIDTH, format_result, has_unit
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress, mark_command_start, scaled
 
@@ -71,6 +71,38 @@ def test_the_walk_sees_a_bad_option():
     p.add_argument("--size", type=float, default=1.6)
     found = [(path, a) for path, a, text in _options(parser) if a is not None and not text]
     assert [a.dest for _, a in found] == ["size"]
+
+
+def _parsers(parser, path=("fluo",)):
+    """(command path, parser) of the parser and every subcommand under it."""
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _parsers(sub, (*path, name))
+
+
+# a year, a date, "measured on" / "measured:" and a machine: numbers of one run on
+# one machine, which belong in docs/ next to the command that measures them
+DATED = re.compile(r"\b20\d\d\b|measured( on|:)|\d-core machine", re.IGNORECASE)
+
+
+def test_no_help_prints_dated_measurements(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "1000")     # one line per paragraph: no match split
+    found = [f"{' '.join(path)}: ...{m.group(0)}..." for path, p in _parsers(build_parser())
+             for m in re.finditer(r".{0,40}(" + DATED.pattern + r").{0,40}", p.format_help(),
+                                  re.IGNORECASE)]
+    assert len(list(_parsers(build_parser()))) > 30
+    assert not found, "\n".join(found)
+
+
+def test_the_dated_pattern_finds_a_measurement():
+    # the pattern above must catch the forms that were printed before
+    for text in ("HP 88 s on a shared 2-core machine", "run of 2026-11-24",
+                 "Measured on the issue's ellipsoid scene", "(measured: HP +0.2 %)"):
+        assert DATED.search(text), text
+    for text in ("20000 photons per run", "beyond the measured range", "default 100000"):
+        assert not DATED.search(text), text
 
 
 def test_demo_help_lists_the_stages():
@@ -165,6 +197,28 @@ def test_warnings_are_always_printed_last():
                           "seconds": 1.0})
     assert text.splitlines()[-1] == "warning: mesh coarse for mueff"
     assert format_result({"warnings": []}).splitlines()[-1] == "warnings: none"
+
+
+def test_no_printed_line_is_longer_than_the_limit():
+    """A long value (a path without spaces, a long message), a wide table and a
+    long cell: every line within LINE_WIDTH, nothing lost but the cut cell."""
+    path = "/data/" + "a_very_long_folder_name_" * 20 + "labels.nrrd"
+    message = "the region of interest was cut below the target " * 8
+    rows = [{"case": f"case {i}", **{f"quantity_{j}_mm": 1000.5 * j + i for j in range(30)},
+             "stop_reason": f"{i} " + "x" * 300} for i in range(35)]
+    text = format_result({"labels": path, "rows": rows, "warnings": [message.strip()]})
+    lines = text.splitlines()
+    assert max(len(ln) for ln in lines) <= LINE_WIDTH, max(lines, key=len)
+    # the long values continue on indented lines, every character kept
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("labels:"))
+    assert path in lines[at].split()[-1] + "".join(ln.strip() for ln in lines[at + 1:at + 3])
+    assert " ".join(message.split()) in " ".join(text.split())
+    # the wide table in parts, each opening with the row's name; every column printed
+    assert sum(ln.lstrip().startswith("case 7 ") for ln in lines) >= 2
+    assert all(f"quantity_{j}_mm" in text for j in range(30))
+    # a cell too long for a table is cut, and says so
+    cut = [c for ln in lines for c in ln.split() if c.startswith("xxx")]
+    assert cut and all(c.endswith("...") and len(c) < CELL_WIDTH for c in cut)
 
 
 def test_study_table_reads_on_a_terminal():

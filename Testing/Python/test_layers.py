@@ -8,6 +8,7 @@ A file may import its own layer and the layers below it, never one above
 """
 
 import ast
+import sys
 import tomllib
 from pathlib import Path
 
@@ -52,6 +53,139 @@ def _files():
         yield layer, path
 
 
+def _module_names():
+    """Dotted name -> source file of every project module (a package is its
+    ``__init__.py``)."""
+    names = {}
+    for layer, path in _files():
+        if layer in MODULE_FILES:
+            names[layer] = path
+            continue
+        parts = (layer,) + path.relative_to(SOURCES[layer]).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        names[".".join(parts)] = path
+    return names
+
+
+def _lazy_exports(path):
+    """Public name -> submodule of a package whose ``__init__`` hands its names
+    out through ``fluoguide.lazy.attach`` (``from pkg import name`` imports
+    ``pkg.submodule`` when used: a dependency on that submodule)."""
+    exports = {}
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if (isinstance(node, ast.Call) and getattr(node.func, "id", None) == "attach"
+                and len(node.args) == 2 and isinstance(node.args[1], ast.Dict)):
+            for sub, names in zip(node.args[1].keys, node.args[1].values):
+                for name in getattr(names, "elts", []):
+                    exports[name.value] = sub.value
+    return exports
+
+
+def _import_edges(name, path, modules, lazy):
+    """(line, imported project module) for every import in ``path`` (module
+    ``name``), at any depth: module level, in functions, under ``if``.
+
+    ``from a.b import c`` depends on ``a.b.c`` when that is a module, else on
+    the module ``a.b`` (or on the submodule that ``a.b``'s lazy table names
+    for ``c``); relative imports are resolved against the module's package;
+    ``import_module_file("FluoTomo")`` depends on the module file. Imports of
+    anything outside the project are dropped.
+    """
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        targets = []
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[:len(package.split(".")) - (node.level - 1)]
+                base = ".".join(base + ([node.module] if node.module else []))
+            else:
+                base = node.module
+            for alias in node.names:
+                full = f"{base}.{alias.name}"
+                if full in modules:
+                    targets.append(full)
+                elif alias.name in lazy.get(base, {}):
+                    targets.append(f"{base}.{lazy[base][alias.name]}")
+                else:
+                    targets.append(base)
+        elif isinstance(node, ast.Call) and getattr(node.func, "id", None) == "import_module_file":
+            if node.args and isinstance(node.args[0], ast.Constant):
+                targets = [node.args[0].value]
+        for target in targets:
+            # ``import a.b.c`` names a.b.c; a name that is no module is an attribute
+            # of the nearest enclosing one
+            while target and target not in modules:
+                target = target.rpartition(".")[0]
+            if target and target != name:
+                yield node.lineno, target
+
+
+def _import_graph():
+    """Project module -> {imported project module: first line of that import}."""
+    modules = _module_names()
+    lazy = {n: _lazy_exports(p) for n, p in modules.items() if p.name == "__init__.py"}
+    graph = {}
+    for name, path in modules.items():
+        edges = graph.setdefault(name, {})
+        for lineno, target in _import_edges(name, path, modules, lazy):
+            edges.setdefault(target, lineno)
+    return graph
+
+
+def _cycles(graph):
+    """Strongly connected components of more than one module (Tarjan's
+    algorithm, iterative: the graph has hundreds of modules), each as a list of
+    module names, sorted."""
+    index, low, on_stack, stack, found = {}, {}, set(), [], []
+    counter = 0
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                parent = work[-1][0]
+                low[parent] = min(low[parent], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return sorted(found)
+
+
+def _describe(component, graph):
+    """The component's imports among its own members, ``a:LINE -> b`` each."""
+    members = set(component)
+    return "; ".join(f"{a}:{line} -> {b}" for a in component
+                     for b, line in sorted(graph[a].items()) if b in members)
+
+
 def test_no_file_imports_a_higher_layer():
     violations = []
     for layer, path in _files():
@@ -66,6 +200,39 @@ def test_the_walker_sees_lazy_imports(tmp_path):
     f = tmp_path / "x.py"
     f.write_text("def f():\n    from fluoapp.cli import main\n")
     assert ("fluoapp" in {t for _, t in _imported_tops(f)})
+
+
+def test_no_import_cycles():
+    # a cycle hidden by imports inside functions still ties its modules together:
+    # neither can be read, tested or moved without the other
+    graph = _import_graph()
+    cycles = _cycles(graph)
+    assert not cycles, "import cycles:\n" + "\n".join(_describe(c, graph) for c in cycles)
+
+
+def test_the_cycle_finder_sees_lazy_and_relative_imports(tmp_path, monkeypatch):
+    # a two-module cycle through a function-level relative import, and one through a
+    # package's lazy table, must both be found; a one-way chain must not
+    pkg = tmp_path / "fluoguide"
+    (pkg / "sub").mkdir(parents=True)
+    sources = {
+        "__init__": "",
+        "a": "from fluoguide.b import x\n",
+        "b": "def f():\n    from . import a\n",
+        "c": "import fluoguide.a\n",
+        "sub/__init__": "from fluoguide.lazy import attach\n"
+                        "__getattr__, __dir__, __all__ = attach(__name__, {'d': ['g']})\n",
+        "sub/d": "def g():\n    from fluoguide.e import h\n",
+        "e": "from fluoguide.sub import g\n",
+    }
+    for module, text in sources.items():
+        (pkg / module).with_suffix(".py").write_text(text)
+    monkeypatch.setitem(SOURCES, "fluoguide", pkg)
+    for top in [t for t in SOURCES if t != "fluoguide"]:
+        monkeypatch.setitem(SOURCES, top, tmp_path / "none")
+    monkeypatch.setattr(sys.modules[__name__], "MODULE_FILES", {})
+    assert _cycles(_import_graph()) == [["fluoguide.a", "fluoguide.b"],
+                                        ["fluoguide.e", "fluoguide.sub.d"]]
 
 
 @pytest.mark.parametrize("lib", ["FluoCalibLib", "FluoNavLib", "FluoTomoLib"])

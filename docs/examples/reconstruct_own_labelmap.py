@@ -3,6 +3,10 @@
     python docs/examples/reconstruct_own_labelmap.py LABELS.nrrd optics.json ACQ/ OUT/
     python docs/examples/reconstruct_own_labelmap.py --make-example OUT/   (writes inputs too)
 
+``python``: the virtual environment's, after ``make venv`` (``.venv/bin/python``, or
+``python`` with ``.venv`` activated), from any folder: ``FluoTomo`` is imported as
+installed, as 3D Slicer imports it.
+
 Inputs (docs/tomography-own-scene.md): a label map (.nrrd, .nii.gz or a 3D
 Slicer .seg.nrrd; any direction, spacing and origin), ``optics.json`` (optical
 properties per label) and an acquisition folder (sources, detectors, data).

@@ -72,7 +72,7 @@ def study_mapping(args):
 def _handler(args):
     threads = check_run_options(args)
     from FluoTomoLib.studies.spec import spec_from_mapping
-    from FluoTomoLib.studies.thesis import run_spec
+    from FluoTomoLib.studies.run import run_spec
 
     doc, file = study_mapping(args)
     spec = spec_from_mapping(doc, file=file)

@@ -15,22 +15,20 @@ from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
 
 def _accuracy_help(pct="%%", lead="accuracy level (default %(default)s): "):
-    """The levels' sizes and their measured error and time (accuracy.MEASURED);
-    ``pct``: "%%" in an option's help (%-formatted), "%" in a description."""
-    from FluoTomoLib.tomography.accuracy import LEVELS, MEASURED
+    """What each accuracy level sets (``accuracy.LEVELS``), for ``--help``.
 
-    parts = []
-    for name, lv in LEVELS.items():
-        m = MEASURED.get(name)
-        text = (f"{name} = {lv['recon_mm']:g} mm reconstruction elements, region-of-interest "
-                f"tolerance {lv['truncation_pct']:g} {pct}")
-        if m:
-            text += (f" (measured: HP {m['HP_pct']:+.1f} {pct}, SP {m['SP_pct']:+.1f} {pct}, "
-                     f"HP {m['seconds']:.0f} s on a shared 2-core machine)")
-        parts.append(text)
-    return (lead + "; ".join(parts) + "; each refined to "
-            "half across the target, capped at the sources' burial depth. Measured on the "
-            "issue's ellipsoid scene, docs/tomography-own-scene.md")
+    ``pct``: "%%" in an option's help (%-formatted), "%" in a description. The
+    levels' measured error and time are not printed: they belong to one machine
+    and one run, and live in docs/tomography-own-scene.md ("Accuracy levels")
+    next to the benchmark that measures them.
+    """
+    from FluoTomoLib.tomography.accuracy import LEVELS
+
+    parts = [f"{name} = {lv['recon_mm']:g} mm reconstruction elements, region-of-interest "
+             f"tolerance {lv['truncation_pct']:g} {pct}" for name, lv in LEVELS.items()]
+    return (lead + "; ".join(parts) + "; each refined to half across the target, capped at "
+            "the sources' burial depth (each level's error and time: "
+            "docs/tomography-own-scene.md, \"Accuracy levels\")")
 
 
 ACCURACY_HELP = _accuracy_help()

@@ -20,7 +20,9 @@ from fluoguide.progress import check_cancel, report, scaled
 
 
 # The stages in the order they run: name, title, and the stages whose results
-# (``ctx.state``) it needs; ``--only`` runs those first.  Functions: stages.py.
+# (``ctx.state``) it needs; ``--only`` runs those first.  Functions:
+# stages.py:STAGE_FUNCTIONS (imported only when the demo runs: the CLI reads
+# this table at start-up).
 STAGE_TABLE = [
     ("phantoms", "digital phantoms", ()),
     ("camera_calibration", "camera and hand-eye calibration", ("phantoms",)),
@@ -90,9 +92,10 @@ def _write_json_atomic(path, data):
 
 
 def _stages():
-    from fluoapp.demo import stages as demo_stages
+    """(name, title, function) of every stage, in run order."""
+    from fluoapp.demo.stages import STAGE_FUNCTIONS
 
-    return demo_stages.STAGES
+    return [(name, title, STAGE_FUNCTIONS[name]) for name, title, _ in STAGE_TABLE]
 
 
 def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None,

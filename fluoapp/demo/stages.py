@@ -15,8 +15,6 @@ from fluoguide import atomic, mrml_io
 from fluoguide.phantoms import add_phantom_to_scene, make_phantom, write_phantom
 from fluoguide.progress import report, scaled
 
-from fluoapp.demo.run import STAGE_TABLE
-
 TUBE_DEPTHS_MM = [2.7, 3.7, 4.7, 5.7, 6.7]
 
 
@@ -601,6 +599,15 @@ def stage_oral_tomography(ctx):
     return out
 
 
-# (name, title, function) in the order they run; names, titles and what each
-# stage needs from the others: fluoapp/demo/run.py:STAGE_TABLE
-STAGES = [(name, title, globals()[f"stage_{name}"]) for name, title, _ in STAGE_TABLE]
+# stage name -> its function; the order, titles and what each stage needs from the
+# others are the runner's (fluoapp/demo/run.py:STAGE_TABLE), which the CLI reads
+# without importing the stages
+STAGE_FUNCTIONS = {
+    "phantoms": stage_phantoms,
+    "camera_calibration": stage_camera_calibration,
+    "light_calibration": stage_light_calibration,
+    "surface_mapping": stage_surface_mapping,
+    "tomography": stage_tomography,
+    "tomography_mc": stage_tomography_mc,
+    "oral_tomography": stage_oral_tomography,
+}

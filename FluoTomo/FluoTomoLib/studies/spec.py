@@ -54,8 +54,8 @@ from FluoTomoLib.studies.thesis import (
     forward_jacobian,
     full_depth_mm,
     mapped_jacobian,
+    recon_options,
     reconstruction_task,
-    _recon_options,
 )
 
 METHODS = ("NP", "SP", "HP")
@@ -234,8 +234,8 @@ def _targets_from(doc, dim, file):
                            "case")
                 bad = [k for k in t if k not in allowed]
                 if bad or "diameter_mm" not in t or "top_depth_mm" not in t:
-                    raise FluoInputError(f"a target has diameter_mm and top_depth_mm (and "
-                                         f"optionally inner_diameter_mm, prior_diameter_mm, case)",
+                    raise FluoInputError("a target has diameter_mm and top_depth_mm (and "
+                                         "optionally inner_diameter_mm, prior_diameter_mm, case)",
                                          file=file, field=where, value=bad or sorted(t))
                 kw = {k: convert(t[k], f"{where}.{k}", float, file) for k in allowed[:4]
                       if t.get(k) is not None}
@@ -276,7 +276,7 @@ def check_params(p, file=None):
 
     if p["method"] not in METHODS:
         bad("method must be NP, SP or HP", "methods", p["method"])
-    _recon_options(p["scheme"], p["hp_basis"])
+    recon_options(p["scheme"], p["hp_basis"])
     lam = p["lambda"]
     if not (math.isfinite(lam) and 0 < lam <= 1e12):
         bad("lambda must be > 0 and <= 1e12", "lambdas", lam)

@@ -33,17 +33,6 @@ LEVELS = {
 }
 DEFAULT = "balanced"
 
-#: measured per level on the issue's ellipsoid scene (benchmarks/bench_own_scene.py,
-#: docs/tomography-own-scene.md): the inclusion's yield error of HP and SP [%] and
-#: the wall time of one method [s]; printed in ``fluo tomo reconstruct --help``
-#: (run of 2026-11-24, shared 2-core machine, threads pinned to 1; one simulated
-#: acquisition with 1 % noise, seed 1, on a 0.5 mm whole-map mesh of 137,964 nodes)
-MEASURED = {
-    "fast": {"HP_pct": 0.2, "SP_pct": -9.5, "seconds": 88.0},
-    "balanced": {"HP_pct": 4.3, "SP_pct": -12.8, "seconds": 103.0},
-    "fine": {"HP_pct": 3.4, "SP_pct": -8.5, "seconds": 198.0},
-}
-
 
 def accuracy_settings(accuracy=DEFAULT, **override):
     """The settings of a level, with explicit values (not None) overriding it

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from FluoTomoLib.studies.thesis import run_case, study_meshes
+from FluoTomoLib.studies.run import run_case
+from FluoTomoLib.studies.thesis import study_meshes
 
 DOC = Path(__file__).resolve().parents[3] / "docs" / "reconstruction.md"
 TOL_PP = 0.5

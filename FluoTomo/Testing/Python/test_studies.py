@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from fluoguide.errors import FluoInputError
-from FluoTomoLib.studies.thesis import run_case, run_study, study_meshes
+from FluoTomoLib.studies.run import run_case, run_study
+from FluoTomoLib.studies.thesis import study_meshes
 
 KEYS = {"case", "method", "lambda", "true_peak", "peak", "peak_error_pct", "true_centroid_mm",
         "centroid_mm", "centroid_error_pct", "seconds"}
@@ -77,7 +78,7 @@ def test_3d_slab_study_custom_target(tmp_path):
 
 
 def test_sweeps_report_error_and_time():
-    from FluoTomoLib.studies.thesis import run_sweep
+    from FluoTomoLib.studies.run import run_sweep
 
     out = run_sweep("noise", target=(6.0, 3.5))
     hp = [r for r in out["rows"] if r["method"] == "HP"]

@@ -9,7 +9,7 @@ import pytest
 from fluoguide.errors import FluoInputError
 from fluoguide.runs.store import read_table, stable_columns
 from FluoTomoLib.studies.spec import spec_from_mapping, study_tasks, sweep_spec
-from FluoTomoLib.studies.thesis import run_spec, run_study, run_sweep
+from FluoTomoLib.studies.run import run_study, run_sweep
 
 
 def _shared_names(tasks):
