@@ -1,0 +1,129 @@
+"""The 95 % intervals of region yields (issue #31, item 4) and the fit tested
+against the stated noise (item 5).
+
+The solver's part is checked on the 2D problem of test_recon_diagnostics.py (a
+0.5 mm forward mesh makes the data where a model error is wanted, the 1 mm
+reconstruction mesh's own Jacobian reconstructs). The coverage claims are
+measured over seeded noise draws: an interval "holds the truth" in at least
+90 % of the draws (its nominal 95 %, less the sampling error of 20 draws). The label-map part (segmentation
+moved, the family) is in test_own_scene.py and docs/validation.md.
+"""
+
+import numpy as np
+import pytest
+
+from FluoTomoLib.fem.forward import FluorescenceModel
+from FluoTomoLib.meshing.structured import rectangle_mesh
+from FluoTomoLib.recon.solver import RegionPrior, reconstruct
+from FluoTomoLib.tomography.model import perturb_regions
+
+TARGET, BACKGROUND = 1.2e-3, 1.2e-5
+DRAWS = 20
+
+
+@pytest.fixture(scope="module")
+def problem():
+    """Sources on top of a 40 x 16 mm section; a 4 mm disc 5 mm deep. The 1 mm
+    mesh's Jacobian J and its own region prior; y_self = J x (no model error),
+    y_fine from the 0.5 mm mesh (a model error of a few %)."""
+    fine = rectangle_mesh(np.linspace(-20, 20, 161), np.linspace(-16, 0, 65))
+    coarse = rectangle_mesh(np.linspace(-20, 20, 41), np.linspace(-16, 0, 17))
+    src = np.stack([(np.arange(16) - 7.5) * 2.5, np.zeros(16)], axis=1)
+    p = dict(mua_per_mm=0.032, musp_per_mm=1.0, n=1.33)
+    keep = np.linalg.norm(src[:, None] - src[None], axis=2).ravel() > 3.0
+    J_f = FluorescenceModel(fine, p, p, src, src).jacobian_yield()[keep]
+    J = FluorescenceModel(coarse, p, p, src, src).jacobian_yield()[keep]
+    inside = np.linalg.norm(coarse.nodes_mm - [0, -5], axis=1) <= 2.0
+    prior = RegionPrior(np.where(inside, 2, 1))
+    x = np.where(inside, TARGET, BACKGROUND)
+    y_fine = J_f @ np.where(np.linalg.norm(fine.nodes_mm - [0, -5], axis=1) <= 2.0, TARGET,
+                            BACKGROUND)
+    return J, prior, J @ x, y_fine
+
+
+def _truth_in(res, truth=TARGET, label=2):
+    lo, hi = res.region_confidence[label]["ci95_yield_per_mm"]
+    return lo <= truth <= hi
+
+
+@pytest.mark.parametrize("method", ["NP", "SP", "HP"])
+def test_intervals_hold_the_truth_without_model_error(problem, method):
+    """No model error, 1 % noise stated: NP's region mean is far below the truth
+    (-80 %: its damped, smooth solution spreads the disc's yield), yet the
+    interval, reaching the value corrected for what the solver leaves
+    unresolved of a region-wise constant truth, holds it; SP's and HP's too."""
+    J, prior, y, _ = problem
+    rng = np.random.default_rng(3)
+    held, errors, widths = [], [], []
+    for _ in range(DRAWS if method == "HP" else DRAWS // 4):
+        res = reconstruct(J, y * (1 + 0.01 * rng.standard_normal(len(y))), method,
+                          prior=prior, noise_rel=0.01)
+        c = res.region_confidence[2]
+        held.append(_truth_in(res))
+        errors.append(c["mean_yield_per_mm"] / TARGET - 1)
+        widths.append((c["ci95_yield_per_mm"][1] - c["ci95_yield_per_mm"][0]) / 2 / TARGET)
+    print(f"{method}: median error {100 * np.median(errors):+.1f} %, interval +-"
+          f"{100 * np.median(widths):.1f} %, holds the truth in {np.mean(held):.0%}")
+    assert np.mean(held) >= 0.9, (method, np.mean(held), errors)
+    if method == "NP":
+        assert np.median(errors) < -0.5          # the bias the interval has to reach
+    if method == "HP":
+        assert np.median(widths) < 0.05          # and no wider than the noise asks
+
+
+def test_model_error_widens_the_interval_and_grades_the_fit(problem):
+    """Data from the finer mesh: the residual is several times the stated 0.3 %
+    noise; the model's error bound is in the interval (and absent without a
+    noise statement); a tenfold understated noise reads as a poor fit."""
+    J, prior, _, y = problem
+    rng = np.random.default_rng(0)
+    yn = y * (1 + 0.003 * rng.standard_normal(len(y)))
+    stated = reconstruct(J, yn, "HP", prior=prior, noise_rel=0.003)
+    unstated = reconstruct(J, yn, "HP", prior=prior)
+    c = stated.region_confidence[2]
+    assert c["model_error_bound_per_mm"] > 0
+    assert unstated.region_confidence[2]["model_error_bound_per_mm"] is None
+    fit = stated.diagnostics["fit"]
+    assert fit["residual_over_noise"] > 2 and fit["grade"] in ("fair", "poor")
+    # the interval is wider with the bound than the noise alone would make it
+    # (the 1 mm node regions' own bias, +7 % on clean data, is a segmentation
+    # error: the label-map path's re-solves with moved boundaries reach it)
+    width = c["ci95_yield_per_mm"][1] - c["ci95_yield_per_mm"][0]
+    assert width > 2 * 1.96 * c["sd_yield_per_mm"] + 1.9 * c["model_error_bound_per_mm"]
+    liar = reconstruct(J, yn, "HP", prior=prior, noise_rel=0.0003)
+    assert liar.diagnostics["fit"]["grade"] in ("poor", "fails")
+    assert any("poor fit" in w for w in liar.warnings)
+    honest = reconstruct(J, J @ np.linalg.lstsq(J, yn, rcond=None)[0] *
+                         (1 + 0.01 * rng.standard_normal(len(y))), "HP", prior=prior,
+                         noise_rel=0.01)
+    assert honest.diagnostics["fit"]["grade"] == "good"
+    assert not any("poor fit" in w for w in honest.warnings)
+
+
+def test_an_undetermined_region_has_no_interval(problem):
+    J, prior, y, _ = problem
+    res = reconstruct(J[:1], y[:1], "HP", prior=prior, noise_rel=0.01)
+    assert res.region_confidence[2]["ci95_yield_per_mm"] is None
+
+
+def test_perturbed_regions_move_their_boundaries_only():
+    """Dilation takes background voxels only (air and other regions keep theirs),
+    erosion hands the rim to the background and keeps at least the core; by
+    distance in mm on anisotropic voxels."""
+    lab = np.full((20, 20, 20), 3, np.uint8)
+    lab[:, :, :3] = 0                                     # air on one side
+    k, j, i = np.indices(lab.shape)
+    sp = np.array([0.5, 0.5, 1.0])                        # I, J, K spacing [mm]
+    r = np.sqrt(((i - 10) * sp[0]) ** 2 + ((j - 10) * sp[1]) ** 2 + ((k - 10) * sp[2]) ** 2)
+    lab[r <= 3.0] = 7
+    lab[(i == 10) & (j == 17) & (k == 10)] = 9           # a one-voxel neighbour region
+    grown = perturb_regions(lab, sp, 1.0, background=3)
+    shrunk = perturb_regions(lab, sp, -1.0, background=3)
+    assert np.all(grown[lab == 0] == 0) and np.all(shrunk[lab == 0] == 0)
+    assert np.all((grown == 7) >= (lab == 7)) and np.all((shrunk == 7) <= (lab == 7))
+    v = (lab == 7).sum()
+    # a 3 mm sphere grown / shrunk by 1 mm: (4/3)^3 and (2/3)^3 of its volume
+    assert (grown == 7).sum() / v == pytest.approx((4 / 3) ** 3, rel=0.15)
+    assert (shrunk == 7).sum() / v == pytest.approx((2 / 3) ** 3, rel=0.2)
+    tiny = perturb_regions(lab, sp, -5.0, background=3)
+    assert (tiny == 7).sum() >= 1 and (tiny == 9).sum() == 1
