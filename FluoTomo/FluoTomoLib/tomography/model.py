@@ -343,20 +343,25 @@ class TissueModel:
         self.J = self.model.jacobian_yield()[self.mask.ravel()]
         timings["jacobian"] = time.perf_counter() - t0
 
-    def prior_for(self, labels_kji, spacing_mm=None, origin_mm=None):
+    def prior_for(self, labels_kji, spacing_mm=None, origin_mm=None, basis_only=False):
         """(PartialVolumePrior, region_weights) of a segmentation on this model's mesh:
-        this model's own, or a perturbed one on this grid or a finer one with the
-        same extent (``spacing_mm``, ``origin_mm``; :meth:`segmentation_shifts`)."""
+        this model's own, or a perturbed one on this grid or a finer one
+        (``spacing_mm``, ``origin_mm``; :meth:`segmentation_shifts`). ``basis_only``:
+        HP's basis alone (the soft prior's node regions kept, no region weights)."""
         from FluoTomoLib.meshing.voxel import node_regions_volume_preserving
         from FluoTomoLib.recon.partial_volume import PartialVolumePrior
 
         sp = self.spacing_mm if spacing_mm is None else np.asarray(spacing_mm, float)
         org = self.origin_mm if origin_mm is None else np.asarray(origin_mm, float)
-        labs, fractions = membership(self.mesh, labels_kji, sp, org)
+        labs, fractions = membership(self.mesh, labels_kji, sp, org,
+                                     region_labels=[int(v) for v in self.region_labels])
         if list(labs) != list(self.region_labels):
             raise FluoInputError("a perturbed segmentation lost or gained a region",
                                  field="segmentation_mm", value=sorted(set(labs) ^ set(
                                      self.region_labels)))
+        if basis_only:
+            return PartialVolumePrior(self.prior.node_region, self.region_labels,
+                                      fractions), None
         node_region = node_regions_volume_preserving(self.mesh, labels_kji, sp, org,
                                                      background=self.background)
         return (PartialVolumePrior(node_region, self.region_labels, fractions),
@@ -370,9 +375,9 @@ class TissueModel:
         and the data solved again on the same mesh and Jacobian (no self-absorption
         feedback: the shifts are differences of like solves).
         Returns ({label: (shift when eroded, shift when dilated)} [1/mm], [eroded
-        ruled out, dilated ruled out]): a moved segmentation whose fit is worse than
-        the base's by more than chi^2's 95 % point is ruled out by the data, and
-        its shift is 0."""
+        ruled out, dilated ruled out], {label: the unmoved solve's value}): a moved
+        segmentation whose fit is worse than the base's by more than chi^2's 95 %
+        point is ruled out by the data, and its shift is 0."""
         from fluoguide.progress import check_cancel
         from FluoTomoLib.recon.solver import reconstruct
 
@@ -387,12 +392,21 @@ class TissueModel:
         # a boundary moved by less than a voxel: on a grid f times finer (each voxel
         # split, labels kept), where delta_mm is at least one fine voxel
         f = int(min(max(np.ceil(np.max(self.spacing_mm) / delta_mm - 1e-9), 1), 3))
-        fine = self.labels_kji
+        # only the voxels around the mesh count (its region of interest), with a
+        # margin for the moved boundaries
+        lo = np.floor((self.mesh.nodes_mm.min(axis=0) - self.origin_mm - delta_mm)
+                      / self.spacing_mm).astype(int) - 2
+        hi = np.ceil((self.mesh.nodes_mm.max(axis=0) - self.origin_mm + delta_mm)
+                     / self.spacing_mm).astype(int) + 3
+        lo = np.maximum(lo, 0)
+        hi = np.minimum(hi, np.array(self.labels_kji.shape[::-1]))
+        fine = self.labels_kji[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
         for ax in range(3):
             fine = np.repeat(fine, f, axis=ax)
         sp = self.spacing_mm / f
-        org = self.origin_mm - 0.5 * self.spacing_mm + 0.5 * sp
-        moved = [solve(*self.prior_for(perturb_regions(fine, sp, d, self.background), sp, org))
+        org = self.origin_mm + lo * self.spacing_mm - 0.5 * self.spacing_mm + 0.5 * sp
+        moved = [solve(*self.prior_for(perturb_regions(fine, sp, d, self.background), sp, org,
+                                       basis_only=method == "HP"))
                  for d in (-delta_mm, delta_mm)]
         # the data may rule a moved boundary out: a fit worse by more than the 95 %
         # point of chi^2 with one degree of freedom (3.84 residual variances, the
@@ -403,7 +417,7 @@ class TissueModel:
                     for r, _ in moved]
         shifts = {lab: tuple(0.0 if ex else v[lab] - base[lab]
                              for (_, v), ex in zip(moved, excluded)) for lab in base}
-        return shifts, excluded
+        return shifts, excluded, base
 
     def make_model(self, dye_mua_x_nodes, dye_mua_m_nodes):
         """The model with the fluorophore's absorption added (self_absorption.py
