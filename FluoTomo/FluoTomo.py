@@ -358,10 +358,11 @@ class FluoTomoWidget(FluoModuleWidget):
                     "meshed for this acquisition: the chosen mesh was not built for it")
                  + f"); {s['seconds']:.1f} s"]
         for lab, r in sorted(s["regions"].items(), key=lambda kv: int(kv[0])):
-            sd = r.get("sd_per_mm")
+            ci = r.get("ci95_per_mm")
             lines.append(f"  label {lab}{' (target)' if str(s['target']) == lab else ''}: "
                          f"yield {r['yield_per_mm']:.4g} /mm"
-                         + (f" (sd {sd:.2g})" if sd is not None else ""))
+                         + (f" (95 % interval {ci[0]:.3g} .. {ci[1]:.3g})" if ci else
+                            " (no interval: see the warnings)"))
         lines += [f"  warning: {w}" for w in s.get("warnings", [])]
         self.say(lines)
 

@@ -41,6 +41,7 @@ def test_simulate_writes_a_folder_a_person_can_read(small):
 
 
 @pytest.mark.parametrize("case", ["labels-missing", "off-surface", "off-surface-detector",
+                                  "bad-noise", "bad-segmentation", "bad-noise-file",
                                   "wrong-shape", "nan",
                                   "negative-log", "bad-yield", "bad-accuracy-size"])
 def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
@@ -71,6 +72,17 @@ def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
         lines[3] = f"{x},{y},{z + 25.0}"
         (acq / "detectors.csv").write_text("\n".join(lines) + "\n")
         needle = "detectors.csv: detectors[2]"
+    elif case == "bad-noise":
+        extra = ["--noise-pct", "0"]
+        needle = "--noise-pct"
+    elif case == "bad-segmentation":
+        extra = ["--segmentation-mm", "-1"]
+        needle = "--segmentation-mm"
+    elif case == "bad-noise-file":
+        doc = json.loads((acq / "acquisition.json").read_text())
+        doc["noise_pct"] = "lots"
+        (acq / "acquisition.json").write_text(json.dumps(doc))
+        needle = "acquisition.json: noise_pct"
     elif case == "wrong-shape":
         rows = (acq / "data.csv").read_text().splitlines()
         (acq / "data.csv").write_text("\n".join(rows[:-1]) + "\n")
@@ -110,6 +122,39 @@ def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
              "--out", tmp_path / "out", "--json")
     _one_line_exit_2(r, needle)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow       # one HP reconstruction of the own scene (about 15 s quiet)
+def test_the_interval_holds_the_truth_and_says_what_it_is_made_of(small, tmp_path, fluo):
+    """Issue #31 items 4 and 5 through the CLI: the acquisition's simulated noise
+    reaches the solver (1 %), the fit is graded against it, the target's 95 %
+    interval holds the true yield and names its parts; a stated noise 100x
+    lower makes the fit poor, warned, and the interval no narrower."""
+    d, sc, _ = small
+    out = {}
+    for name, extra in (("stated", []), ("understated", ["--noise-pct", "0.01"])):
+        r = fluo("tomo", "reconstruct", "--labels", d / "labels.nrrd", "--optics",
+                 d / "optics.json", "--acquisition", d / "acq", "--accuracy", "fast",
+                 "--out", tmp_path / name, *extra, "--json")
+        assert r.returncode == 0, r.stderr[-2000:]
+        out[name] = json.loads(r.stdout)
+    s = out["stated"]
+    assert s["noise"] == {"pct": 1.0, "source": "acquisition",
+                          "note": "one SD per measurement [%], tested against the fit"}
+    r7 = s["regions"]["7"]
+    lo, hi = r7["ci95_per_mm"]
+    assert lo <= TRUE_YIELD <= hi, (lo, r7["yield_per_mm"], hi)
+    assert set(r7["interval_parts"]) >= {"noise_sd_per_mm", "model_error_bound_per_mm",
+                                         "resolution_corrected_per_mm",
+                                         "segmentation_shift_per_mm"}
+    assert s["segmentation_mm"] == pytest.approx(0.5 * max(sc["spacing_mm"]))
+    assert s["solver"]["diagnostics"]["fit"]["grade"] in ("good", "fair", "poor")
+    u = out["understated"]
+    assert u["noise"]["source"] == "given"
+    assert u["solver"]["diagnostics"]["fit"]["grade"] in ("poor", "fails")
+    assert any("poor fit" in w for w in u["warnings"])
+    ul, uh = u["regions"]["7"]["ci95_per_mm"]
+    assert uh - ul >= 0.8 * (hi - lo)
 
 
 def test_help_states_every_default(fluo):

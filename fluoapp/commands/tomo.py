@@ -153,6 +153,10 @@ def _reconstruct(args):
                                            and 0 < args.noise_pct < 100):
         raise FluoInputError("the data's relative noise must be within 0..100 % (one SD per "
                              "measurement)", field="--noise-pct", value=args.noise_pct)
+    if args.segmentation_mm is not None and not (math.isfinite(args.segmentation_mm)
+                                                 and 0 <= args.segmentation_mm <= 5):
+        raise FluoInputError("the segmentation's accuracy must be within 0..5 mm",
+                             field="--segmentation-mm", value=args.segmentation_mm)
     if args.data_model == "log":
         acq.check_for_log()
     place_on_surface(lm, acq.sources_ras_mm, "sources", file=acq.file_of("sources"))
@@ -163,7 +167,8 @@ def _reconstruct(args):
             accuracy=args.accuracy, size_mm=args.element_mm, roi_ras=roi,
             truncation_pct=args.truncation_pct, data_model=args.data_model,
             self_absorption=("HP", "SP") if args.self_absorption else (),
-            grading=args.grading, progress=bar, noise_pct=args.noise_pct)
+            grading=args.grading, progress=bar, noise_pct=args.noise_pct,
+            segmentation_mm=args.segmentation_mm)
     summary = write_reconstruction(args.out, lm, result)
     summary["seconds"] = time.perf_counter() - t0
     return summary
@@ -282,6 +287,11 @@ def register(subparsers):
                    "tested against it and the intervals widen when the model explains the "
                    "data worse (default: the acquisition's noise_pct, or its simulation's; "
                    "else judged from the residual)")
+    p.add_argument("--segmentation-mm", type=float, default=None,
+                   help="how far the label map's boundaries may be off [mm] (the CBCT "
+                   "segmentation's accuracy): the regions are solved again with their "
+                   "boundaries moved by it and the 95 %% intervals reach the values found "
+                   "(default: half the largest voxel; 0: exact)")
     p.add_argument("--grading", action="store_true",
                    help="optode-aware grading: cells twice as large away from the optodes and "
                    "the target (about half the nodes, default off: it moved the data of the "

@@ -387,6 +387,8 @@ class TomoPanel:
                 "method": method, "node": node.GetName(), "target": tgt,
                 "yield": f"{reg.get('yield_per_mm', float('nan')):.4g}",
                 "sd": f"{reg.get('sd_per_mm') or 0:.2g}",
+                "ci95": ("not given (see the warnings)" if not reg.get("ci95_per_mm") else
+                         "{:.3g} .. {:.3g}".format(*reg["ci95_per_mm"])),
                 "peak": f"{sm['peak_yield_per_mm']:.4g}",
                 "peak_ras": ", ".join(f"{v:.1f}" for v in sm["peak_ras_mm"]),
                 "peak_label": sm["peak_label"],
@@ -553,7 +555,8 @@ class TomoPanel:
         with html.Div(v_if="tomo_own_result", classes="text-caption mt-1", id="tomo-own-result"):
             html.Div("{{ tomo_own_result.method }} ({{ tomo_own_result.node }}): label "
                      "{{ tomo_own_result.target }} yield {{ tomo_own_result.yield }} /mm "
-                     "(SD {{ tomo_own_result.sd }}), peak {{ tomo_own_result.peak }} /mm at "
+                     "(95 % interval {{ tomo_own_result.ci95 }} /mm, noise SD "
+                     "{{ tomo_own_result.sd }}), peak {{ tomo_own_result.peak }} /mm at "
                      "RAS {{ tomo_own_result.peak_ras }} (label {{ tomo_own_result.peak_label }})")
             html.Div("half-maximum centroid RAS {{ tomo_own_result.centroid_ras }}; "
                      "{{ tomo_own_result.nodes }} nodes, {{ tomo_own_result.seconds }} s; "

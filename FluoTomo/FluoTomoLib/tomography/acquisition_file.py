@@ -241,7 +241,10 @@ def _number(doc, key, file, positive=True, default=None):
     v = doc.get(key, default)
     if v is None:
         raise FluoInputError("missing", file=file, field=key)
-    arr = np.asarray(v, float) if not isinstance(v, bool) else None
+    try:
+        arr = np.asarray(v, float) if not isinstance(v, bool) else None
+    except (TypeError, ValueError):      # a string, a dict, ragged lists
+        arr = None
     if arr is None or arr.ndim > 1 or not np.all(np.isfinite(arr)) or (
             positive and np.any(arr <= 0)) or (not positive and np.any(arr < 0)):
         raise FluoInputError(f"must be a {'positive' if positive else 'non-negative'} number "
