@@ -368,16 +368,20 @@ class TissueModel:
                 label_mean_weights(self.mesh, labels_kji, sp, org, self.region_labels))
 
     def segmentation_shifts(self, y, method, lam, delta_mm, log_data=False, noise_rel=None,
-                            cancel=None):
-        """How far each region's value moves when the segmentation's boundaries move
-        by ``delta_mm`` [mm] (the CBCT segmentation's accuracy): every region but the
-        background dilated, then eroded, by ``delta_mm`` (:func:`perturb_regions`),
-        and the data solved again on the same mesh and Jacobian (no self-absorption
-        feedback: the shifts are differences of like solves).
-        Returns ({label: (shift when eroded, shift when dilated)} [1/mm], [eroded
-        ruled out, dilated ruled out], {label: the unmoved solve's value}): a moved
-        segmentation whose fit is worse than the base's by more than chi^2's 95 %
-        point is ruled out by the data, and its shift is 0."""
+                            cancel=None, steps=2):
+        """How the regions' values move with the segmentation's boundaries: every
+        region but the background eroded and dilated by 1..``steps`` times
+        ``delta_mm`` [mm] (:func:`perturb_regions`), the data solved again on the
+        same mesh and Jacobian (no self-absorption feedback: the shifts are
+        differences of like solves), and each offset's fit compared with the best:
+        offsets whose residual exceeds the best one's by more than chi^2(1)'s 95 %
+        point (3.84 residual variances of the unmoved fit) are ruled out by the data.
+
+        Returns a dict: ``offsets_mm`` (negative: eroded), ``shifts`` {label: [value
+        at each offset - unmoved value]} [1/mm], ``kept`` [bool per offset],
+        ``base`` {label: unmoved value}, ``best_offset_mm`` (the best-fitting
+        offset) and ``unmoved_ruled_out`` (the segmentation as given fits worse than
+        a moved one by more than that: it is likely off)."""
         from fluoguide.progress import check_cancel
         from FluoTomoLib.recon.solver import reconstruct
 
@@ -392,11 +396,12 @@ class TissueModel:
         # a boundary moved by less than a voxel: on a grid f times finer (each voxel
         # split, labels kept), where delta_mm is at least one fine voxel
         f = int(min(max(np.ceil(np.max(self.spacing_mm) / delta_mm - 1e-9), 1), 3))
+        reach = steps * delta_mm
         # only the voxels around the mesh count (its region of interest), with a
         # margin for the moved boundaries
-        lo = np.floor((self.mesh.nodes_mm.min(axis=0) - self.origin_mm - delta_mm)
+        lo = np.floor((self.mesh.nodes_mm.min(axis=0) - self.origin_mm - reach)
                       / self.spacing_mm).astype(int) - 2
-        hi = np.ceil((self.mesh.nodes_mm.max(axis=0) - self.origin_mm + delta_mm)
+        hi = np.ceil((self.mesh.nodes_mm.max(axis=0) - self.origin_mm + reach)
                      / self.spacing_mm).astype(int) + 3
         lo = np.maximum(lo, 0)
         hi = np.minimum(hi, np.array(self.labels_kji.shape[::-1]))
@@ -405,19 +410,20 @@ class TissueModel:
             fine = np.repeat(fine, f, axis=ax)
         sp = self.spacing_mm / f
         org = self.origin_mm + lo * self.spacing_mm - 0.5 * self.spacing_mm + 0.5 * sp
+        offsets = [k * delta_mm for k in range(-steps, steps + 1) if k != 0]
         moved = [solve(*self.prior_for(perturb_regions(fine, sp, d, self.background), sp, org,
                                        basis_only=method == "HP"))
-                 for d in (-delta_mm, delta_mm)]
-        # the data may rule a moved boundary out: a fit worse by more than the 95 %
-        # point of chi^2 with one degree of freedom (3.84 residual variances, the
-        # variance from the base fit's own residual, so model error widens it)
+                 for d in offsets]
         dof = max(len(y) - res0.diagnostics.get("effective_parameters", 0.0), 1.0)
         var = res0.residual / dof
-        excluded = [bool(var > 0 and (r.residual - res0.residual) / var > CHI2_1_95)
-                    for r, _ in moved]
-        shifts = {lab: tuple(0.0 if ex else v[lab] - base[lab]
-                             for (_, v), ex in zip(moved, excluded)) for lab in base}
-        return shifts, excluded, base
+        rss = [r.residual for r, _ in moved]
+        best = min([res0.residual] + rss)
+        kept = [bool(var > 0 and (r - best) / var <= CHI2_1_95) for r in rss]
+        best_offset = 0.0 if best == res0.residual else offsets[int(np.argmin(rss))]
+        return {"offsets_mm": offsets,
+                "shifts": {lab: [v[lab] - base[lab] for _, v in moved] for lab in base},
+                "kept": kept, "base": base, "best_offset_mm": best_offset,
+                "unmoved_ruled_out": bool(var > 0 and (res0.residual - best) / var > CHI2_1_95)}
 
     def make_model(self, dye_mua_x_nodes, dye_mua_m_nodes):
         """The model with the fluorophore's absorption added (self_absorption.py

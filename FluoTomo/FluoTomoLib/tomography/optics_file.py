@@ -29,7 +29,6 @@ simulation and the reconstruction.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 

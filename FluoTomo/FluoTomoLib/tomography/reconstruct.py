@@ -271,12 +271,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
             # SP re-solved cost 3 of their solves each; their region means over a
             # moved label move like HP's values, the data pinning the same total)
             report(progress, 0.985, f"segmentation moved by +-{seg_mm:.2g} mm")
-            moved, excluded, hp_base = tm.segmentation_shifts(y, "HP", lam, seg_mm,
-                                                              data_model == "log", noise_rel,
-                                                              cancel)
-            shifts = {"relative": {lab: tuple(d / hp_base[lab] if hp_base[lab] > 0 else 0.0
-                                              for d in moved[lab]) for lab in moved},
-                      "excluded": excluded}
+            shifts = tm.segmentation_shifts(y, "HP", lam, seg_mm, data_model == "log",
+                                            noise_rel, cancel)
     for text in _once(str(w.message) for w in caught):
         if text not in notes:
             notes.append(text)
@@ -312,27 +308,39 @@ def _with_feedback(ci, pending):
     return [max(ci[0] + min(pending, 0.0), 0.0), ci[1] + max(pending, 0.0)]
 
 
-def _add_segmentation(summary, shifts, seg_mm):
-    """The segmentation's part of each region's 95 % interval: the interval reaches
-    the values the region took with its boundaries moved by +-``seg_mm``."""
+def _add_segmentation(summary, seg, seg_mm):
+    """The segmentation's part of each region's 95 % interval: it reaches the
+    values the region takes with its boundaries moved by the offsets the data do
+    not rule out (``TissueModel.segmentation_shifts``: HP's relative changes,
+    carried over to every method); a warning when the segmentation as given fits
+    worse than a moved one."""
     summary["segmentation_mm"] = seg_mm
-    if not shifts:
+    if not seg:
         return
-    excluded = shifts["excluded"]
-    summary["segmentation_ruled_out"] = {"eroded": excluded[0], "dilated": excluded[1]}
+    kept = [d for d, k in zip(seg["offsets_mm"], seg["kept"]) if k]
+    summary["segmentation"] = {"offsets_mm": seg["offsets_mm"], "not_ruled_out_mm": kept,
+                               "best_offset_mm": seg["best_offset_mm"]}
+    if seg["unmoved_ruled_out"]:
+        d = seg["best_offset_mm"]
+        summary["warnings"].append(
+            f"the prior's regions fit the data better {'grown' if d > 0 else 'shrunk'} by "
+            f"{abs(d):.2g} mm than as segmented: the segmentation is likely off (or the "
+            "model is: see the fit); the intervals reach the values of the segmentations "
+            "the data allow")
     for lab, r in summary["regions"].items():
-        rel = shifts["relative"].get(int(lab))
+        base = seg["base"].get(int(lab))
         v = r.get("yield_per_mm")
-        if rel is None or v is None:
+        if base is None or v is None or not base > 0:
             continue
-        moved = [v * f for f in rel]
-        r["interval_parts"]["segmentation_shift_per_mm"] = [float(m) for m in moved]
+        moved = [v * dv / base for dv, k in zip(seg["shifts"][int(lab)], seg["kept"]) if k]
+        r["interval_parts"]["segmentation_shift_per_mm"] = [min([0.0] + moved),
+                                                            max([0.0] + moved)]
         ci = r.get("ci95_per_mm")
         if ci is None:
             continue
-        # added to the other parts (as they are to each other): a boundary off by
-        # seg_mm moves the value whatever the noise did
-        lo, hi = min(0.0, *moved), max(0.0, *moved)
+        # added to the other parts (as they are to each other): a boundary off moves
+        # the value whatever the noise did
+        lo, hi = r["interval_parts"]["segmentation_shift_per_mm"]
         r["ci95_per_mm"] = [max(ci[0] + lo, 0.0), ci[1] + hi]
 
 
