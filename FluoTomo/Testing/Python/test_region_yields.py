@@ -11,6 +11,10 @@ import pytest
 
 from FluoTomoLib.tomography import LabelMap, read_acquisition, read_optics, reconstruct_labelmap
 
+# the module's reconstructions (NP, SP, HP of the own scene) took 15 s quiet: near
+# the 20 s a fast test may take on a loaded 2-core machine
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def results(own_scene):
@@ -18,8 +22,9 @@ def results(own_scene):
     acq = read_acquisition(own_scene.acq, lm, optics)
     from FluoTomoLib.tomography.reconstruct import reconstruct_labelmap_methods
 
+    # the definitions, not the intervals (test_intervals.py): no segmentation re-solves
     return lm, reconstruct_labelmap_methods(lm, optics, acq, methods=("NP", "SP", "HP"),
-                                            accuracy="fast")
+                                            accuracy="fast", segmentation_mm=0)
 
 
 @pytest.mark.parametrize("method", ["NP", "SP"])
