@@ -96,8 +96,7 @@ def summarise(rows, narrow_pct=20.0):
             "narrow_share": len(narrow) / len(mine) if mine else None,
             "narrow_median_abs_error_pct": _pct([r["error_pct"] for r in narrow], 50),
             "narrow_p90_abs_error_pct": _pct([r["error_pct"] for r in narrow], 90),
-            "coverage": len(graded and [r for r in graded if r["covered"]]) / len(graded)
-            if graded else None,
+            "coverage": sum(r["covered"] for r in graded) / len(graded) if graded else None,
             "misses": len(missed),
             "misses_warned": sum(r["warned"] for r in missed),
             "median_ci_half_width_pct": _pct([r["ci_half_width_pct"] for r in mine], 50),

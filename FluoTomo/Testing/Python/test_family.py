@@ -1,0 +1,77 @@
+"""The seeded scene family (issue #31 item 1): each scene follows from its seed,
+the family varies what it claims to vary, a segmentation error changes only
+the inclusions' boundaries, and one scene goes through simulation,
+reconstruction and grading (the whole family's table: docs/validation.md,
+``python -m benchmarks family``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from FluoTomoLib.validation import make_scene, summarise
+from FluoTomoLib.validation.family import BODY_LABEL, INCLUSION_LABELS
+
+
+def test_a_scene_follows_from_its_seed():
+    a, b = make_scene(7), make_scene(7)
+    assert np.array_equal(a.labels_kji, b.labels_kji) and a.description == b.description
+    assert a.yield_by_label == b.yield_by_label and a.optics == b.optics
+    assert not np.array_equal(make_scene(8).labels_kji.shape, a.labels_kji.shape) or \
+        not np.array_equal(make_scene(8).labels_kji, a.labels_kji)
+
+
+def test_the_family_varies_what_it_claims():
+    scenes = [make_scene(s) for s in range(1, 31)]
+    bodies = {s.description.split()[0] for s in scenes}
+    assert bodies == {"ellipsoid", "dome"}
+    n_inc = {len(s.inclusions) for s in scenes}
+    assert {1, 2} <= n_inc
+    oblique = [s for s in scenes if np.count_nonzero(np.abs(s.direction) > 1e-9) > 3]
+    lps = [s for s in scenes if np.allclose(s.direction, np.diag([-1, -1, 1]))]
+    assert oblique and lps
+    assert any(BODY_LABEL in s.yield_by_label for s in scenes)          # dye in the background
+    assert any(BODY_LABEL not in s.yield_by_label for s in scenes)
+    noise = [s.noise_pct for s in scenes]
+    assert 0.5 <= min(noise) < 1.0 and 2.5 < max(noise) <= 5.0
+    assert len({tuple(s.spacing_mm) for s in scenes}) == len(scenes)   # anisotropic, varied
+    for s in scenes:
+        for inc in s.inclusions:
+            lab = inc["label"]
+            assert lab in INCLUSION_LABELS and np.any(s.labels_kji == lab)
+            assert 1.0 <= inc["depth_mm"] <= 7.0
+            assert s.yield_by_label[lab] > 0
+        for table in ("excitation", "emission"):
+            assert set(s.optics[table]) == {str(v) for v in np.unique(s.labels_kji) if v}
+
+
+def test_a_segmentation_error_moves_only_the_inclusions():
+    for seed in (3, 4, 5):
+        s = make_scene(seed, segmentation_error_mm=1.0)
+        truth, given = s.labels_kji, s.recon_labels_kji
+        assert s.segmentation.split()[0] in ("dilated", "eroded", "shifted")
+        changed = truth != given
+        assert changed.any()
+        assert np.all(given[truth == 0] == 0)                          # air untouched
+        assert set(np.unique(given[changed])) <= {BODY_LABEL, *INCLUSION_LABELS}
+        assert np.array_equal(s.labelmap(recon=False).labels_kji, truth)
+        assert np.array_equal(s.labelmap().labels_kji, given)
+
+
+@pytest.mark.slow      # one scene simulated (fine) and reconstructed (HP, SP): about 1 min
+def test_one_scene_through_the_grading():
+    from FluoTomoLib.validation import grade_scene
+
+    scene = make_scene(4)
+    rows = grade_scene(scene, accuracy="fast")
+    assert {r["method"] for r in rows} == {"HP", "SP"}
+    assert len(rows) == 2 * len(scene.inclusions)
+    for r in rows:
+        lo, hi = r["ci95_per_mm"]
+        assert r["covered"] == (lo <= r["truth_per_mm"] <= hi)
+        assert r["error_pct"] == pytest.approx(100 * (r["yield_per_mm"] / r["truth_per_mm"] - 1))
+        # the contract: the interval holds the truth, or the result says why it may not
+        assert r["covered"] or r["warned"], r
+    table = summarise(rows)
+    assert table["HP"]["rows"] == len(scene.inclusions)
+    assert 0.0 <= table["HP"]["coverage"] <= 1.0
