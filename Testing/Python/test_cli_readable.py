@@ -262,8 +262,12 @@ def test_long_command_reports_progress_on_stderr_and_json_on_stdout(tmp_path):
     assert r.returncode == 0, r.stderr
     assert len(json.loads(r.stdout)["images"]) == 2      # stdout: one JSON object, nothing else
     progress = [ln for ln in r.stderr.splitlines() if ln.startswith("calib synth-boards: ")]
-    assert [ln.split("% ")[1].split(" (")[0] for ln in progress][:2] == ["rendering view 1/2",
-                                                                        "rendering view 2/2"]
+    steps = [ln.split("% ")[1].split(" (")[0] for ln in progress]
+    # the sample rays first (in parts, issue #33: a report at least every 2 s), then
+    # one line per view
+    assert steps[0].startswith("sample rays, part 1 of ")
+    assert [t for t in steps if t.startswith("rendering")][:2] == ["rendering view 1/2",
+                                                                   "rendering view 2/2"]
 
 
 # ------------------------------------------------------------------ demo --only

