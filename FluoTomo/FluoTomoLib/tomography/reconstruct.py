@@ -252,8 +252,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                          acquisition.mask, source_normals=lm.surface().closest(src)[1],
                          timings=timings, cut_facets=lm.cut_facets(mesh),
                          progress=scaled(progress, 0.3, 0.6, "Jacobian"))
-        _, prior_notes = check_prior_volumes(tm.prior, mesh,
-                                             mesh.meta.get("labelmap_volumes_mm3", {}))
+        prior_volumes, prior_notes = check_prior_volumes(
+            tm.prior, mesh, mesh.meta.get("labelmap_volumes_mm3", {}))
+        forward_err = _forward_error(tm, acquisition.mask)
         notes.extend(prior_notes)
         y = acquisition.y()
         solved, shifts = {}, None
@@ -298,6 +299,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                 "--noise-pct): the 95 % intervals count the whole misfit as noise and leave "
                 "out a bound for the model's own error")
         _add_segmentation(out[method]["summary"], shifts, seg_mm)
+        _add_prior_volume(out[method]["summary"], prior_volumes, method)
+        _add_forward_error(out[method]["summary"], forward_err)
     report(progress, 1.0, "done")
     return out
 
@@ -308,6 +311,60 @@ def _with_feedback(ci, pending):
     if ci is None or not pending:
         return ci
     return [max(ci[0] + min(pending, 0.0), 0.0), ci[1] + max(pending, 0.0)]
+
+
+def _forward_error(tm, mask):
+    """The reconstruction mesh's own error in the data, relative: the median over
+    the used pairs of the estimated median-case errors of the excitation and the
+    emission fields (``FluorescenceModel.accuracy``, the measured tables of
+    fem.resolution), added. A scale error of the model's data is absorbed by the
+    yield whole, the fit showing nothing of it (the family: +3 % at a perfect fit,
+    docs/validation.md); None when it cannot be estimated."""
+    try:
+        acc = tm.model.accuracy(wavelengths=("excitation", "emission"))
+    except FluoInputError:
+        return None
+    parts = []
+    for w in ("excitation", "emission"):
+        med = acc["estimated_rel_err"].get(w, {}).get("median_case")
+        if med is None:
+            return None
+        med = np.asarray(med, float).reshape(mask.shape)
+        parts.append(np.where(np.isfinite(med), med, np.nan))
+    total = (np.abs(parts[0]) + np.abs(parts[1]))[mask]
+    return float(np.nanmedian(total)) if np.isfinite(total).any() else None
+
+
+def _add_forward_error(summary, rel):
+    """The forward model's own error (:func:`_forward_error`) in every interval."""
+    summary["forward_model_rel_err"] = rel
+    if rel is None:
+        return
+    for r in summary["regions"].values():
+        v, ci = r.get("yield_per_mm"), r.get("ci95_per_mm")
+        if v is None:
+            continue
+        r["interval_parts"]["forward_model_per_mm"] = float(rel * v)
+        if ci is not None:
+            r["ci95_per_mm"] = [max(ci[0] - rel * v, 0.0), ci[1] + rel * v]
+
+
+def _add_prior_volume(summary, volumes, method):
+    """The prior's own discretisation in each region's interval: a region whose
+    prior (HP: the partial-volume basis; NP, SP: the node regions) holds a volume
+    off the label map's by e % carries the yield that the data ask for spread over
+    that volume, so its value may be off by about as much (a 3 mm inclusion on a
+    'fast' mesh: +3 % with an interval of +-1 % before this part)."""
+    key = "hard_prior_mm3" if method == "HP" else "soft_prior_mm3"
+    for lab, r in summary["regions"].items():
+        vol = (volumes or {}).get(int(lab))
+        v, ci = r.get("yield_per_mm"), r.get("ci95_per_mm")
+        if not vol or not vol["labelmap_mm3"] > 0 or v is None:
+            continue
+        rel = abs(vol[key] / vol["labelmap_mm3"] - 1.0)
+        r["interval_parts"]["prior_volume_per_mm"] = float(rel * v)
+        if ci is not None:
+            r["ci95_per_mm"] = [max(ci[0] - rel * v, 0.0), ci[1] + rel * v]
 
 
 def _add_segmentation(summary, seg, seg_mm):
