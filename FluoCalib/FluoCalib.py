@@ -107,6 +107,13 @@ class FluoCalibWidget(FluoModuleWidget):
         node = self.logic.calibrationNode(self._parameterNode.GetNodeReference("Calibration"))
         self._parameterNode.SetNodeReferenceID("Calibration", node.GetID())
 
+    def _show(self, labelName, text):
+        """A result's line: kept in ``results`` (headless callers, tests) and shown
+        in the panel's label ``labelName``."""
+        self.results.append(text)
+        if self.ui is not None:
+            getattr(self.ui, labelName).text = text
+
     # -- actions ---------------------------------------------------------------------
     # Every calibration runs as FluoModuleWidget.runJob does it: the parameters and
     # nodes are read on Slicer's thread, the logic's prepareX job computes on a
@@ -149,9 +156,7 @@ class FluoCalibWidget(FluoModuleWidget):
             node.SetParameter(key, value)
         node.EndModify(was)
         text = f"Synthetic data (known truth) in {folder}"
-        self.results.append(text)
-        if self.ui is not None:
-            self.ui.statusLabel.text = text
+        self._show("statusLabel", text)
 
     def onCalibrateCamera(self):
         p = self.logic.parameter
@@ -173,9 +178,7 @@ class FluoCalibWidget(FluoModuleWidget):
                 f"RMS {res.rms_px:.3f} px over {len(res.used)} views"
                 + (f", held out {res.holdout_rms_px:.3f} px" if res.holdout else "")
                 + (f"\nrejected: {rejected}" if rejected else ""))
-        self.results.append(text)
-        if self.ui is not None:
-            self.ui.cameraResultLabel.text = text
+        self._show("cameraResultLabel", text)
 
     def onCalibrateHandEye(self):
         from FluoCalibLib.geometry.files import read_handeye_poses
@@ -206,9 +209,7 @@ class FluoCalibWidget(FluoModuleWidget):
         if "translation_error_mm" in row:
             text += (f"; against the truth {row['translation_error_mm']:.3f} mm, "
                      f"{row['rotation_error_deg']:.3f} deg")
-        self.results.append(text)
-        if self.ui is not None:
-            self.ui.handEyeResultLabel.text = text
+        self._show("handEyeResultLabel", text)
 
     def onCharacterize(self):
         p = self.logic.parameter
@@ -226,9 +227,7 @@ class FluoCalibWidget(FluoModuleWidget):
         text = (f"gain {res['gain_adu_per_e']:.4f} ADU/e-, read noise {res['read_noise_e']:.2f} "
                 f"e-, dark current {res['dark_current_e_per_s']:.2f} e-/s, "
                 f"non-linearity {res['nonlinearity_pct']:.2f} %")
-        self.results.append(text)
-        if self.ui is not None:
-            self.ui.radiometryResultLabel.text = text
+        self._show("radiometryResultLabel", text)
 
     def onCalibrateIllumination(self):
         p = self.logic.parameter
@@ -246,9 +245,7 @@ class FluoCalibWidget(FluoModuleWidget):
         text = (f"half-angle {res['half_angle_deg']:.2f} deg, alpha {res['alpha']:.3f}, gamma "
                 f"{res['gamma_per_mm']:.4f} /mm; measured/model {res['ratio_mean']:.3f} "
                 f"+- {res['ratio_sd']:.3f} ({res['model']})")
-        self.results.append(text)
-        if self.ui is not None:
-            self.ui.illuminationResultLabel.text = text
+        self._show("illuminationResultLabel", text)
 
     def onCalibrateLaser(self):
         p = self.logic.parameter
@@ -264,9 +261,7 @@ class FluoCalibWidget(FluoModuleWidget):
         self._afterStore()
         text = (f"held-out error {res['error_3d_mm']:.3f} mm (3D), {res['error_2d_px']:.2f} px "
                 f"(2D); line fit RMS {res['line_fit_rms_mm']:.3f} mm")
-        self.results.append(text)
-        if self.ui is not None:
-            self.ui.laserResultLabel.text = text
+        self._show("laserResultLabel", text)
 
 
 #

@@ -146,7 +146,8 @@ def test_the_interval_holds_the_truth_and_says_what_it_is_made_of(small, tmp_pat
     assert lo <= TRUE_YIELD <= hi, (lo, r7["yield_per_mm"], hi)
     assert set(r7["interval_parts"]) >= {"noise_sd_per_mm", "model_error_bound_per_mm",
                                          "resolution_corrected_per_mm",
-                                         "segmentation_shift_per_mm"}
+                                         "segmentation_shift_per_mm", "prior_volume_per_mm",
+                                         "forward_model_per_mm"}
     assert s["segmentation_mm"] == pytest.approx(0.5 * max(sc["spacing_mm"]))
     assert s["solver"]["diagnostics"]["fit"]["grade"] in ("good", "fair", "poor")
     u = out["understated"]

@@ -12,27 +12,20 @@ moved, the family) is in test_own_scene.py and docs/validation.md.
 import numpy as np
 import pytest
 
-from FluoTomoLib.fem.forward import FluorescenceModel
-from FluoTomoLib.meshing.structured import rectangle_mesh
 from FluoTomoLib.recon.solver import RegionPrior, reconstruct
 from FluoTomoLib.tomography.model import perturb_regions
+from test_recon_diagnostics import meshes  # noqa: F401 (the shared fixture)
 
 TARGET, BACKGROUND = 1.2e-3, 1.2e-5
 DRAWS = 20
 
 
 @pytest.fixture(scope="module")
-def problem():
-    """Sources on top of a 40 x 16 mm section; a 4 mm disc 5 mm deep. The 1 mm
-    mesh's Jacobian J and its own region prior; y_self = J x (no model error),
-    y_fine from the 0.5 mm mesh (a model error of a few %)."""
-    fine = rectangle_mesh(np.linspace(-20, 20, 161), np.linspace(-16, 0, 65))
-    coarse = rectangle_mesh(np.linspace(-20, 20, 41), np.linspace(-16, 0, 17))
-    src = np.stack([(np.arange(16) - 7.5) * 2.5, np.zeros(16)], axis=1)
-    p = dict(mua_per_mm=0.032, musp_per_mm=1.0, n=1.33)
-    keep = np.linalg.norm(src[:, None] - src[None], axis=2).ravel() > 3.0
-    J_f = FluorescenceModel(fine, p, p, src, src).jacobian_yield()[keep]
-    J = FluorescenceModel(coarse, p, p, src, src).jacobian_yield()[keep]
+def problem(meshes):
+    """test_recon_diagnostics.py's section and meshes with a 4 mm disc 5 mm deep:
+    the 1 mm mesh's Jacobian J and its own region prior; y_self = J x (no model
+    error), y_fine from the 0.5 mm mesh (a model error of a few %)."""
+    fine, coarse, J_f, J = meshes
     inside = np.linalg.norm(coarse.nodes_mm - [0, -5], axis=1) <= 2.0
     prior = RegionPrior(np.where(inside, 2, 1))
     x = np.where(inside, TARGET, BACKGROUND)
