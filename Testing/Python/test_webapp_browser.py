@@ -199,6 +199,18 @@ def test_own_label_map_from_files_in_the_browser(page, issue_acquisition):
     pg.fill("#tomo-own-acquisition", "own/acq")
     pg.click("#tomo-own-load")
     _wait_text(pg, "#tomo-own-info", "labels [3, 7]", 120000)
+    # issue #33: the user's scene is shown like a phantom from the start: the label
+    # map in grey tones (not saturated white) with each label outlined, and its
+    # surfaces in the 3D view before any reconstruction
+    pg.wait_for_timeout(2000)
+    pg.screenshot(path=str(ARTIFACTS / "07-own-scene-loaded.png"))
+    loaded = _views(pg, "07-own-scene-loaded")
+    for k, img in enumerate(loaded):
+        lit = img.max(axis=-1) > 40
+        white = np.all(img > 235, axis=-1)
+        assert lit.mean() > 0.02, (k, lit.mean())             # every view shows something
+        assert white.sum() < 0.5 * lit.sum(), (k, white.sum(), lit.sum())   # not white
+    assert not pg.is_visible("#tomo-colorbar")                 # no result yet
     pg.fill("#tomo-mesh-size", "0.8")
     pg.click("#tomo-mesh")
     _wait_text(pg, "#tomo-mesh-info", "reconstruction uses this mesh", 600000)
@@ -214,7 +226,15 @@ def test_own_label_map_from_files_in_the_browser(page, issue_acquisition):
         _wait_text(pg, "#tomo-own-result", f"{method} (FluoTomoYield{method}", 900000)
         pg.wait_for_timeout(2000)
         pg.screenshot(path=str(ARTIFACTS / f"07-own-scene-{method}.png"))
+        # the colour bar and the threshold slider, as for a phantom's result
+        assert pg.is_visible("#tomo-colorbar")
+        assert pg.is_enabled("#tomo-threshold-slider input") if pg.locator(
+            "#tomo-threshold-slider input").count() else pg.is_visible("#tomo-threshold-slider")
+        after = _views(pg, f"07-own-scene-{method}")
+        assert sum(_hot_pixels(v) >= 30 for v in after) >= 2, [_hot_pixels(v) for v in after]
         text = _text(pg, "#tomo-own-result")
+        # the 95 % interval, not a bare SD (issue #31)
+        assert "95 % interval" in text, text
         report[method] = text
         value = float(text.split("yield ")[1].split(" /mm")[0])
         assert abs(value - 2.6e-3) / 2.6e-3 < tol, (method, text)
