@@ -132,7 +132,7 @@ def test_a_killed_run_resumes_without_redoing_finished_tasks(tmp_path):
                             start_new_session=True)
     try:
         deadline = time.monotonic() + 300
-        while len(list((out / "tasks").glob("*.json"))) < 4:
+        while len(list((out / "tasks").glob("[!.]*.json"))) < 4:
             assert proc.poll() is None, "the run ended before it could be killed"
             assert time.monotonic() < deadline
             time.sleep(0.05)
@@ -140,18 +140,20 @@ def test_a_killed_run_resumes_without_redoing_finished_tasks(tmp_path):
         proc.wait(30)
     finally:
         stop_process(proc)
-    done = {p.stem: json.loads(p.read_text()) for p in (out / "tasks").glob("*.json")}
+    done = {p.stem: json.loads(p.read_text()) for p in (out / "tasks").glob("[!.]*.json")}
     assert 4 <= len(done) < 15 and all(r["pid"] == proc.pid for r in done.values())
 
     r = _fluo("study", "B", "--out", str(out), "--resume", "--json")
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
-    # a record of a task that failed is computed again, not reused (store.finished)
+    # a record of a task that failed is computed again, not reused (store.finished);
+    # "[!.]*.json": a record the kill caught mid-write is a hidden temporary file
+    # (.ID.json.tmp-PID-NS.json), not a record
     ok = [k for k, rec in done.items() if rec["status"] == "ok"]
     assert doc["reused"] == len(ok) and doc["computed"] == 15 - len(ok), {
         k: (rec["status"], rec.get("error")) for k, rec in done.items()}
     # the finished records were not rewritten; the rest came from the second process
-    after = {p.stem: json.loads(p.read_text()) for p in (out / "tasks").glob("*.json")}
+    after = {p.stem: json.loads(p.read_text()) for p in (out / "tasks").glob("[!.]*.json")}
     assert all(after[k] == done[k] for k in ok)
     assert {v["pid"] for k, v in after.items() if k not in done} != {proc.pid}
     # and the table is the uninterrupted run's

@@ -138,10 +138,12 @@ class Acquisition:
     def noise_pct(self):
         """The data's stated relative noise [%] (one SD per measurement): the
         acquisition file's ``noise_pct``, else its simulation's; None when neither
-        says (the reconstruction then judges its fit from the residual alone)."""
+        says, or says 0 (the reconstruction then judges its fit from the residual
+        alone)."""
         for v in (self.meta.get("noise_pct"), (self.meta.get("simulation") or {}).get("noise_pct")):
             if v is not None:
-                return float(v)
+                # 0: noise-free data (a simulation without noise): no noise model
+                return float(v) if float(v) > 0 else None
         return None
 
     @property

@@ -120,3 +120,18 @@ def test_perturbed_regions_move_their_boundaries_only():
     assert (shrunk == 7).sum() / v == pytest.approx((2 / 3) ** 3, rel=0.2)
     tiny = perturb_regions(lab, sp, -5.0, background=3)
     assert (tiny == 7).sum() >= 1 and (tiny == 9).sum() == 1
+
+
+def test_the_stated_noise_is_the_acquisitions_own_or_its_simulations():
+    """acquisition.json's noise_pct first, then its simulation's; 0 (noise-free
+    simulated data, the demo's Monte Carlo stage) is no noise model, not a refusal."""
+    from FluoTomoLib.tomography.acquisition_file import Acquisition
+
+    def acq(meta):
+        return Acquisition(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 1)),
+                           np.ones((1, 1), bool), meta=meta)
+
+    assert acq({}).noise_pct() is None
+    assert acq({"simulation": {"noise_pct": 0.0}}).noise_pct() is None
+    assert acq({"simulation": {"noise_pct": 1.5}}).noise_pct() == 1.5
+    assert acq({"noise_pct": 2.0, "simulation": {"noise_pct": 1.5}}).noise_pct() == 2.0
