@@ -72,7 +72,7 @@ def test_unwritable_output(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.heavy(gb=12)     # 11.4 GB measured (a quick tube case)
+@pytest.mark.heavy(gb=13)     # 12.1 GB measured (11.4 before the intervals' re-solves)
 def test_quick_demo_end_to_end(tmp_path):
     metrics = demo.run_demo(tmp_path / "q", quick=True)
     assert not metrics["stages_failed"]
