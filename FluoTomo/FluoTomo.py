@@ -226,21 +226,17 @@ class FluoTomoWidget(FluoModuleWidget):
             label = self._labelNode()
             acq = self._acquisitionFor(label)
             optics = self._optics() if acq is not None or p("OpticsFile") else None
-            return label, acq, self.logic.prepareBuildMesh(
+            job = self.logic.prepareBuildMesh(
                 label, target=p("Target") or None,
                 acquisition=None if acq is None else acq["acquisition"], optics=optics,
                 accuracy=p("Accuracy"))
+            return job, lambda built: (label, acq, self.logic.storeBuiltMesh(
+                built, self._node("Mesh")))
 
-        ready = self.run("Build mesh", prepare)
-        if ready is None:
+        done = self.runJob("Build mesh", prepare)
+        if done is None:
             return
-        label, acq, job = ready
-        built = self.runWithProgress("Build mesh", job, background=True)
-        if built is None:
-            return
-        node = self.run("Build mesh", self.logic.storeBuiltMesh, built, self._node("Mesh"))
-        if node is None:
-            return
+        label, acq, node = done
         self._meshFor[node.GetID()] = self._meshKey(label, acq)
         self._setNodes(Mesh=node)
         info = mrml_io.get_json_attribute(node, "FluoTomo.Mesh") or {}
@@ -269,17 +265,15 @@ class FluoTomoWidget(FluoModuleWidget):
         def prepare():          # the scene is read here, on Slicer's thread
             label = self._labelNode()
             yields = parse_yields(p("YieldByLabel"), field="Yield per label")
-            return label, self.logic.prepareSimulation(label, self._optics(), yields,
-                                                       noise=p("NoisePct"), seed=p("Seed"),
-                                                       accuracy=p("Accuracy"))
+            job = self.logic.prepareSimulation(label, self._optics(), yields,
+                                               noise=p("NoisePct"), seed=p("Seed"),
+                                               accuracy=p("Accuracy"))
+            return job, lambda acq: (label, acq)       # kept by the panel, no node
 
-        ready = self.run("Simulate acquisition", prepare)
-        if ready is None:
+        done = self.runJob("Simulate acquisition", prepare)
+        if done is None:
             return
-        label, job = ready
-        acq = self.runWithProgress("Simulate acquisition", job, background=True)
-        if acq is None:
-            return
+        label, acq = done
         info = acq.meta.get("simulation", {})
         what = (f"the acquisition simulated on {label.GetName()} (yield {p('YieldByLabel')}, "
                 f"noise {p('NoisePct'):g} %, seed {p('Seed')})")
@@ -329,21 +323,16 @@ class FluoTomoWidget(FluoModuleWidget):
             mesh = self._node("Mesh")
             if mesh is not None and self._meshFor.get(mesh.GetID()) != self._meshKey(label, acq):
                 mesh = None
-            return acq, mesh, self.logic.prepareReconstruction(
+            job = self.logic.prepareReconstruction(
                 label, optics, acq["acquisition"], method=p("Method"), lam=p("Lambda"),
                 target=p("Target") or None, meshNode=mesh, accuracy=p("Accuracy"))
+            return job, lambda result: (acq, mesh, result, self.logic.storeReconstructionResult(
+                result, self._node("OutputVolume")))
 
-        ready = self.run("Reconstruction", prepare)
-        if ready is None:
+        done = self.runJob("Reconstruction", prepare)
+        if done is None:
             return
-        acq, mesh, job = ready
-        result = self.runWithProgress("Reconstruction", job, background=True)
-        if result is None:
-            return
-        node = self.run("Reconstruction", self.logic.storeReconstructionResult, result,
-                        self._node("OutputVolume"))
-        if node is None:
-            return
+        acq, mesh, result, node = done
         s = result["summary"]
         style_yield_volume(self.logic.scene, node)
         if in_slicer_application():
