@@ -305,12 +305,19 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     return out
 
 
+def _widen(ci, down, up):
+    """An interval [1/mm] widened by ``down`` below and ``up`` above (each >= 0: the
+    parts add, as noise and bias do), clipped at zero (a yield is not negative);
+    None stays None (no interval could be given)."""
+    return None if ci is None else [max(ci[0] - down, 0.0), ci[1] + up]
+
+
 def _with_feedback(ci, pending):
     """The interval reaching on towards where the self-absorption feedback, stopped
     after its passes (SP: one), was still heading (``pending`` [1/mm], signed)."""
-    if ci is None or not pending:
+    if not pending:
         return ci
-    return [max(ci[0] + min(pending, 0.0), 0.0), ci[1] + max(pending, 0.0)]
+    return _widen(ci, max(-pending, 0.0), max(pending, 0.0))
 
 
 def _forward_error(tm, mask):
@@ -345,8 +352,7 @@ def _add_forward_error(summary, rel):
         if v is None:
             continue
         r["interval_parts"]["forward_model_per_mm"] = float(rel * v)
-        if ci is not None:
-            r["ci95_per_mm"] = [max(ci[0] - rel * v, 0.0), ci[1] + rel * v]
+        r["ci95_per_mm"] = _widen(ci, rel * v, rel * v)
 
 
 def _add_prior_volume(summary, volumes, method):
@@ -363,8 +369,7 @@ def _add_prior_volume(summary, volumes, method):
             continue
         rel = abs(vol[key] / vol["labelmap_mm3"] - 1.0)
         r["interval_parts"]["prior_volume_per_mm"] = float(rel * v)
-        if ci is not None:
-            r["ci95_per_mm"] = [max(ci[0] - rel * v, 0.0), ci[1] + rel * v]
+        r["ci95_per_mm"] = _widen(ci, rel * v, rel * v)
 
 
 def _add_segmentation(summary, seg, seg_mm):
@@ -396,15 +401,11 @@ def _add_segmentation(summary, seg, seg_mm):
         if base is None or v is None or not base > 0:
             continue
         moved = [v * dv / base for dv, k in zip(seg["shifts"][int(lab)], seg["kept"]) if k]
-        r["interval_parts"]["segmentation_shift_per_mm"] = [min([0.0] + moved),
-                                                            max([0.0] + moved)]
-        ci = r.get("ci95_per_mm")
-        if ci is None:
-            continue
+        lo, hi = min([0.0] + moved), max([0.0] + moved)
+        r["interval_parts"]["segmentation_shift_per_mm"] = [lo, hi]
         # added to the other parts (as they are to each other): a boundary off moves
         # the value whatever the noise did
-        lo, hi = r["interval_parts"]["segmentation_shift_per_mm"]
-        r["ci95_per_mm"] = [max(ci[0] + lo, 0.0), ci[1] + hi]
+        r["ci95_per_mm"] = _widen(r.get("ci95_per_mm"), -lo, hi)
 
 
 def _fit_notes(summary, settings):
