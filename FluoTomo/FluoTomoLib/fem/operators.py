@@ -299,6 +299,15 @@ class DiffusionOperator:
         self.factor_seconds = time.perf_counter() - t0
         return self
 
+    def release(self):
+        """Free the factorisation (on a 150k-node mesh about a GB); the matrix
+        stays, and the next solve factorises again."""
+        release = getattr(self._solve, "release", None)
+        if release is not None:
+            release()
+        self._solve = None
+        self._amg = None
+
     # AMG-CG: the relative residual of each step, and the change of the read-out
     # values below which a solve counts as converged.  A residual of 1e-10
     # (the old fixed tolerance) left detectors at 1e-13 of the peak +125 % off

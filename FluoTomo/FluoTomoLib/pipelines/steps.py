@@ -54,7 +54,7 @@ def render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_cen
 
     Returns a dict: ``frames`` (S, H, W) [ADU], ``saturated``, ``camera``
     (CameraModel), ``camera_true`` / ``camera_reported`` (CameraToWorld),
-    ``camera_gain``, ``fields`` (N, S) emission fluence per watt.
+    ``camera_gain``.
     """
     timings = {} if timings is None else timings
     report(progress, 0.2, "forward simulation (true tissue)")
@@ -64,8 +64,11 @@ def render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_cen
                                    "musp_per_mm": true_props["musp_x_per_mm"], "n": n},
                             {"mua_per_mm": true_props["mua_m_per_mm"],
                              "musp_per_mm": true_props["musp_m_per_mm"], "n": n},
-                            src_true, det)
+                            src_true, det, lean=True)
     fields = sim.emission_fields(true_props["yield_per_mm"])     # (N, S) per W
+    # the factorisations of the whole-phantom mesh (GBs) are done with: freed
+    # here, not held through the reconstruction that follows
+    del sim
     timings["forward_simulation"] = time.perf_counter() - t0
     check_cancel(cancel)
     report(progress, 0.27, "camera frames")
@@ -88,8 +91,7 @@ def render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_cen
                                rng)
     timings["camera_frames"] = time.perf_counter() - t0
     return {"frames": frames, "saturated": saturated, "camera": camera, "camera_true": cam_true,
-            "camera_reported": cam_rep, "camera_gain": float(camera_gain), "fields": fields,
-            "model": sim}
+            "camera_reported": cam_rep, "camera_gain": float(camera_gain)}
 
 
 def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_centre_mm,

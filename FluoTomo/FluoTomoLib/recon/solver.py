@@ -133,8 +133,12 @@ class RegionPrior:
         (1/c) (I + 1 1^T) (Sherman-Morrison).  X may be (N,) or (N, k)."""
         X = np.asarray(X, float)
         c = 1 + 1 / self.counts[self.index]
-        sums = self._sums(X)[self.index]
-        return (X + sums) / (c if X.ndim == 1 else c[:, None])
+        # in place on the one (N, k) result: with k the measurements, each
+        # temporary is as large as the Jacobian
+        out = self._sums(X)[self.index]
+        out += X
+        out /= (c if X.ndim == 1 else c[:, None])
+        return out
 
     def apply_LtL_inv(self, X):
         """(L^T L)^-1 applied to X (L is symmetric)."""
@@ -237,7 +241,11 @@ def _inverse_regulariser(method, prior, Jm, lam_k):
         raise FluoInputError("the Jacobian is zero: detectors are insensitive to every node",
                              field="J")
     if method == "SP":
-        return lambda X: prior.apply_LtL_inv(X) / (lam_k * scale)
+        def sp_inverse(X):
+            out = prior.apply_LtL_inv(X)
+            out /= lam_k * scale
+            return out
+        return sp_inverse
     d = lam_k * (np.maximum(jtj_diag, 1e-300 * scale) if method == "HP"
                  else np.full(Jm.shape[1], scale))
     return lambda X: (np.asarray(X).T / d).T

@@ -338,8 +338,13 @@ class TissueModel:
         t0 = time.perf_counter()
         self.model = FluorescenceModel(mesh, self.props_x, self.props_m, self.sources_mm,
                                        self.detectors_mm, source_normals=source_normals,
-                                       cut_facets=cut_facets)
+                                       cut_facets=cut_facets, lean=True)
         self.model.progress = progress
+        # the fields, then the factorisations freed (about a GB each on a 150k-node
+        # mesh) before the kernel: it and the solvers work on the fields and J
+        # (self-absorption builds its own models)
+        self.model.phi_x, self.model.adjoint_m      # in this order: lean frees each
+        self.model.release()
         self.J = self.model.jacobian_yield()[self.mask.ravel()]
         timings["jacobian"] = time.perf_counter() - t0
 
@@ -433,7 +438,8 @@ class TissueModel:
         px = dict(self.props_x, mua_per_mm=self.props_x["mua_per_mm"] + dye_mua_x_nodes)
         pm = dict(self.props_m, mua_per_mm=self.props_m["mua_per_mm"] + dye_mua_m_nodes)
         return FluorescenceModel(self.mesh, px, pm, self.sources_mm, self.detectors_mm,
-                                 source_normals=self.source_normals, cut_facets=self.cut_facets)
+                                 source_normals=self.source_normals, cut_facets=self.cut_facets,
+                                 lean=True)
 
     def solve(self, y, method="HP", lam=10.0, self_absorption=("HP",), log_data=False,
               cancel=None, progress=None, noise_rel=None):

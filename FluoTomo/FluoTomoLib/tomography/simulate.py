@@ -230,8 +230,9 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     px, pm = optics.nodal(labs, F, yield_nodes=y_nodes)
     report(progress, 0.3, f"forward model ({mesh.n_nodes} nodes)")
     fm = FluorescenceModel(mesh, px, pm, src, det, source_normals=lm.surface().closest(src)[1],
-                           cut_facets=lm.cut_facets(mesh))
+                           cut_facets=lm.cut_facets(mesh), lean=True)
     data = fm.emission_data(y_nodes)
+    fm.release()
     check_cancel(cancel)
     info = {"engine": "fem", "mesh_nodes": mesh.n_nodes, "mesh_elements": mesh.n_elements,
             "element_mm": h, "coarse_element_mm":
