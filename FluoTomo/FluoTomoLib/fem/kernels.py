@@ -2,12 +2,14 @@
 
 numba compiles a kernel on its first call with new argument types. The kernels
 keep their machine code in numba's on-disk cache (``cache=True``), so this
-happens once per installation, but then it takes about 11 s (the parallel
-Jacobian kernel most of it) inside whatever step first calls a kernel, and
-that step reports nothing meanwhile. :func:`prepare_kernels` compiles (or
-loads from the cache) every kernel for the argument types the FEM code calls
-it with, on a helper thread, while the caller's thread says what it is doing
-and how long it has run, every ``every_s`` seconds, and honours a cancel.
+happens once per installation (and per numba version), but then it takes
+11-14 s (the parallel Jacobian kernel most of it) inside whatever step first
+calls a kernel, and that step reports nothing meanwhile.
+:func:`prepare_kernels` compiles (or loads from the cache) every kernel for the
+argument types the FEM code calls it with, on a helper thread
+(``fluoguide.progress.run_reporting``), while the caller's thread says what it
+is doing and how long it has run, every ``every_s`` seconds, and honours a
+cancel.
 
 The signatures come from :func:`_examples`: tiny arrays of the dtypes the call
 sites pass (``test_progress_gaps.py`` checks that a simulation and a
@@ -17,12 +19,11 @@ reconstruction after it compile nothing more).
 from __future__ import annotations
 
 import os
-import threading
 import time
 
 import numpy as np
 
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import run_reporting
 
 #: the longest wait between two reports while the kernels compile [s]
 REPORT_EVERY_S = 1.0
@@ -99,29 +100,14 @@ def prepare_kernels(progress=None, fraction=0.0, cancel=None, every_s=None):
     todo = missing()
     if not todo:
         return 0.0
-    every_s = REPORT_EVERY_S if every_s is None else float(every_s)
     what = ("loading the compiled FEM kernels" if all(_cached_on_disk(d) for d, _ in todo)
             else "compiling the FEM kernels (first run only)")
-    check_cancel(cancel)
-    report(progress, fraction, what)
-    failed = []
 
     def compile_all():
-        try:
-            for dispatcher, sig in todo:
-                dispatcher.compile(sig)
-        except BaseException as exc:            # handed to the caller's thread
-            failed.append(exc)
+        for dispatcher, sig in todo:
+            dispatcher.compile(sig)
 
     t0 = time.monotonic()
-    worker = threading.Thread(target=compile_all, name="FEM kernel compilation", daemon=True)
-    worker.start()
-    while True:
-        worker.join(every_s)
-        if not worker.is_alive():
-            break
-        check_cancel(cancel)
-        report(progress, fraction, f"{what}, {time.monotonic() - t0:.0f} s")
-    if failed:
-        raise failed[0]
+    run_reporting(compile_all, progress, fraction, what, cancel,
+                  REPORT_EVERY_S if every_s is None else float(every_s))
     return time.monotonic() - t0
