@@ -671,6 +671,10 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
             from FluoTomoLib.tomography.accuracy import cap_at_burial
 
+            if not quality:             # the structured mesher's checks are compiled
+                from FluoTomoLib.fem.kernels import prepare_kernels
+
+                prepare_kernels(progress, 0.0, cancel)
             report(progress, 0.05, "meshing the label map")
             settings = accuracy_settings(accuracy, recon_mm=size)
             h = settings["recon_mm"]

@@ -58,6 +58,42 @@ def scaled(progress, start, stop, prefix=""):
     return part
 
 
+def run_reporting(work, progress, fraction, message, cancel=None, every_s=1.0):
+    """``work()`` on a helper thread while this thread reports ``message`` and the
+    seconds it has run, at ``fraction``, every ``every_s`` seconds; returns what
+    ``work`` returns and raises what it raises.
+
+    For a step that cannot report from inside (numba compiling a kernel). A cancel
+    raises FluoCancelled at the next report; ``work`` then runs on to its end on
+    its helper thread (a daemon), so it must leave nothing half-done that a later
+    call would trust.
+    """
+    import time
+
+    check_cancel(cancel)
+    report(progress, fraction, message)
+    outcome = {}
+
+    def run():
+        try:
+            outcome["value"] = work()
+        except BaseException as exc:            # handed to the caller's thread
+            outcome["error"] = exc
+
+    t0 = time.monotonic()
+    worker = threading.Thread(target=run, name=message, daemon=True)
+    worker.start()
+    while True:
+        worker.join(every_s)
+        if not worker.is_alive():
+            break
+        check_cancel(cancel)
+        report(progress, fraction, f"{message}, {time.monotonic() - t0:.0f} s")
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome.get("value")
+
+
 _COMMAND_START = [None]     # time.monotonic() when the running command began
 
 

@@ -97,8 +97,8 @@ def _otsu(values, bins=512):
 def _update(algorithm, progress, start, stop, message, cancel):
     """``algorithm.Update()`` with VTK's own progress events relayed to ``progress``
     (as ``start..stop``) and ``cancel`` aborting the filter at its next event
-    (FluoCancelled then). A filter reports as often as VTK makes it: the quadric
-    decimation every 10,000 edge collapses, seconds apart on a large surface."""
+    (FluoCancelled then). A filter reports as often as VTK makes it (the quadric
+    decimation every 10,000 edge collapses: see :func:`_decimate`)."""
     check_cancel(cancel)
     report(progress, start, message)
 
@@ -115,6 +115,54 @@ def _update(algorithm, progress, start, stop, message, cancel):
         algorithm.RemoveObserver(tag)
     check_cancel(cancel)      # an aborted filter's output is partial: never returned
     return algorithm.GetOutput()
+
+
+#: quadric decimation starts from at most this many times the target triangle count;
+#: vtkDecimatePro takes a finer surface down to it first (see :func:`_decimate`)
+QUADRIC_START_FACTOR = 3.0
+
+
+def _decimate(poly, target, progress, start, stop, cancel):
+    """``poly`` decimated to about ``target`` triangles (volume-preserving quadric
+    decimation), reporting at least every few tenths of a second.
+
+    Quadric decimation alone is slow on a label map's surface, and silent: most
+    of its vertices lie on the flat facets of the voxel staircase, where every
+    edge collapse costs nothing, so the collapses pile up into fans of ever
+    higher valence and each costs more than the last. On the 0.4 mm oral
+    cavity (312,408 -> 62,000 triangles) it took 90-240 s on a shared 2-core
+    machine with its 10,000-collapse reports up to 35 s apart (a sphere of the
+    same size: 1.6 s). vtkDecimatePro removes those flat vertices in about a
+    second, reporting every 0.1 s, so it first takes the surface down to
+    :data:`QUADRIC_START_FACTOR` times the target and the quadric decimation
+    finishes from there (2.7 s in all). The result is as close to the
+    undecimated surface as the quadric decimation alone: 0.0001 mm mean and
+    0.0037 mm largest distance (both ways) on that surface, vertex normals
+    within 0.02 deg median, 0.73 deg p95 of the nearest undecimated vertex's
+    (the quadric decimation alone: the same to these digits; vtkDecimatePro
+    alone to the target: 0.001 mm mean, 0.048 mm largest). A surface with at
+    most that factor more triangles than the target goes to the quadric
+    decimation directly. ``cancel`` is checked between the two.
+    """
+    import vtk
+
+    n = poly.GetNumberOfPolys()
+    message = f"decimating {n:,} to {target:,} triangles"
+    middle = int(QUADRIC_START_FACTOR * target)
+    if n > middle:
+        pro = vtk.vtkDecimatePro()
+        pro.SetInputData(poly)
+        pro.SetTargetReduction(1.0 - middle / n)
+        pro.PreserveTopologyOn()   # no holes, no split: the surface stays closed
+        pro.SplittingOff()
+        split = start + 0.3 * (stop - start)      # about a third of the time
+        poly = _update(pro, progress, start, split, f"{message}: flat facets", cancel)
+        start = split
+    dec = vtk.vtkQuadricDecimation()
+    dec.SetInputData(poly)
+    dec.SetTargetReduction(1.0 - float(target) / poly.GetNumberOfPolys())
+    dec.VolumePreservationOn()
+    return _update(dec, progress, start, stop, message, cancel)
 
 
 def _iso_surface(volume_kji, level, pad_value, ijk_to_ras, smoothing_iterations, pass_band,
@@ -153,12 +201,7 @@ def _iso_surface(volume_kji, level, pad_value, ijk_to_ras, smoothing_iterations,
             raise FluoInputError("target triangle count must be >= 4", field="target_triangles",
                                  value=target_triangles)
         if target_triangles < n:
-            dec = vtk.vtkQuadricDecimation()
-            dec.SetInputData(poly)
-            dec.SetTargetReduction(1.0 - float(target_triangles) / n)
-            dec.VolumePreservationOn()
-            poly = _update(dec, progress, ends[1], ends[2],
-                           f"decimating {n:,} to {int(target_triangles):,} triangles", cancel)
+            poly = _decimate(poly, int(target_triangles), progress, ends[1], ends[2], cancel)
     # index space -> RAS
     m = vtk.vtkMatrix4x4()
     for i in range(4):

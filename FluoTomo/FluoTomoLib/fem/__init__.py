@@ -7,6 +7,7 @@ Modules
 - ``forward``: Coupled excitation/emission forward model, adjoint fields and Jacobians.
 - ``halfspace``: The analytic fast path: the exact solution where the tissue is a half-space.
 - ``jacobian_kernels``: Compiled (numba) loops of the Jacobians of boundary data.
+- ``kernels``: The compiled (numba) FEM kernels made ready before long work uses them, with progress.
 - ``locate``: Point location in simplex meshes and closest points on their boundary.
 - ``operators``: Finite-element CW diffusion on linear triangles (2D) and tetrahedra (3D).
 - ``ordering``: Fill-reducing ordering of FEM matrices from the node coordinates.
@@ -21,6 +22,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "forward": ["triple_product_jacobian", "mua_jacobian", "FluorescenceModel", "safe_log"],
     "halfspace": ["half_space_check", "half_space_excitation_data"],
     "jacobian_kernels": ["node_elements", "pair_jacobian"],
+    "kernels": ["prepare_kernels"],
     "locate": ["barycentric", "PointLocator", "locator", "BoundaryLocator", "boundary_locator"],
     "operators": ["SOLVERS", "check_solver", "geometry", "symmetric_from_upper", "weighted_mass", "stiffness", "MeshResolutionWarning", "DiffusionOperator", "snap_to_surface", "source_positions", "point_source_rhs", "detector_operator"],
     "ordering": ["geometric_nested_dissection"],

@@ -33,6 +33,7 @@ from FluoTomoLib.pipelines.steps import (
 )
 from FluoTomoLib.optics import robin_A
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
+from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.meshing.voxel import mesh_labelmap_structured, nodal_volumes
 
 #: region of interest around the tongue (x0, x1, y0, y1, z0, z1) [mm]: the
@@ -87,6 +88,7 @@ def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=1.5, n_sources
     optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
     timings = {}
 
+    prepare_kernels(progress, 0.0, cancel)       # first run: compiled, reported as it goes
     report(progress, 0.02, "meshing")
     t0 = time.perf_counter()
     fine = mesh_labelmap_structured(phantom.labels, phantom.spacing_mm, phantom.origin_mm,

@@ -32,6 +32,7 @@ from fluoguide.errors import FluoInputError, seeded_rng
 from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
+from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.optics import robin_A
 from FluoTomoLib.pipelines.steps import nodal_optics, render_frames
 from FluoTomoLib.recon.metrics import depth_profile, peak_and_centroid
@@ -91,6 +92,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     timings = {}
 
     # --- the simulation: the whole phantom, its own graded mesh
+    prepare_kernels(progress, 0.0, cancel)       # first run: compiled, reported as it goes
     report(progress, 0.02, "simulation mesh (whole phantom)")
     t0 = time.perf_counter()
     lm_true = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,

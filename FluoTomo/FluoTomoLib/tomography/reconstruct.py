@@ -139,6 +139,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                  cancel=None, noise_pct=None, segmentation_mm=None):
     """:func:`reconstruct_labelmap` for several methods on one model (one mesh,
     one Jacobian).  Returns {method: result}."""
+    from FluoTomoLib.fem.kernels import prepare_kernels
     from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
     from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
                                               reconstruction_mesh)
@@ -180,6 +181,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                              field="target", value=int(target))
     if data_model == "log":
         acquisition.check_for_log()
+    # the compiled kernels before the first step that needs them: their first-run
+    # compilation (~11 s) is reported as it goes, not hidden inside a step
+    prepare_kernels(progress, 0.0, cancel)
     notes = []          # warnings: what may make the result wrong
     remarks = []        # notes: what was done differently from the request, harmlessly
     with warnings.catch_warnings(record=True) as caught:

@@ -209,6 +209,7 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     """The FEM engine: emission boundary fluence per watt on a mesh of the whole
     label map, with relative Gaussian noise (:func:`add_noise`)."""
     from FluoTomoLib.fem.forward import FluorescenceModel
+    from FluoTomoLib.fem.kernels import prepare_kernels
     from FluoTomoLib.tomography.model import membership
 
     t0 = time.perf_counter()
@@ -217,6 +218,7 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     target = settings.get("target")
     decay = 1.0 / max(optics.min_mueff(lm.labels), 1e-6)
     margin = max(4.0, 0.5 * decay)
+    prepare_kernels(progress, 0.02, cancel)     # first run: ~11 s, reported as it goes
     report(progress, 0.05, "simulation mesh (whole label map)")
     from FluoTomoLib.tomography.accuracy import cap_at_burial
 

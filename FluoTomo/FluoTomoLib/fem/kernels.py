@@ -1,0 +1,113 @@
+"""The compiled (numba) FEM kernels made ready before long work uses them, with progress.
+
+numba compiles a kernel on its first call with new argument types. The kernels
+keep their machine code in numba's on-disk cache (``cache=True``), so this
+happens once per installation (and per numba version), but then it takes
+11-14 s (the parallel Jacobian kernel most of it) inside whatever step first
+calls a kernel, and that step reports nothing meanwhile.
+:func:`prepare_kernels` compiles (or loads from the cache) every kernel for the
+argument types the FEM code calls it with, on a helper thread
+(``fluoguide.progress.run_reporting``), while the caller's thread says what it
+is doing and how long it has run, every ``every_s`` seconds, and honours a
+cancel.
+
+The signatures come from :func:`_examples`: tiny arrays of the dtypes the call
+sites pass (``test_progress_gaps.py`` checks that a simulation and a
+reconstruction after it compile nothing more).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from fluoguide.progress import run_reporting
+
+#: the longest wait between two reports while the kernels compile [s]
+REPORT_EVERY_S = 1.0
+
+
+def _examples():
+    """[(dispatcher, example arguments)] of every FEM kernel, with the argument
+    types (dtype, dimensions, layout) of its call sites."""
+    from FluoTomoLib.fem import assembly_kernels as ak
+    from FluoTomoLib.fem import jacobian_kernels as jk
+    from FluoTomoLib.fem import locate, ordering
+    from FluoTomoLib.meshing import mesh
+
+    f2 = np.zeros((1, 3))                   # float64 (N, d), C order
+    f1 = np.zeros(1)
+    i64_2 = np.zeros((1, 4), np.int64)      # Mesh.elements
+    i32_2 = np.zeros((1, 4), np.int32)      # operators' element indices
+    i64_1 = np.zeros(1, np.int64)
+    i32_1 = np.zeros(1, np.int32)
+    n = 1                                   # a Python int: numba's int64
+    return [
+        (mesh._signed_measures, (f2, i64_2)),
+        (mesh._facet_codes, (i64_2, n)),
+        (locate._scan_locate, (f2, i64_2, f2, 1e-9)),
+        (ak.element_gradients, (f2, i32_2)),
+        (jk.node_elements, (i32_2, n)),
+        (ak.upper_pattern, (i32_2, n, i64_1, i32_1)),
+        (ak.upper_values, (i32_2, i32_2, np.zeros((1, 4, 3)), f1, 1.0, f1, f1, n)),
+        (ordering._full_adjacency, (i32_1, i32_1, n)),
+        (ordering._nested_dissection, (f2, i64_1, i32_1, n)),
+        (jk._jacobian_by_node, (i32_2, i64_1, i32_1, f1, np.zeros((1, 4, 3)), f1, f1, f2, f2,
+                                np.zeros((1, 3, 3)), n, True)),
+    ]
+
+
+def _signatures():
+    """[(dispatcher, numba signature)] of :func:`_examples`."""
+    from numba import typeof
+
+    return [(d, tuple(typeof(a) for a in args)) for d, args in _examples()]
+
+
+def missing():
+    """[(dispatcher, signature)] not compiled in this process yet."""
+    return [(d, sig) for d, sig in _signatures() if sig not in d.overloads]
+
+
+def _cached_on_disk(dispatcher):
+    """Whether numba's on-disk cache has an index for ``dispatcher`` (False when
+    it cannot tell: its cache layout is numba's own)."""
+    try:
+        return os.path.exists(dispatcher._cache._cache_file._index_path)
+    except AttributeError:
+        return False
+
+
+def prepare_kernels(progress=None, fraction=0.0, cancel=None, every_s=None):
+    """Compile (or load from numba's cache) the FEM kernels not ready in this process,
+    reporting at ``fraction`` of ``progress`` at least every ``every_s`` seconds.
+
+    Parameters
+    ----------
+    progress : ``progress(fraction, message)`` or None
+    fraction : the fraction reported meanwhile (this step's place in the caller's job)
+    cancel : CancelToken or None; a cancel raises FluoCancelled at the next report
+        (the compilation goes on to its end on its helper thread, then serves the
+        next call)
+    every_s : seconds between reports (None: :data:`REPORT_EVERY_S`)
+
+    Returns
+    -------
+    float: seconds spent (0.0 when every kernel was ready)
+    """
+    todo = missing()
+    if not todo:
+        return 0.0
+    what = ("loading the compiled FEM kernels" if all(_cached_on_disk(d) for d, _ in todo)
+            else "compiling the FEM kernels (first run only)")
+
+    def compile_all():
+        for dispatcher, sig in todo:
+            dispatcher.compile(sig)
+
+    t0 = time.monotonic()
+    run_reporting(compile_all, progress, fraction, what, cancel,
+                  REPORT_EVERY_S if every_s is None else float(every_s))
+    return time.monotonic() - t0
