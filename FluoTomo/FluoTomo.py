@@ -570,9 +570,17 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     # caller-chosen output nodes out (a second run never overwrites the first).
 
     def labelMap(self, labelNode):
-        """The label map of a volume node with its geometry (FluoTomoLib LabelMap)."""
+        """The label map with its geometry (FluoTomoLib ``LabelMap``) of a volume
+        node, of a file (a path: .nrrd, .nii(.gz), .seg.nrrd, .mrml), or a
+        ``LabelMap`` as is."""
+        from os import PathLike
+
         from FluoTomoLib.tomography import LabelMap
 
+        if isinstance(labelNode, LabelMap):
+            return labelNode
+        if isinstance(labelNode, (str, PathLike)):
+            return LabelMap.from_file(labelNode)
         return LabelMap.from_node(labelNode)
 
     def loadLabelMap(self, path, name=None):
@@ -608,14 +616,121 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             return optics_from_dict(optics)
         return read_optics(optics)
 
-    def readAcquisition(self, acquisition, labelNode, optics):
-        """An Acquisition from a folder (a path) or as is."""
-        from FluoTomoLib.tomography import Acquisition, read_acquisition
+    def readAcquisition(self, acquisition, labelNode, optics, checkOptodes=False):
+        """An Acquisition from a folder (a path) or as is.
 
-        if isinstance(acquisition, Acquisition):
+        ``checkOptodes``: also refuse, naming the file, sources or detectors
+        too far from the label map's tissue surface (the check a reconstruction
+        makes, made here before any work)."""
+        from FluoTomoLib.tomography import Acquisition, place_on_surface, read_acquisition
+
+        if isinstance(acquisition, Acquisition) and not checkOptodes:
             return acquisition
-        return read_acquisition(acquisition, labelmap=self.labelMap(labelNode),
-                                optics=self.readOptics(optics))
+        lm = self.labelMap(labelNode)
+        if not isinstance(acquisition, Acquisition):
+            acquisition = read_acquisition(acquisition, labelmap=lm,
+                                           optics=self.readOptics(optics))
+        if checkOptodes:
+            for what, points in (("sources", acquisition.sources_ras_mm),
+                                 ("detectors", acquisition.detectors_ras_mm)):
+                place_on_surface(lm, points, what, file=acquisition.file_of(what))
+        return acquisition
+
+    @staticmethod
+    def accuracyLevels():
+        """The accuracy levels {name: settings} (element sizes [mm], the region of
+        interest's tolerance [%]) of meshing, simulation and reconstruction."""
+        from FluoTomoLib.tomography.accuracy import LEVELS
+
+        return {name: dict(level) for name, level in LEVELS.items()}
+
+    def readPoints(self, path, field, labelNode=None, what=None):
+        """Points (N, 3) [RAS mm] from a CSV file of ``x,y,z`` rows.
+
+        With a label map (``labelNode``: node, path or LabelMap), the points are
+        also checked to lie on its tissue surface (``what``: "sources" or
+        "detectors"), refused naming the file otherwise."""
+        from FluoTomoLib.tomography import place_on_surface, read_points_csv
+
+        points = read_points_csv(path, field)
+        if labelNode is not None:
+            place_on_surface(self.labelMap(labelNode), points, what or field, file=path)
+        return points
+
+    # ------------------------------------------------------ folders in and out
+    # The ``fluo tomo`` commands: files and folders in, folders out.
+
+    def simulateToFolder(self, labelNode, optics, yieldByLabel, outputFolder, sources=None,
+                         detectors=None, noise=1.0, seed=0, engine="fem", accuracy="balanced",
+                         progress=None, cancel=None, **options):
+        """A simulated acquisition of a label map written to ``outputFolder``
+        (acquisition.json, sources.csv, detectors.csv, data.csv).
+
+        Parameters
+        ----------
+        labelNode : label-map node, path or LabelMap
+        optics : optics.json path, dict or Optics
+        yieldByLabel : {label: yield [1/mm]}
+        sources, detectors : (S, 3), (D, 3) RAS mm, or None for the default scan
+        noise : relative Gaussian noise per measurement [%]
+        options : exclude_mm, simulate_mm, target, photons, executor, mc_store,
+            threads (``simulate_acquisition``)
+
+        Returns
+        -------
+        (Acquisition, info dict: engine, mesh nodes, noise, warnings, ...)
+        """
+        from FluoTomoLib.tomography import simulate_acquisition, write_acquisition
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        yields = {int(k): float(v) for k, v in dict(yieldByLabel).items()}
+        acq, info = simulate_acquisition(lm, optics, yields, sources, detectors,
+                                         noise_pct=noise, seed=seed, engine=engine,
+                                         accuracy=accuracy, progress=progress, cancel=cancel,
+                                         **options)
+        write_acquisition(outputFolder, acq, simulation=info)
+        return acq, info
+
+    def reconstructToFolder(self, labelNode, optics, acquisition, outputFolder, method="HP",
+                            lam=None, target=None, accuracy="balanced", progress=None,
+                            cancel=None, **options):
+        """Yield of a label map from an acquisition written to ``outputFolder``:
+        ``yield.nrrd`` [1/mm] on the label map's grid (same origin, spacing and
+        direction) and ``reconstruction.json``; returns the summary.
+
+        ``options``: size_mm, roi_ras, truncation_pct, data_model,
+        self_absorption, grading, noise_pct, segmentation_mm
+        (``reconstruct_labelmap``)."""
+        from FluoTomoLib.tomography import reconstruct_labelmap, write_reconstruction
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        acq = self.readAcquisition(acquisition, lm, optics)
+        result = reconstruct_labelmap(lm, optics, acq, method=method, lam=lam, target=target,
+                                      accuracy=accuracy, progress=progress, cancel=cancel,
+                                      **options)
+        return write_reconstruction(outputFolder, lm, result)
+
+    @staticmethod
+    def loadBatch(path, methods=None, lam=None, accuracy=None):
+        """Every case of a batch file (.csv, .json, .yaml), each row and input
+        checked and read once; ``methods``, ``lam``, ``accuracy``: for the rows
+        that name none."""
+        from FluoTomoLib.tomography.batch import load_batch
+
+        return load_batch(path, methods=methods, lam=lam, accuracy=accuracy)
+
+    @staticmethod
+    def runBatch(cases, outputFolder, executor=None, threads=1, resume=False, progress=None,
+                 cancel=None):
+        """Reconstruct the cases of :meth:`loadBatch` on the run engine into
+        ``outputFolder`` (table.csv, cases/NAME/METHOD/...); returns the run's
+        summary (tasks, failures, seconds)."""
+        from FluoTomoLib.tomography.batch import run_batch
+
+        return run_batch(cases, outputFolder, executor=executor, threads=threads,
+                         resume=resume, progress=progress, cancel=cancel)
 
     def buildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
                   optics=None, accuracy="balanced", quality=False, outputModelNode=None,
