@@ -853,6 +853,51 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         self.mesh = mesh
         return node
 
+    def meshToFile(self, labelNode, outputFile, sizeMm=1.6, roi=None, quality=True,
+                   refine=None, threads=None, optodes=None, fineSizeMm=None, progress=None):
+        """Mesh a label map into a tetrahedral .vtu file (cell array ``region`` =
+        label, RAS mm) and return its quality report (``fluo mesh``).
+
+        Parameters
+        ----------
+        labelNode : label-map node, or a path (.nrrd, .nii(.gz), .seg.nrrd, .mrml)
+        sizeMm : element size [mm] (away from the optodes when graded)
+        roi : [x0, x1, y0, y1, z0, z1] RAS mm: crop first (default: the whole map)
+        quality : the fTetWild mesher (smooth interfaces) instead of the
+            structured one (staircase surfaces, a second)
+        refine : quality mesher: ("sphere", x, y, z, r, size) or ("box", x0, x1,
+            y0, y1, z0, z1, size) [mm]
+        threads : quality mesher: fTetWild's threads (default: all)
+        optodes : structured mesher: CSV paths of x,y,z [RAS mm] rows, or an
+            (N, 3) array: grid lines ``fineSizeMm`` (x, y, z) [mm] at their
+            coordinates (checked as field ``optodes``)
+
+        Returns
+        -------
+        dict: counts, per-region volumes against the label map, dihedral
+        angles, bad elements, ``file``, ``method``
+        """
+        from os import PathLike
+
+        import numpy as np
+
+        from fluoguide import mrml_io
+        from fluoguide.labelmap_io import read_labelmap
+        from FluoTomoLib.fem.mesh_data import read_points
+        from FluoTomoLib.meshing.to_file import mesh_to_file
+
+        if isinstance(labelNode, (str, PathLike)):
+            labels, spacing, origin, direction = read_labelmap(labelNode)
+        else:
+            geo = mrml_io.volume_geometry(labelNode)
+            labels = mrml_io.volume_array(labelNode).copy()
+            spacing, origin, direction = geo["spacing"], geo["origin"], geo["direction"]
+        if optodes is not None and not isinstance(optodes, np.ndarray):
+            optodes = np.concatenate([read_points(f, "optodes") for f in optodes])
+        return mesh_to_file(labels, spacing, origin, direction, sizeMm, outputFile, roi=roi,
+                            quality=quality, refine=refine, threads=threads, optodes=optodes,
+                            fine_mm=fineSizeMm, progress=progress)
+
     def meshRegionVolumes(self, meshNode):
         """{label: (mesh volume, label-map volume, error %)} of a built mesh."""
         from fluoguide import mrml_io
@@ -913,6 +958,82 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return {"excitation": fm.excitation_data(),
                 "fluorescence": None if y is None else fm.emission_data(y),
                 "mesh_nodes": mesh.n_nodes}
+
+    def forwardMesh(self, mesh, sources, detectors, optics=None, mua=None, musp=None, n=1.33,
+                    yieldByLabel=None, model="auto", solver="auto", jacobian=False, force=False,
+                    forceName="force"):
+        """Boundary data of sources and detectors on a mesh file (the
+        ``fluo forward`` computation): the exact half-space answer where it
+        applies, else the diffusion FEM, which refuses a mesh too coarse for its
+        optics unless ``force``.
+
+        Parameters
+        ----------
+        mesh : path (.vtu with a cell array ``region``, NIRFAST stem) or Mesh
+        sources, detectors : CSV paths of ``x,y[,z]`` [mm] rows, or (N, dim) arrays
+        optics : optics.json path, dict or Optics per region; or None and
+            ``mua``, ``musp`` [1/mm], ``n`` of one material (the half-space
+            answer applies to this case only)
+        yieldByLabel : {region: yield [1/mm]}: also the fluorescence data
+        model : "auto", "fem" or "analytic"
+        solver : the FEM's linear solver (``operators.SOLVERS`` or "auto")
+        jacobian : also the Jacobians (arrays ``jacobian_mua``, ``jacobian_yield``)
+        forceName : how the caller names ``force``, in the refusal's message
+
+        Returns
+        -------
+        dict
+            nodes, elements, sources, detectors, regions, reoriented_elements,
+            then the data (``mesh_data.mesh_boundary_data``): detector_fluence
+            [1/mm^2 per W], accuracy, warnings, ...
+        """
+        from os import PathLike
+
+        import numpy as np
+
+        from FluoTomoLib.fem.mesh_data import (check_optodes, mesh_boundary_data,
+                                               read_forward_mesh, read_points)
+        from FluoTomoLib.fem.operators import check_solver
+        from FluoTomoLib.optics import check_properties
+        from FluoTomoLib.tomography import homogeneous_optics
+
+        check_solver(solver, field="solver")
+        file = mesh if isinstance(mesh, (str, PathLike)) else None
+        mesh, flipped = read_forward_mesh(mesh) if file is not None else (mesh, 0)
+        pts = {}
+        for name, value in (("sources", sources), ("detectors", detectors)):
+            path = value if isinstance(value, (str, PathLike)) else None
+            pts[name] = check_optodes(mesh, read_points(path, name) if path is not None
+                                      else np.atleast_2d(np.asarray(value, float)), name, path)
+        half_space = None
+        if optics is None:
+            check_properties(mua, musp, n, where="properties", warn=False)
+            optics = homogeneous_optics(mua, musp, n, labels=mesh.regions)
+            half_space = (mua, musp, n)
+        else:
+            optics = self.readOptics(optics)
+        yields = None if yieldByLabel is None else {int(k): float(v)
+                                                    for k, v in dict(yieldByLabel).items()}
+        out = {"nodes": mesh.n_nodes, "elements": mesh.n_elements,
+               "sources": len(pts["sources"]), "detectors": len(pts["detectors"]),
+               "regions": [int(r) for r in mesh.regions], "reoriented_elements": flipped}
+        out.update(mesh_boundary_data(mesh, optics, pts["sources"], pts["detectors"], yields,
+                                      model=model, solver=solver, jacobian=jacobian, force=force,
+                                      half_space=half_space, file=file, force_name=forceName))
+        return out
+
+    @staticmethod
+    def analytic(mua, musp, n=1.33, rho=None, yieldPerMm=None, muaM=None, muspM=None,
+                 unscattered=False):
+        """Closed-form diffusion theory of a homogeneous semi-infinite medium
+        (docs/physics.md section 3): Rd, mueff [1/mm], penetration depth [mm],
+        D [mm], A; with ``rho`` (distances [mm]) R(rho) and the exact Robin
+        surface fluence; with ``yieldPerMm`` the total diffuse fluorescence F
+        (emission ``muaM``, ``muspM`` [1/mm], default the excitation's).
+        Checks name the fields ``properties``, ``rho`` and ``emission``."""
+        from FluoTomoLib.analytic import diffusion_summary
+
+        return diffusion_summary(mua, musp, n, rho, yieldPerMm, muaM, muspM, unscattered)
 
     def simulateAcquisition(self, labelNode, optics, yieldByLabel, scan=None, noise=1.0, seed=0,
                             sources=None, detectors=None, accuracy="balanced", engine="fem",
