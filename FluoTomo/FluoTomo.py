@@ -909,13 +909,15 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return {int(k): (v, ref.get(k), err.get(k)) for k, v in mesh.items()}
 
     def forward(self, labelOrMesh, optics, sources, detectors, yieldVolumeNode=None,
-                sizeMm=None, accuracy="balanced"):
+                sizeMm=None, accuracy="balanced", force=False):
         """Excitation and fluorescence boundary data of a label map (meshed
         whole, as a simulation is) or of a mesh node built by :meth:`buildMesh`.
 
         ``sources``, ``detectors``: (S, 3), (D, 3) RAS mm on the tissue surface.
         ``yieldVolumeNode``: the yield [1/mm] as a volume (any grid; sampled at
         the mesh nodes); without it only the excitation is computed.
+        A mesh too coarse for the optics (the resolution guard, as ``fluo
+        forward`` applies it) is refused unless ``force``.
         Returns {"excitation": (S, D), "fluorescence": (S, D) or None} per watt
         [1/mm^2]."""
         import numpy as np
@@ -928,7 +930,8 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         from FluoTomoLib.tomography.simulate import simulation_mesh
 
         optics = self.readOptics(optics)
-        if labelOrMesh is not None and labelOrMesh.IsA("vtkMRMLModelNode"):
+        built_mesh = labelOrMesh is not None and labelOrMesh.IsA("vtkMRMLModelNode")
+        if built_mesh:
             built = self._built(labelOrMesh)
             lm, mesh = built["labelmap"], built["mesh_local"]
         else:
@@ -955,6 +958,13 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         fm = FluorescenceModel(mesh, px, pm, src, det,
                                source_normals=lm.surface().closest(src)[1],
                                cut_facets=lm.cut_facets(mesh))
+        refuse = fm.accuracy()["refuse"]
+        if refuse and not force:
+            from fluoguide.errors import FluoInputError
+
+            raise FluoInputError("; ".join(refuse) + " (force=True to compute the data anyway)",
+                                 field=labelOrMesh.GetName() if built_mesh else "sizeMm",
+                                 value=None if built_mesh else sizeMm)
         return {"excitation": fm.excitation_data(),
                 "fluorescence": None if y is None else fm.emission_data(y),
                 "mesh_nodes": mesh.n_nodes}
@@ -1034,6 +1044,30 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         from FluoTomoLib.analytic import diffusion_summary
 
         return diffusion_summary(mua, musp, n, rho, yieldPerMm, muaM, muspM, unscattered)
+
+    @staticmethod
+    def checkStudy(mapping, file=None):
+        """The study spec of a study-file mapping (``study`` A/B/C, ``sweep``,
+        ``targets``, grid axes; docs/scale.md) with every task's parameters
+        checked before any work (``file``: where the mapping came from, for
+        messages)."""
+        from FluoTomoLib.studies.spec import spec_from_mapping, study_tasks
+
+        spec = spec_from_mapping(mapping, file=file)
+        study_tasks(spec)
+        spec.warnings.clear()       # the checks' warnings: the run says them again
+        return spec
+
+    @staticmethod
+    def runStudy(spec, outputFolder=None, executor=None, threads=1, resume=False,
+                 progress=None):
+        """Run a study spec of :meth:`checkStudy` (rows: true against
+        reconstructed yield and centroid per target, method and lambda), into
+        ``outputFolder`` when given (table.csv, tasks/, figures)."""
+        from FluoTomoLib.studies.run import run_spec
+
+        return run_spec(spec, out_dir=outputFolder, progress=progress, executor=executor,
+                        resume=resume, threads=threads)
 
     def simulateAcquisition(self, labelNode, optics, yieldByLabel, scan=None, noise=1.0, seed=0,
                             sources=None, detectors=None, accuracy="balanced", engine="fem",
