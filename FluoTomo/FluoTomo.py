@@ -1069,6 +1069,40 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return run_spec(spec, out_dir=outputFolder, progress=progress, executor=executor,
                         resume=resume, threads=threads)
 
+    @staticmethod
+    def checkMonteCarloEngine(engine="auto"):
+        """Load the Monte Carlo engine (``auto``, ``mcxcl``, ``mcx``): a missing
+        one is refused in one line before any run or cluster starts."""
+        from FluoTomoLib.montecarlo.engine import load_engine
+
+        return load_engine(engine)
+
+    @staticmethod
+    def validateTubeMonteCarlo(outputFolder, depths=None, mcIn=None, simulate=False,
+                               photons=None, methods=("NP", "SP", "HP"), accuracy="fast",
+                               executor=None, threads=1, resume=False, progress=None):
+        """The cylinder-tube phantom reconstructed from Monte Carlo data and from
+        diffusion-FEM data of the same optodes (docs/validation.md).
+
+        ``depths`` [mm]: the tube's (default: the stored sets'); ``mcIn``: a
+        folder of ``depth_<d>mm`` acquisitions (default: the stored ones);
+        ``simulate``: run the Monte Carlo here (``photons`` per run) into
+        ``outputFolder``/mc. Returns the rows (yield and centroid errors per
+        depth, method and data) and writes ``validate_mc_tomography.png`` to
+        ``outputFolder`` (``figure``: its path)."""
+        from pathlib import Path
+
+        from FluoTomoLib.pipelines import tube_mc
+
+        depths = list(tube_mc.DEPTHS_MM) if depths is None else list(depths)
+        res = tube_mc.validate_tube_mc(
+            depths, mc_root=mcIn, simulate=simulate, photons=photons or tube_mc.PHOTONS,
+            out_dir=outputFolder, methods=list(methods), accuracy=accuracy, executor=executor,
+            threads=threads, resume=resume, progress=progress)
+        Path(outputFolder).mkdir(parents=True, exist_ok=True)
+        res["figure"] = tube_mc.figure(res, Path(outputFolder) / "validate_mc_tomography.png")
+        return res
+
     def simulateAcquisition(self, labelNode, optics, yieldByLabel, scan=None, noise=1.0, seed=0,
                             sources=None, detectors=None, accuracy="balanced", engine="fem",
                             outputFolder=None, progress=None, cancel=None):
