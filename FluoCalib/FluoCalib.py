@@ -719,7 +719,7 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         make_dataset(root / "boards", default_camera(640, 480), board, boardViews, seed,
                      progress=scaled(progress, 0.0, 0.5, "board images"), cancel=cancel)
         check_cancel(cancel)
-        self.writeSyntheticLight(root, seed, progress=scaled(progress, 0.5, 1.0, "light sets"),
+        self.writeSyntheticLight(root, seed, progress=scaled(progress, 0.5, 1.0),
                                  cancel=cancel)
         return {"board_images": str(root / "boards" / "*.png"), "board": board,
                 "poses": str(root / "boards" / "truth.json"), "stack": str(root / "stack"),
@@ -800,7 +800,7 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         imgs, t_il = synthetic_illumination(seed=seed)
         write_illumination_set(root / "illumination", imgs, t_il)
         check_cancel(cancel)
-        report(progress, 0.8, "laser spot images")
+        report(progress, 0.8, "laser images")
         limgs, t_la = synthetic_laser(seed=seed)
         write_laser_set(root / "laser", limgs, t_la)
         report(progress, 1.0, "done")
