@@ -215,8 +215,6 @@ def probe_scheduler(address, timeout_s=None):
     except (TimeoutError, asyncio.TimeoutError):
         done, info = False, None
     except Exception as exc:  # noqa: BLE001 - whatever the bytes made Dask's reader raise
-        from distributed.comm import CommClosedError
-
         if isinstance(exc, (CommClosedError, EOFError, ConnectionError)):
             when = ("as soon as it accepted it" if step["now"] == "a connection" else
                     f"while we waited for {step['now']}")
