@@ -636,14 +636,6 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
                 place_on_surface(lm, points, what, file=acquisition.file_of(what))
         return acquisition
 
-    @staticmethod
-    def accuracyLevels():
-        """The accuracy levels {name: settings} (element sizes [mm], the region of
-        interest's tolerance [%]) of meshing, simulation and reconstruction."""
-        from FluoTomoLib.tomography.accuracy import LEVELS
-
-        return {name: dict(level) for name, level in LEVELS.items()}
-
     def readPoints(self, path, field, labelNode=None, what=None):
         """Points (N, 3) [RAS mm] from a CSV file of ``x,y,z`` rows.
 
