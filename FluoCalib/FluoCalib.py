@@ -712,14 +712,6 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         from fluoguide.progress import check_cancel, report, scaled
         from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
-        from FluoCalibLib.radiometry.camera_response import write_stack
-        from FluoCalibLib.radiometry.synthetic import (
-            synthetic_illumination,
-            synthetic_laser,
-            synthetic_stack,
-            write_illumination_set,
-            write_laser_set,
-        )
 
         root = Path(folder)
         board = "chessboard:9x6:20"
@@ -727,19 +719,94 @@ class FluoCalibLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         make_dataset(root / "boards", default_camera(640, 480), board, boardViews, seed,
                      progress=scaled(progress, 0.0, 0.5, "board images"), cancel=cancel)
         check_cancel(cancel)
-        report(progress, 0.5, "camera stack")
-        frames, truth = synthetic_stack(seed=seed)
-        write_stack(root / "stack", frames, {"truth": truth})
-        check_cancel(cancel)
-        report(progress, 0.7, "illumination images")
-        write_illumination_set(root / "illumination", *synthetic_illumination(seed=seed))
-        check_cancel(cancel)
-        report(progress, 0.85, "laser images")
-        write_laser_set(root / "laser", *synthetic_laser(seed=seed))
-        report(progress, 1.0, "done")
+        self.writeSyntheticLight(root, seed, progress=scaled(progress, 0.5, 1.0),
+                                 cancel=cancel)
         return {"board_images": str(root / "boards" / "*.png"), "board": board,
                 "poses": str(root / "boards" / "truth.json"), "stack": str(root / "stack"),
                 "illumination": str(root / "illumination"), "laser": str(root / "laser")}
+
+    @staticmethod
+    def writeCalibrationYaml(path, camera=None, cameraToTool=None, rmsPx=None):
+        """The camera model and/or the camera-to-tool hand-eye (4x4, mm) as an
+        OpenCV YAML file (``rmsPx``: the fit's RMS reprojection error [px])."""
+        from FluoCalibLib.geometry.opencv_yaml import write_calibration_yaml
+
+        write_calibration_yaml(path, camera, cameraToTool, rms_px=rmsPx)
+
+    @staticmethod
+    def pivotCalibration(toolToTracker):
+        """Pivot calibration of a tracked pointer from its 4x4 poses (mm): the tip
+        in tool coordinates, the pivot in tracker coordinates, the residuals."""
+        import numpy as np
+
+        from FluoCalibLib.geometry.registration import pivot_calibration
+
+        return pivot_calibration([np.asarray(T, dtype=float) for T in toolToTracker])
+
+    @staticmethod
+    def writeSyntheticBoards(folder, board="chessboard:9x6:20", views=12, seed=0, width=800,
+                             height=600, fisheye=False, blurPx=0.6, noise=2.0,
+                             trackerNoiseMm=0.1, motion="general", progress=None):
+        """Board images (``view_NNN.png``) and ``truth.json`` (camera, hand-eye,
+        tool poses) of a synthetic camera of ``width`` x ``height`` px on a
+        tracked tool; ``fisheye``: a wide-angle camera with the fisheye model;
+        ``blurPx``, ``noise`` [grey levels], ``trackerNoiseMm``: SDs; ``motion``:
+        general, translation or parallel. Returns {``images``, ``camera``,
+        ``camera_to_tool``}."""
+        from FluoCalibLib.geometry.camera_model import CameraModel
+        from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
+
+        cam = default_camera(width, height)
+        if fisheye:
+            cam = CameraModel(cam.fx * 0.7, cam.fy * 0.7, cam.cx, cam.cy,
+                              (0.03, -0.01, 0.002, -0.0005), cam.width, cam.height, "fisheye")
+        return make_dataset(folder, cam, board, views, seed, blur_sigma_px=blurPx,
+                            noise_sigma=noise, tracker_noise_mm=trackerNoiseMm, motion=motion,
+                            progress=progress)
+
+    @staticmethod
+    def writeSyntheticLight(folder, seed=0, lensSpectral=False, progress=None, cancel=None):
+        """A camera stack, illumination and laser sets with known truth under
+        ``folder`` (``stack/``, ``illumination/``, ``laser/``); files only, no
+        MRML node (a worker thread may run it). ``lensSpectral``: the stack also
+        holds frames at several f-numbers and wavelengths (seed ``seed + 1``).
+
+        Returns {``stack``, ``illumination``, ``laser``: folders, ``frames``,
+        ``illumination_images``, ``laser_images``: counts}.
+        """
+        from pathlib import Path
+
+        from fluoguide.progress import check_cancel, report
+        from FluoCalibLib.radiometry.camera_response import write_stack
+        from FluoCalibLib.radiometry.synthetic import (
+            synthetic_illumination,
+            synthetic_laser,
+            synthetic_lens_spectral_frames,
+            synthetic_stack,
+            write_illumination_set,
+            write_laser_set,
+        )
+
+        root = Path(folder)
+        report(progress, 0.0, "camera stack")
+        frames, truth = synthetic_stack(seed=seed)
+        if lensSpectral:
+            extra, t_extra = synthetic_lens_spectral_frames(
+                radiance_w_per_mm2_sr=truth["radiance_w_per_mm2_sr"], seed=seed + 1)
+            frames, truth = frames + extra, {**truth, **t_extra}
+        write_stack(root / "stack", frames, {"truth": truth})
+        check_cancel(cancel)
+        report(progress, 0.5, "illumination images")
+        imgs, t_il = synthetic_illumination(seed=seed)
+        write_illumination_set(root / "illumination", imgs, t_il)
+        check_cancel(cancel)
+        report(progress, 0.8, "laser images")
+        limgs, t_la = synthetic_laser(seed=seed)
+        write_laser_set(root / "laser", limgs, t_la)
+        report(progress, 1.0, "done")
+        return {"stack": str(root / "stack"), "illumination": str(root / "illumination"),
+                "laser": str(root / "laser"), "frames": len(frames),
+                "illumination_images": len(imgs), "laser_images": len(limgs)}
 
 
 #

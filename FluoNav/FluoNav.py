@@ -449,6 +449,51 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         model.SetAndObserveTransformNodeID(tool.GetID())
         return model
 
+    @staticmethod
+    def checkSeconds(seconds, field="--seconds"):
+        """A tracking duration [s]: finite, positive, at most a day; returns it."""
+        from FluoNavLib.devices.tracker import check_seconds
+
+        return check_seconds(seconds, field)
+
+    @staticmethod
+    def checkFaults(kinds):
+        """The simulator's fault kinds (comma-separated names, "typical", or
+        None), refused by name before any simulator starts."""
+        from FluoNavLib.devices.ndi_simulator import Faults
+
+        return Faults.named(kinds)
+
+    @staticmethod
+    def discoverDevices():
+        """Attached NDI trackers and cameras (serial ports and USB devices)."""
+        from FluoNavLib.devices.usb import discover
+
+        return discover()
+
+    @staticmethod
+    def recordFrames(outputFolder, seconds=5.0, fps=20.0, frames=None, camera=None, width=348,
+                     height=260, injectFaults=None, seed=0):
+        """Record tracked camera frames to the new or empty ``outputFolder``
+        through the live loop: the simulated NDI tracker (``injectFaults``:
+        fault kinds) and images of the folder ``frames``, the OpenCV camera
+        ``camera``, or synthetic ``width`` x ``height`` px frames, at ``fps``
+        [1/s] for ``seconds`` [s]. Returns the account (frames, drops, latency
+        [ms], the tracker's frames and faults, the folder)."""
+        from FluoNavLib.devices.recording import record_simulated
+
+        return record_simulated(outputFolder, seconds, fps, frames=frames, camera=camera,
+                                width=width, height=height, inject_faults=injectFaults,
+                                seed=seed)
+
+    @staticmethod
+    def benchmarkMapping(repeats=5, binning=10, progress=None):
+        """Per-pixel surface-mapping speed and accuracy (full resolution,
+        binned, decimated); medians of ``repeats`` timed runs."""
+        from FluoNavLib.mapping.benchmark import run_mapping_benchmark
+
+        return run_mapping_benchmark(repeats, binning, progress=progress)
+
     # -- recordings ------------------------------------------------------------------
     def importRecording(self, folder):
         """A recording folder (``fluo record``) as frame_store nodes in this scene;

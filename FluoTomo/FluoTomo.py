@@ -570,9 +570,17 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     # caller-chosen output nodes out (a second run never overwrites the first).
 
     def labelMap(self, labelNode):
-        """The label map of a volume node with its geometry (FluoTomoLib LabelMap)."""
+        """The label map with its geometry (FluoTomoLib ``LabelMap``) of a volume
+        node, of a file (a path: .nrrd, .nii(.gz), .seg.nrrd, .mrml), or a
+        ``LabelMap`` as is."""
+        from os import PathLike
+
         from FluoTomoLib.tomography import LabelMap
 
+        if isinstance(labelNode, LabelMap):
+            return labelNode
+        if isinstance(labelNode, (str, PathLike)):
+            return LabelMap.from_file(labelNode)
         return LabelMap.from_node(labelNode)
 
     def loadLabelMap(self, path, name=None):
@@ -608,14 +616,113 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             return optics_from_dict(optics)
         return read_optics(optics)
 
-    def readAcquisition(self, acquisition, labelNode, optics):
-        """An Acquisition from a folder (a path) or as is."""
-        from FluoTomoLib.tomography import Acquisition, read_acquisition
+    def readAcquisition(self, acquisition, labelNode, optics, checkOptodes=False):
+        """An Acquisition from a folder (a path) or as is.
 
-        if isinstance(acquisition, Acquisition):
+        ``checkOptodes``: also refuse, naming the file, sources or detectors
+        too far from the label map's tissue surface (the check a reconstruction
+        makes, made here before any work)."""
+        from FluoTomoLib.tomography import Acquisition, place_on_surface, read_acquisition
+
+        if isinstance(acquisition, Acquisition) and not checkOptodes:
             return acquisition
-        return read_acquisition(acquisition, labelmap=self.labelMap(labelNode),
-                                optics=self.readOptics(optics))
+        lm = self.labelMap(labelNode)
+        if not isinstance(acquisition, Acquisition):
+            acquisition = read_acquisition(acquisition, labelmap=lm,
+                                           optics=self.readOptics(optics))
+        if checkOptodes:
+            for what, points in (("sources", acquisition.sources_ras_mm),
+                                 ("detectors", acquisition.detectors_ras_mm)):
+                place_on_surface(lm, points, what, file=acquisition.file_of(what))
+        return acquisition
+
+    def readPoints(self, path, field, labelNode=None, what=None):
+        """Points (N, 3) [RAS mm] from a CSV file of ``x,y,z`` rows.
+
+        With a label map (``labelNode``: node, path or LabelMap), the points are
+        also checked to lie on its tissue surface (``what``: "sources" or
+        "detectors"), refused naming the file otherwise."""
+        from FluoTomoLib.tomography import place_on_surface, read_points_csv
+
+        points = read_points_csv(path, field)
+        if labelNode is not None:
+            place_on_surface(self.labelMap(labelNode), points, what or field, file=path)
+        return points
+
+    # ------------------------------------------------------ folders in and out
+    # The ``fluo tomo`` commands: files and folders in, folders out.
+
+    def simulateToFolder(self, labelNode, optics, yieldByLabel, outputFolder, sources=None,
+                         detectors=None, noise=1.0, seed=0, engine="fem", accuracy="balanced",
+                         progress=None, cancel=None, **options):
+        """A simulated acquisition of a label map written to ``outputFolder``
+        (acquisition.json, sources.csv, detectors.csv, data.csv).
+
+        Parameters
+        ----------
+        labelNode : label-map node, path or LabelMap
+        optics : optics.json path, dict or Optics
+        yieldByLabel : {label: yield [1/mm]}
+        sources, detectors : (S, 3), (D, 3) RAS mm, or None for the default scan
+        noise : relative Gaussian noise per measurement [%]
+        options : exclude_mm, simulate_mm, target, photons, executor, mc_store,
+            threads (``simulate_acquisition``)
+
+        Returns
+        -------
+        (Acquisition, info dict: engine, mesh nodes, noise, warnings, ...)
+        """
+        from FluoTomoLib.tomography import simulate_acquisition, write_acquisition
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        yields = {int(k): float(v) for k, v in dict(yieldByLabel).items()}
+        acq, info = simulate_acquisition(lm, optics, yields, sources, detectors,
+                                         noise_pct=noise, seed=seed, engine=engine,
+                                         accuracy=accuracy, progress=progress, cancel=cancel,
+                                         **options)
+        write_acquisition(outputFolder, acq, simulation=info)
+        return acq, info
+
+    def reconstructToFolder(self, labelNode, optics, acquisition, outputFolder, method="HP",
+                            lam=None, target=None, accuracy="balanced", progress=None,
+                            cancel=None, **options):
+        """Yield of a label map from an acquisition written to ``outputFolder``:
+        ``yield.nrrd`` [1/mm] on the label map's grid (same origin, spacing and
+        direction) and ``reconstruction.json``; returns the summary.
+
+        ``options``: size_mm, roi_ras, truncation_pct, data_model,
+        self_absorption, grading, noise_pct, segmentation_mm
+        (``reconstruct_labelmap``)."""
+        from FluoTomoLib.tomography import reconstruct_labelmap, write_reconstruction
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        acq = self.readAcquisition(acquisition, lm, optics)
+        result = reconstruct_labelmap(lm, optics, acq, method=method, lam=lam, target=target,
+                                      accuracy=accuracy, progress=progress, cancel=cancel,
+                                      **options)
+        return write_reconstruction(outputFolder, lm, result)
+
+    @staticmethod
+    def loadBatch(path, methods=None, lam=None, accuracy=None):
+        """Every case of a batch file (.csv, .json, .yaml), each row and input
+        checked and read once; ``methods``, ``lam``, ``accuracy``: for the rows
+        that name none."""
+        from FluoTomoLib.tomography.batch import load_batch
+
+        return load_batch(path, methods=methods, lam=lam, accuracy=accuracy)
+
+    @staticmethod
+    def runBatch(cases, outputFolder, executor=None, threads=1, resume=False, progress=None,
+                 cancel=None):
+        """Reconstruct the cases of :meth:`loadBatch` on the run engine into
+        ``outputFolder`` (table.csv, cases/NAME/METHOD/...); returns the run's
+        summary (tasks, failures, seconds)."""
+        from FluoTomoLib.tomography.batch import run_batch
+
+        return run_batch(cases, outputFolder, executor=executor, threads=threads,
+                         resume=resume, progress=progress, cancel=cancel)
 
     def buildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
                   optics=None, accuracy="balanced", quality=False, outputModelNode=None,
@@ -742,6 +849,51 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         self.mesh = mesh
         return node
 
+    def meshToFile(self, labelNode, outputFile, sizeMm=1.6, roi=None, quality=True,
+                   refine=None, threads=None, optodes=None, fineSizeMm=None, progress=None):
+        """Mesh a label map into a tetrahedral .vtu file (cell array ``region`` =
+        label, RAS mm) and return its quality report (``fluo mesh``).
+
+        Parameters
+        ----------
+        labelNode : label-map node, or a path (.nrrd, .nii(.gz), .seg.nrrd, .mrml)
+        sizeMm : element size [mm] (away from the optodes when graded)
+        roi : [x0, x1, y0, y1, z0, z1] RAS mm: crop first (default: the whole map)
+        quality : the fTetWild mesher (smooth interfaces) instead of the
+            structured one (staircase surfaces, a second)
+        refine : quality mesher: ("sphere", x, y, z, r, size) or ("box", x0, x1,
+            y0, y1, z0, z1, size) [mm]
+        threads : quality mesher: fTetWild's threads (default: all)
+        optodes : structured mesher: CSV paths of x,y,z [RAS mm] rows, or an
+            (N, 3) array: grid lines ``fineSizeMm`` (x, y, z) [mm] at their
+            coordinates (checked as field ``optodes``)
+
+        Returns
+        -------
+        dict: counts, per-region volumes against the label map, dihedral
+        angles, bad elements, ``file``, ``method``
+        """
+        from os import PathLike
+
+        import numpy as np
+
+        from fluoguide import mrml_io
+        from fluoguide.labelmap_io import read_labelmap
+        from FluoTomoLib.fem.mesh_data import read_points
+        from FluoTomoLib.meshing.to_file import mesh_to_file
+
+        if isinstance(labelNode, (str, PathLike)):
+            labels, spacing, origin, direction = read_labelmap(labelNode)
+        else:
+            geo = mrml_io.volume_geometry(labelNode)
+            labels = mrml_io.volume_array(labelNode).copy()
+            spacing, origin, direction = geo["spacing"], geo["origin"], geo["direction"]
+        if optodes is not None and not isinstance(optodes, np.ndarray):
+            optodes = np.concatenate([read_points(f, "optodes") for f in optodes])
+        return mesh_to_file(labels, spacing, origin, direction, sizeMm, outputFile, roi=roi,
+                            quality=quality, refine=refine, threads=threads, optodes=optodes,
+                            fine_mm=fineSizeMm, progress=progress)
+
     def meshRegionVolumes(self, meshNode):
         """{label: (mesh volume, label-map volume, error %)} of a built mesh."""
         from fluoguide import mrml_io
@@ -753,13 +905,15 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return {int(k): (v, ref.get(k), err.get(k)) for k, v in mesh.items()}
 
     def forward(self, labelOrMesh, optics, sources, detectors, yieldVolumeNode=None,
-                sizeMm=None, accuracy="balanced"):
+                sizeMm=None, accuracy="balanced", force=False):
         """Excitation and fluorescence boundary data of a label map (meshed
         whole, as a simulation is) or of a mesh node built by :meth:`buildMesh`.
 
         ``sources``, ``detectors``: (S, 3), (D, 3) RAS mm on the tissue surface.
         ``yieldVolumeNode``: the yield [1/mm] as a volume (any grid; sampled at
         the mesh nodes); without it only the excitation is computed.
+        A mesh too coarse for the optics (the resolution guard, as ``fluo
+        forward`` applies it) is refused unless ``force``.
         Returns {"excitation": (S, D), "fluorescence": (S, D) or None} per watt
         [1/mm^2]."""
         import numpy as np
@@ -772,7 +926,8 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         from FluoTomoLib.tomography.simulate import simulation_mesh
 
         optics = self.readOptics(optics)
-        if labelOrMesh is not None and labelOrMesh.IsA("vtkMRMLModelNode"):
+        built_mesh = labelOrMesh is not None and labelOrMesh.IsA("vtkMRMLModelNode")
+        if built_mesh:
             built = self._built(labelOrMesh)
             lm, mesh = built["labelmap"], built["mesh_local"]
         else:
@@ -799,9 +954,150 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         fm = FluorescenceModel(mesh, px, pm, src, det,
                                source_normals=lm.surface().closest(src)[1],
                                cut_facets=lm.cut_facets(mesh))
+        refuse = fm.accuracy()["refuse"]
+        if refuse and not force:
+            from fluoguide.errors import FluoInputError
+
+            raise FluoInputError("; ".join(refuse) + " (force=True to compute the data anyway)",
+                                 field=labelOrMesh.GetName() if built_mesh else "sizeMm",
+                                 value=None if built_mesh else sizeMm)
         return {"excitation": fm.excitation_data(),
                 "fluorescence": None if y is None else fm.emission_data(y),
                 "mesh_nodes": mesh.n_nodes}
+
+    def forwardMesh(self, mesh, sources, detectors, optics=None, mua=None, musp=None, n=1.33,
+                    yieldByLabel=None, model="auto", solver="auto", jacobian=False, force=False,
+                    forceName="force"):
+        """Boundary data of sources and detectors on a mesh file (the
+        ``fluo forward`` computation): the exact half-space answer where it
+        applies, else the diffusion FEM, which refuses a mesh too coarse for its
+        optics unless ``force``.
+
+        Parameters
+        ----------
+        mesh : path (.vtu with a cell array ``region``, NIRFAST stem) or Mesh
+        sources, detectors : CSV paths of ``x,y[,z]`` [mm] rows, or (N, dim) arrays
+        optics : optics.json path, dict or Optics per region; or None and
+            ``mua``, ``musp`` [1/mm], ``n`` of one material (the half-space
+            answer applies to this case only)
+        yieldByLabel : {region: yield [1/mm]}: also the fluorescence data
+        model : "auto", "fem" or "analytic"
+        solver : the FEM's linear solver (``operators.SOLVERS`` or "auto")
+        jacobian : also the Jacobians (arrays ``jacobian_mua``, ``jacobian_yield``)
+        forceName : how the caller names ``force``, in the refusal's message
+
+        Returns
+        -------
+        dict
+            nodes, elements, sources, detectors, regions, reoriented_elements,
+            then the data (``mesh_data.mesh_boundary_data``): detector_fluence
+            [1/mm^2 per W], accuracy, warnings, ...
+        """
+        from os import PathLike
+
+        import numpy as np
+
+        from FluoTomoLib.fem.mesh_data import (check_optodes, mesh_boundary_data,
+                                               read_forward_mesh, read_points)
+        from FluoTomoLib.fem.operators import check_solver
+        from FluoTomoLib.optics import check_properties
+        from FluoTomoLib.tomography import homogeneous_optics
+
+        check_solver(solver, field="solver")
+        file = mesh if isinstance(mesh, (str, PathLike)) else None
+        mesh, flipped = read_forward_mesh(mesh) if file is not None else (mesh, 0)
+        pts = {}
+        for name, value in (("sources", sources), ("detectors", detectors)):
+            path = value if isinstance(value, (str, PathLike)) else None
+            pts[name] = check_optodes(mesh, read_points(path, name) if path is not None
+                                      else np.atleast_2d(np.asarray(value, float)), name, path)
+        half_space = None
+        if optics is None:
+            check_properties(mua, musp, n, where="properties", warn=False)
+            optics = homogeneous_optics(mua, musp, n, labels=mesh.regions)
+            half_space = (mua, musp, n)
+        else:
+            optics = self.readOptics(optics)
+        yields = None if yieldByLabel is None else {int(k): float(v)
+                                                    for k, v in dict(yieldByLabel).items()}
+        out = {"nodes": mesh.n_nodes, "elements": mesh.n_elements,
+               "sources": len(pts["sources"]), "detectors": len(pts["detectors"]),
+               "regions": [int(r) for r in mesh.regions], "reoriented_elements": flipped}
+        out.update(mesh_boundary_data(mesh, optics, pts["sources"], pts["detectors"], yields,
+                                      model=model, solver=solver, jacobian=jacobian, force=force,
+                                      half_space=half_space, file=file, force_name=forceName))
+        return out
+
+    @staticmethod
+    def analytic(mua, musp, n=1.33, rho=None, yieldPerMm=None, muaM=None, muspM=None,
+                 unscattered=False):
+        """Closed-form diffusion theory of a homogeneous semi-infinite medium
+        (docs/physics.md section 3): Rd, mueff [1/mm], penetration depth [mm],
+        D [mm], A; with ``rho`` (distances [mm]) R(rho) and the exact Robin
+        surface fluence; with ``yieldPerMm`` the total diffuse fluorescence F
+        (emission ``muaM``, ``muspM`` [1/mm], default the excitation's).
+        Checks name the fields ``properties``, ``rho`` and ``emission``."""
+        from FluoTomoLib.analytic import diffusion_summary
+
+        return diffusion_summary(mua, musp, n, rho, yieldPerMm, muaM, muspM, unscattered)
+
+    @staticmethod
+    def checkStudy(mapping, file=None):
+        """The study spec of a study-file mapping (``study`` A/B/C, ``sweep``,
+        ``targets``, grid axes; docs/scale.md) with every task's parameters
+        checked before any work (``file``: where the mapping came from, for
+        messages)."""
+        from FluoTomoLib.studies.spec import spec_from_mapping, study_tasks
+
+        spec = spec_from_mapping(mapping, file=file)
+        study_tasks(spec)
+        spec.warnings.clear()       # the checks' warnings: the run says them again
+        return spec
+
+    @staticmethod
+    def runStudy(spec, outputFolder=None, executor=None, threads=1, resume=False,
+                 progress=None):
+        """Run a study spec of :meth:`checkStudy` (rows: true against
+        reconstructed yield and centroid per target, method and lambda), into
+        ``outputFolder`` when given (table.csv, tasks/, figures)."""
+        from FluoTomoLib.studies.run import run_spec
+
+        return run_spec(spec, out_dir=outputFolder, progress=progress, executor=executor,
+                        resume=resume, threads=threads)
+
+    @staticmethod
+    def checkMonteCarloEngine(engine="auto"):
+        """Load the Monte Carlo engine (``auto``, ``mcxcl``, ``mcx``): a missing
+        one is refused in one line before any run or cluster starts."""
+        from FluoTomoLib.montecarlo.engine import load_engine
+
+        return load_engine(engine)
+
+    @staticmethod
+    def validateTubeMonteCarlo(outputFolder, depths=None, mcIn=None, simulate=False,
+                               photons=None, methods=("NP", "SP", "HP"), accuracy="fast",
+                               executor=None, threads=1, resume=False, progress=None):
+        """The cylinder-tube phantom reconstructed from Monte Carlo data and from
+        diffusion-FEM data of the same optodes (docs/validation.md).
+
+        ``depths`` [mm]: the tube's (default: the stored sets'); ``mcIn``: a
+        folder of ``depth_<d>mm`` acquisitions (default: the stored ones);
+        ``simulate``: run the Monte Carlo here (``photons`` per run) into
+        ``outputFolder``/mc. Returns the rows (yield and centroid errors per
+        depth, method and data) and writes ``validate_mc_tomography.png`` to
+        ``outputFolder`` (``figure``: its path)."""
+        from pathlib import Path
+
+        from FluoTomoLib.pipelines import tube_mc
+
+        depths = list(tube_mc.DEPTHS_MM) if depths is None else list(depths)
+        res = tube_mc.validate_tube_mc(
+            depths, mc_root=mcIn, simulate=simulate, photons=photons or tube_mc.PHOTONS,
+            out_dir=outputFolder, methods=list(methods), accuracy=accuracy, executor=executor,
+            threads=threads, resume=resume, progress=progress)
+        Path(outputFolder).mkdir(parents=True, exist_ok=True)
+        res["figure"] = tube_mc.figure(res, Path(outputFolder) / "validate_mc_tomography.png")
+        return res
 
     def simulateAcquisition(self, labelNode, optics, yieldByLabel, scan=None, noise=1.0, seed=0,
                             sources=None, detectors=None, accuracy="balanced", engine="fem",

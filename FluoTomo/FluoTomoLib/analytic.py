@@ -285,3 +285,72 @@ def total_diffuse_fluorescence(props_x, props_m, yield_per_mm, n, include_unscat
     if include_unscattered:
         integral += 1.0 / (mutx + mem)
     return float(yield_per_mm) * integral / (1 + 2 * A * Dm * mem)
+
+
+def diffusion_summary(mua, musp, n, rho=None, yield_per_mm=None, mua_m=None, musp_m=None,
+                      unscattered=False):
+    """Everything closed-form diffusion theory says of one homogeneous
+    semi-infinite medium (``fluo analytic``, ``FluoTomoLogic.analytic``).
+
+    Parameters
+    ----------
+    mua, musp : float
+        Excitation absorption and reduced scattering [1/mm]; checked as
+        ``properties``.
+    n : float
+        Refractive index of the tissue (outside: air).
+    rho : sequence of float, optional
+        Source-detector distances [mm] (checked as ``rho``): also R(rho)
+        [1/mm^2], the exact Robin surface fluence and its logarithm.
+    yield_per_mm : float, optional
+        Fluorescence yield eta*mua_f [1/mm]: also F, with the emission's
+        ``mua_m``, ``musp_m`` [1/mm] (default: the excitation's; checked as
+        ``emission``).
+    unscattered : bool
+        Include the unscattered excitation beam in F.
+
+    Returns
+    -------
+    dict
+        The medium, Rd, mueff [1/mm], penetration_depth_mm, D [mm], A,
+        diffusion_valid, the rho and F entries asked for, warnings.
+    """
+    from FluoTomoLib.optics import (NEAR_SOURCE_MFP, diffusion_validity, penetration_depth_mm,
+                                    transport_mfp_mm)
+
+    check_properties(mua, musp, n, where="properties", warn=False)
+    rho = check_distances(rho, "rho") if rho is not None else None
+    warnings = diffusion_validity(mua, musp, rho)
+    out = {
+        "mua_per_mm": mua, "musp_per_mm": musp, "n": n,
+        "Rd": float(total_diffuse_reflectance(mua, musp, n)),
+        "mueff": float(mueff(mua, musp)),
+        "penetration_depth_mm": float(penetration_depth_mm(mua, musp)),
+        "D": float(diffusion_coefficient(mua, musp)),
+        "A": float(robin_A(n)),
+        "diffusion_valid": musp >= 10 * mua,
+    }
+    if rho is not None:
+        out["rho_mm"] = rho.tolist()
+        out["R_rho"] = spatially_resolved_reflectance(rho, mua, musp, n).tolist()
+        log_phi = log_robin_surface_fluence(rho, mua, musp, n)
+        with np.errstate(under="ignore"):
+            out["robin_surface_fluence"] = np.exp(log_phi).tolist()
+        # values below the smallest double underflow to 0; their logs stay exact
+        out["ln_robin_surface_fluence"] = log_phi.tolist()
+        out["rho_diffusive"] = (rho >= NEAR_SOURCE_MFP * transport_mfp_mm(mua, musp)).tolist()
+        tiny = np.log(np.finfo(float).tiny)
+        if np.any(log_phi < tiny):
+            warnings.append(f"{int(np.sum(log_phi < tiny))} fluence value(s) are below 1e-308 "
+                            "and print as 0: use ln_robin_surface_fluence")
+    if yield_per_mm is not None:
+        mua_m = mua if mua_m is None else mua_m
+        musp_m = musp if musp_m is None else musp_m
+        check_properties(mua_m, musp_m, n, where="emission", warn=False)
+        warnings += [f"emission: {w}" for w in diffusion_validity(mua_m, musp_m)]
+        out["diffusion_valid"] = out["diffusion_valid"] and musp_m >= 10 * mua_m
+        out["F"] = total_diffuse_fluorescence((mua, musp), (mua_m, musp_m), yield_per_mm, n,
+                                              include_unscattered=unscattered)
+        out["F_includes_unscattered_beam"] = bool(unscattered)
+    out["warnings"] = warnings
+    return out

@@ -15,6 +15,10 @@ Modules
 - ``study``: ``fluo study A|B|C``: the thesis's 2D simulation studies.
 """
 
+from contextlib import contextmanager
+
+from fluoguide.errors import FluoInputError
+
 
 def module_logic(module, scene=None):
     """``<module>Logic`` of a module file (``FluoCalib``, ``FluoNav``, ``FluoTomo``)
@@ -46,3 +50,22 @@ def save_scene_to(scene, path):
 
         mrml_io.save_scene(scene, path)
 
+
+
+@contextmanager
+def as_flags(names):
+    """Name a refusal by the command's flags: the Lib checks name their
+    parameters (``solver``, ``properties.mua_per_mm[0]``), a command its flags
+    (``--solver``, ``--mua/--musp/--n.mua_per_mm[0]``). ``names``: {parameter:
+    flag}; a field equal to a parameter, or starting with it and then ``.``,
+    ``[`` or a space, is renamed; the problem, file and value are kept."""
+    try:
+        yield
+    except FluoInputError as exc:
+        field = exc.field if isinstance(exc.field, str) else None
+        for name, flag in names.items():
+            if field is not None and (field == name or field.startswith((f"{name}.", f"{name}[",
+                                                                          f"{name} "))):
+                raise FluoInputError(exc.problem, file=exc.file, field=flag + field[len(name):],
+                                     value=exc.value) from exc
+        raise

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from fluoapp.cli import add_json_flag, cli_group
 from fluoapp.commands import module_logic, save_scene_to, scene_for
 from fluoguide.errors import FluoInputError
+# readers of the calibration inputs (image globs, poses, intrinsics, matrices, points)
+from FluoCalibLib.geometry.files import (image_files, read_handeye_poses, read_intrinsics,
+                                         read_matrix, read_points)
 
 __all__ = ["register"]
 
@@ -25,15 +26,11 @@ def _calib(args):
 
 def _yaml(args, camera=None, camera_to_tool=None, rms=None):
     if getattr(args, "yaml", None) and (camera is not None or camera_to_tool is not None):
-        from FluoCalibLib.geometry.opencv_yaml import write_calibration_yaml
-
-        write_calibration_yaml(args.yaml, camera, camera_to_tool, rms_px=rms)
+        module_logic("FluoCalib").writeCalibrationYaml(args.yaml, camera, camera_to_tool, rms)
 
 
 def _camera(args):
     from fluoguide.progress import TqdmProgress
-
-    from FluoCalibLib.geometry.files import image_files
 
     logic = _calib(args)
     with TqdmProgress("calib camera") as prog:
@@ -48,8 +45,6 @@ def _camera(args):
 
 def _handeye(args):
     from fluoguide.progress import TqdmProgress
-    from FluoCalibLib.geometry.files import (image_files, read_handeye_poses, read_intrinsics,
-                                             read_matrix)
 
     images = image_files(args.images)
     doc = read_handeye_poses(args.poses)
@@ -70,8 +65,6 @@ def _handeye(args):
 
 
 def _register(args):
-    from FluoCalibLib.geometry.files import read_points
-
     moving = read_points(args.moving, "--moving")
     fixed = read_points(args.fixed, "--fixed")
     tm = read_points(args.targets_moving, "--targets-moving") if args.targets_moving else None
@@ -85,15 +78,13 @@ def _register(args):
 def _pivot(args):
     from fluoguide.jsonable import read_json
 
-    from FluoCalibLib.geometry.registration import pivot_calibration
-
     doc = read_json(args.poses, expect=None, field="--poses")
     poses = doc.get("tool_to_tracker", doc) if isinstance(doc, dict) else doc
     if not isinstance(poses, list):
         raise FluoInputError("poses must be a list of 4x4 matrices", file=args.poses,
                              field="tool_to_tracker")
     try:
-        return pivot_calibration([np.asarray(T, dtype=float) for T in poses])
+        return module_logic("FluoCalib").pivotCalibration(poses)
     except (TypeError, ValueError) as exc:
         if isinstance(exc, FluoInputError):
             raise
@@ -104,18 +95,11 @@ def _pivot(args):
 def _synth(args):
     from fluoguide.progress import TqdmProgress
 
-    from FluoCalibLib.geometry.camera_model import CameraModel
-    from FluoCalibLib.geometry.synthetic_boards import default_camera, make_dataset
-
-    cam = default_camera(args.width, args.height)
-    if args.fisheye:
-        cam = CameraModel(cam.fx * 0.7, cam.fy * 0.7, cam.cx, cam.cy,
-                          (0.03, -0.01, 0.002, -0.0005), cam.width, cam.height, "fisheye")
     with TqdmProgress("calib synth-boards") as prog:
-        ds = make_dataset(args.out, cam, args.board, args.views, args.seed,
-                          blur_sigma_px=args.blur, noise_sigma=args.noise,
-                          tracker_noise_mm=args.tracker_noise_mm, motion=args.motion,
-                          progress=prog)
+        ds = module_logic("FluoCalib").writeSyntheticBoards(
+            args.out, args.board, args.views, args.seed, args.width, args.height,
+            fisheye=args.fisheye, blurPx=args.blur, noise=args.noise,
+            trackerNoiseMm=args.tracker_noise_mm, motion=args.motion, progress=prog)
     return {"out": str(args.out), "images": ds["images"],
             "truth": str(Path(args.out) / "truth.json"),
             "camera": ds["camera"], "camera_to_tool": ds["camera_to_tool"]}

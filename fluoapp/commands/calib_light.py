@@ -8,7 +8,7 @@ from pathlib import Path
 
 from fluoapp.cli import add_json_flag, cli_group
 from fluoapp.commands import module_logic, save_scene_to, scene_for
-from fluoguide.progress import TqdmProgress, report
+from fluoguide.progress import TqdmProgress
 
 
 def _calib(args):
@@ -56,38 +56,13 @@ def _laser(args):
 
 
 def _synth(args):
-    from FluoCalibLib.radiometry.camera_response import write_stack
-    from FluoCalibLib.radiometry.synthetic import (
-        synthetic_illumination,
-        synthetic_laser,
-        synthetic_lens_spectral_frames,
-        synthetic_stack,
-        write_illumination_set,
-        write_laser_set,
-    )
-
     from fluoguide import atomic
 
     out = Path(args.out)
     atomic.check_writable(out, "--out", folder=True)   # three sets: refuse before the first
     with TqdmProgress("calib synth-light") as prog:
-        report(prog, 0.0, "camera stack")
-        frames, truth = synthetic_stack(seed=args.seed)
-        # plus frames at several f-numbers and wavelengths (same default camera)
-        extra, t_extra = synthetic_lens_spectral_frames(
-            radiance_w_per_mm2_sr=truth["radiance_w_per_mm2_sr"], seed=args.seed + 1)
-        frames = frames + extra
-        write_stack(out / "stack", frames, {"truth": {**truth, **t_extra}})
-        report(prog, 0.5, "illumination images")
-        imgs, t_il = synthetic_illumination(seed=args.seed)
-        write_illumination_set(out / "illumination", imgs, t_il)
-        report(prog, 0.8, "laser spot images")
-        limgs, t_la = synthetic_laser(seed=args.seed)
-        write_laser_set(out / "laser", limgs, t_la)
-        report(prog, 1.0, "done")
-    return {"stack": str(out / "stack"), "illumination": str(out / "illumination"),
-            "laser": str(out / "laser"), "frames": len(frames), "illumination_images": len(imgs),
-            "laser_images": len(limgs)}
+        return module_logic("FluoCalib").writeSyntheticLight(out, seed=args.seed,
+                                                             lensSpectral=True, progress=prog)
 
 
 def _common(p):

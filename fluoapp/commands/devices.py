@@ -3,30 +3,22 @@ cameras, track poses, record and replay tracked frames."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from fluoapp.cli import add_json_flag
-from fluoapp.commands import module_logic
+from fluoapp.commands import as_flags, module_logic
 from fluoguide.errors import FluoInputError
-
-
-def _seconds(value):
-    """``--seconds``: finite, positive and at most a day (inf and NaN never end or never start)."""
-    from FluoNavLib.devices.tracker import check_seconds
-
-    return check_seconds(value)
+# the simulator's fault kinds, named in --help
+from FluoNavLib.devices.ndi_simulator import FAULT_KINDS
 
 
 def _devices(args):
-    from FluoNavLib.devices.usb import discover
-
-    return discover()
+    return module_logic("FluoNav").discoverDevices()
 
 
 def _track(args):
     from fluoguide.errors import check_number
 
-    _seconds(args.seconds)
+    logic = module_logic("FluoNav")
+    logic.checkSeconds(args.seconds)
     # an option that would be ignored is refused: the user meant something by it
     if args.rate is not None and not args.igtl:
         raise FluoInputError("applies to --igtl only", field="--rate", value=args.rate)
@@ -38,9 +30,7 @@ def _track(args):
         if not args.sim:
             raise FluoInputError("applies to --sim only", field="--inject-faults",
                                  value=args.inject_faults)
-        from FluoNavLib.devices.ndi_simulator import Faults
-
-        Faults.named(args.inject_faults)    # an unknown kind: refused before the simulator
+        logic.checkFaults(args.inject_faults)    # an unknown kind: refused before the simulator
     if args.igtl:
         source, address, options = "igtl", args.igtl, {"rate_hz": args.rate}
     elif args.sim:
@@ -50,7 +40,6 @@ def _track(args):
         source, address, options = "ndi", args.serial, {"tools": args.tools or 1}
     else:
         raise FluoInputError("choose --sim or --serial PORT", field="source")
-    logic = module_logic("FluoNav")
     logic.connectTracker(source, address, **options)
     try:
         return logic.trackFor(args.seconds)
@@ -58,56 +47,14 @@ def _track(args):
         logic.disconnect()
 
 
-def _frame_source(args):
-    from FluoNavLib.devices import frame_sources as fs
-
-    if args.frames:
-        return fs.ImageSequenceSource(args.frames, fps=args.fps, realtime=True)
-    if args.camera is not None:
-        return fs.OpenCVSource(args.camera, fps=args.fps)
-    return fs.SyntheticSource(fps=args.fps, width=args.width, height=args.height, seed=args.seed)
-
-
 def _record(args):
     """Simulated tracker + synthetic, image-sequence or camera frames -> a recording
     folder, through the live loop (the same path the mapping takes)."""
-    from FluoNavLib.devices.live_loop import LiveLoop
-    from FluoNavLib.devices.ndi_client import NDIClient
-    from FluoNavLib.devices.ndi_simulator import Faults, NDISimulator
-    from FluoNavLib.devices.recorder import Recorder
-
-    _seconds(args.seconds)
-    if not (args.fps > 0 and args.fps <= 1000):
-        raise FluoInputError("must be a frame rate in (0, 1000] Hz", field="--fps", value=args.fps)
-    sim = NDISimulator(faults=Faults.named(args.inject_faults), seed=args.seed)
-    port = sim.start()
-    try:
-        # the camera first: a refused source must not leave a recording folder behind
-        with _frame_source(args) as frames, NDIClient(port) as client, Recorder(args.out) as rec:
-            client.initialize([b"camera tool rom " * 4])
-            client.start()
-
-            def write(image, info, poses):
-                rec.add(image, info["timestamp_s"], poses, exposure_s=info["exposure_s"],
-                        pose_valid=info["pose_valid"], pose_status=info["pose_status"])
-
-            # a recording keeps every frame the camera gave (no "latest" dropping);
-            # a slow disk shows as latency, or as camera-side gaps (dropped_upstream)
-            loop = LiveLoop(frames, write, tracker=client, tools={"CameraToolToTracker": 1},
-                            camera_latency_s=0.5 / args.fps, drop_policy="none")
-            out = loop.run(seconds=args.seconds)
-            client.stop()
-            stats = client.stats
-    finally:
-        sim.stop()
-    return {"frames": out["delivered"], "frames_without_pose": out["pose_invalid"],
-            "pose_status": out["pose_status"], "dropped_slow": out["dropped_slow"],
-            "dropped_upstream": out["dropped_upstream"],
-            "frames_lost_unreported": out["lost_unreported"], "latency_ms": out["latency_ms"],
-            "tracker_frames": stats.frames, "tracker_missing": stats.missing,
-            "crc_errors": stats.crc_errors, "recovered": stats.recovered,
-            "lost_unreported": stats.lost_unreported(),
-            "folder": str(Path(args.out).resolve())}
+    with as_flags({"fps": "--fps"}):
+        return module_logic("FluoNav").recordFrames(
+            args.out, args.seconds, args.fps, frames=args.frames, camera=args.camera,
+            width=args.width, height=args.height, injectFaults=args.inject_faults,
+            seed=args.seed)
 
 
 def _replay(args):
@@ -128,8 +75,6 @@ def _replay(args):
 
 
 def _add_inject_faults(p, what):
-    from FluoNavLib.devices.ndi_simulator import FAULT_KINDS
-
     kinds = "; ".join(f"{k}: {v[0]}" for k, v in FAULT_KINDS.items())
     p.add_argument("--inject-faults", nargs="?", const="typical", default=None,
                    metavar="KIND,...", help=f"{what}: inject faults, the kinds named "

@@ -115,10 +115,9 @@ def _correct(args):
 
 
 def _bench(args):
-    from FluoNavLib.mapping.benchmark import run_mapping_benchmark
-
     with TqdmProgress("bench mapping") as prog:
-        return run_mapping_benchmark(args.repeats, args.binning, progress=prog)
+        return module_logic("FluoNav").benchmarkMapping(args.repeats, args.binning,
+                                                        progress=prog)
 
 
 def register(subparsers):

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from fluoapp.cli import add_json_flag
+from fluoapp.commands import module_logic
 from fluoapp.runopts import add_run_options, check_run_options, executor_for
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
@@ -71,23 +72,17 @@ def study_mapping(args):
 
 def _handler(args):
     threads = check_run_options(args)
-    from FluoTomoLib.studies.spec import spec_from_mapping
-    from FluoTomoLib.studies.run import run_spec
-
     doc, file = study_mapping(args)
-    spec = spec_from_mapping(doc, file=file)
-    from FluoTomoLib.studies.spec import study_tasks
-
-    study_tasks(spec)                 # every task's parameters checked before any work
-    spec.warnings.clear()
+    logic = module_logic("FluoTomo")
+    spec = logic.checkStudy(doc, file=file)     # every task checked before any work
     if args.out:          # refused before minutes of work, not after
         from fluoguide import atomic
 
         atomic.check_writable(args.out, "--out", folder=True)
     t0 = time.perf_counter()
     with TqdmProgress(f"study {spec.label}") as bar, executor_for(args, threads) as ex:
-        out = run_spec(spec, out_dir=args.out, progress=bar, executor=ex, resume=args.resume,
-                       threads=threads)
+        out = logic.runStudy(spec, args.out, executor=ex, threads=threads, resume=args.resume,
+                             progress=bar)
     out["seconds"] = time.perf_counter() - t0
     # every row's reconstruction warnings, where a reader of the JSON sees them
     # (after any the study itself reported)

@@ -10,9 +10,14 @@ import time
 from pathlib import Path
 
 from fluoapp.cli import add_json_flag, cli_group
+from fluoapp.commands import module_logic
 from fluoapp.runopts import add_run_options, check_run_options, executor_for
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
+# the accuracy levels' settings, named in --help (read when the parser is built:
+# the logic class, and the scene it needs, only when a command runs)
+from FluoTomoLib.tomography.accuracy import LEVELS
+
 
 def _accuracy_help(pct="%%", lead="accuracy level (default %(default)s): "):
     """What each accuracy level sets (``accuracy.LEVELS``), for ``--help``.
@@ -22,8 +27,6 @@ def _accuracy_help(pct="%%", lead="accuracy level (default %(default)s): "):
     and one run, and live in docs/tomography-own-scene.md ("Accuracy levels")
     next to the benchmark that measures them.
     """
-    from FluoTomoLib.tomography.accuracy import LEVELS
-
     parts = [f"{name} = {lv['recon_mm']:g} mm reconstruction elements, region-of-interest "
              f"tolerance {lv['truncation_pct']:g} {pct}" for name, lv in LEVELS.items()]
     return (lead + "; ".join(parts) + "; each refined to half across the target, capped at "
@@ -35,8 +38,6 @@ ACCURACY_HELP = _accuracy_help()
 
 
 def _simulate_accuracy_help():
-    from FluoTomoLib.tomography.accuracy import LEVELS
-
     sizes = ", ".join(f"{k} {v['simulate_mm']:g} / {v['simulate_coarse_mm']:g}"
                       for k, v in LEVELS.items())
     return ("simulation mesh (default %(default)s), element size near the optodes and target "
@@ -50,30 +51,19 @@ def _parse_yields(text):
     return parse_yields(text, field="--yield")
 
 
-def _points(path, field):
-    from FluoTomoLib.tomography.acquisition_file import _points as check, _read_csv_rows
-
-    rows, _ = _read_csv_rows(path, field)
-    return check(rows, path, field)
-
-
 def _load(args):
-    from FluoTomoLib.tomography import LabelMap, read_optics
-
-    lm = LabelMap.from_file(args.labels)
-    optics = read_optics(args.optics)
+    """(FluoTomoLogic, LabelMap, Optics) of ``--labels`` and ``--optics``, every
+    label of the map in the optics."""
+    logic = module_logic("FluoTomo")
+    lm = logic.labelMap(args.labels)
+    optics = logic.readOptics(args.optics)
     optics.check_labels(lm.labels)
-    return lm, optics
+    return logic, lm, optics
 
 
-def _simulate(args):
-    from FluoTomoLib.tomography import simulate_acquisition, write_acquisition
-
-    from fluoguide import atomic
-
-    t0 = time.perf_counter()
-    atomic.check_writable(args.out, "--out", folder=True)      # before any work
-    yields = _parse_yields(args.yield_spec)
+def _check_simulate_options(args):
+    """The options that apply to the Monte Carlo engine only, and the optode
+    files given both or neither."""
     if args.photons is not None and args.engine != "mc":
         raise FluoInputError("photons are for the Monte Carlo engine (--engine mc)",
                              field="--photons", value=args.photons)
@@ -85,6 +75,15 @@ def _simulate(args):
     if args.resume and not args.mc_runs:
         raise FluoInputError("--resume needs the folder of the earlier runs (--mc-runs)",
                              field="--resume")
+
+
+def _simulate(args):
+    from fluoguide import atomic
+
+    t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)      # before any work
+    yields = _parse_yields(args.yield_spec)
+    _check_simulate_options(args)
     threads = check_run_options(args)
     store = None
     if args.mc_runs:
@@ -92,18 +91,15 @@ def _simulate(args):
     if (args.sources is None) != (args.detectors is None):
         raise FluoInputError("give both --sources and --detectors, or neither (default scan)",
                              field="--sources" if args.sources is None else "--detectors")
-    lm, optics = _load(args)
-    src = _points(args.sources, "--sources") if args.sources else None
-    det = _points(args.detectors, "--detectors") if args.detectors else None
+    logic, lm, optics = _load(args)
     for label in yields:        # checked before any progress is drawn
         if label not in lm.labels:
             raise FluoInputError("label is not in the label map", file=args.labels,
                                  field="--yield", value=label)
-    if src is not None:
-        from FluoTomoLib.tomography import place_on_surface
-
-        place_on_surface(lm, src, "sources", file=args.sources)
-        place_on_surface(lm, det, "detectors", file=args.detectors)
+    src = det = None
+    if args.sources:            # read, and on the tissue surface, before any progress
+        src = logic.readPoints(args.sources, "--sources", lm, "sources")
+        det = logic.readPoints(args.detectors, "--detectors", lm, "detectors")
     if args.mc_runs:
         from fluoguide.runs.store import RunStore
 
@@ -111,12 +107,11 @@ def _simulate(args):
     # a bar only on a terminal: a pipe gets the JSON or one error line; the Monte
     # Carlo runs go where the run options say (serial here by default)
     with TqdmProgress("simulate") as bar, executor_for(args, threads) as ex:
-        acq, info = simulate_acquisition(
-            lm, optics, yields, src, det, noise_pct=args.noise_pct, seed=args.seed,
-            engine=args.engine, exclude_mm=args.exclude_mm, accuracy=args.accuracy,
-            simulate_mm=args.element_mm, target=args.target, photons=args.photons,
-            progress=bar, executor=ex, mc_store=store, threads=threads)
-    write_acquisition(args.out, acq, simulation=info)
+        acq, info = logic.simulateToFolder(
+            lm, optics, yields, args.out, src, det, noise=args.noise_pct, seed=args.seed,
+            engine=args.engine, accuracy=args.accuracy, progress=bar,
+            exclude_mm=args.exclude_mm, simulate_mm=args.element_mm, target=args.target,
+            photons=args.photons, executor=ex, mc_store=store, threads=threads)
     return {"output": str(args.out), "sources": len(acq.sources_ras_mm),
             "detectors": len(acq.detectors_ras_mm), "measurements": acq.n_measurements,
             "engine": info["engine"], "simulation_mesh_nodes": info.get("mesh_nodes"),
@@ -126,16 +121,9 @@ def _simulate(args):
             "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
 
 
-def _reconstruct(args):
-    from FluoTomoLib.tomography import read_acquisition, reconstruct_labelmap
-    from FluoTomoLib.tomography.reconstruct import write_reconstruction
-
-    from fluoguide import atomic
-
-    t0 = time.perf_counter()
-    atomic.check_writable(args.out, "--out", folder=True)      # before any work
-    lm, optics = _load(args)
-    acq = read_acquisition(args.acquisition, labelmap=lm, optics=optics)
+def _check_reconstruct_options(args, lm):
+    """The usual bad input, refused before any progress is drawn; returns the
+    region of interest of ``--roi`` (or None)."""
     roi = None
     if args.roi:
         try:
@@ -143,9 +131,6 @@ def _reconstruct(args):
         except ValueError:
             raise FluoInputError("expected x0,x1,y0,y1,z0,z1 (RAS mm)", field="--roi",
                                  value=args.roi) from None
-    from FluoTomoLib.tomography import place_on_surface
-
-    # the usual bad input, refused before any progress is drawn
     if args.target is not None and args.target not in lm.labels:
         raise FluoInputError("target label is not in the label map", file=args.labels,
                              field="--target", value=args.target)
@@ -157,37 +142,46 @@ def _reconstruct(args):
                                                  and 0 <= args.segmentation_mm <= 5):
         raise FluoInputError("the segmentation's accuracy must be within 0..5 mm",
                              field="--segmentation-mm", value=args.segmentation_mm)
+    return roi
+
+
+def _reconstruct(args):
+    from fluoguide import atomic
+
+    t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)      # before any work
+    logic, lm, optics = _load(args)
+    acq = logic.readAcquisition(args.acquisition, lm, optics)
+    roi = _check_reconstruct_options(args, lm)
     if args.data_model == "log":
         acq.check_for_log()
-    place_on_surface(lm, acq.sources_ras_mm, "sources", file=acq.file_of("sources"))
-    place_on_surface(lm, acq.detectors_ras_mm, "detectors", file=acq.file_of("detectors"))
+    acq = logic.readAcquisition(acq, lm, optics, checkOptodes=True)
     with TqdmProgress(f"reconstruct {args.method}") as bar:
-        result = reconstruct_labelmap(
-            lm, optics, acq, method=args.method, lam=args.lam, target=args.target,
-            accuracy=args.accuracy, size_mm=args.element_mm, roi_ras=roi,
+        summary = logic.reconstructToFolder(
+            lm, optics, acq, args.out, method=args.method, lam=args.lam, target=args.target,
+            accuracy=args.accuracy, progress=bar, size_mm=args.element_mm, roi_ras=roi,
             truncation_pct=args.truncation_pct, data_model=args.data_model,
             self_absorption=("HP", "SP") if args.self_absorption else (),
-            grading=args.grading, progress=bar, noise_pct=args.noise_pct,
+            grading=args.grading, noise_pct=args.noise_pct,
             segmentation_mm=args.segmentation_mm)
-    summary = write_reconstruction(args.out, lm, result)
     summary["seconds"] = time.perf_counter() - t0
     return summary
 
 
 def _batch(args):
-    from FluoTomoLib.tomography.batch import load_batch, run_batch
-
     from fluoguide import atomic
     from fluoguide.jsonable import dumps
 
     t0 = time.perf_counter()
     threads = check_run_options(args)
+    logic = module_logic("FluoTomo")
     # every row and input checked, and the output folder, before any work or writing
-    cases = load_batch(args.batch, methods=args.methods, lam=args.lam, accuracy=args.accuracy)
+    cases = logic.loadBatch(args.batch, methods=args.methods, lam=args.lam,
+                            accuracy=args.accuracy)
     atomic.check_writable(args.out, "--out", folder=True)
     with TqdmProgress("tomo batch") as bar, executor_for(args, threads) as ex:
-        out = run_batch(cases, args.out, executor=ex, threads=threads, resume=args.resume,
-                        progress=bar)
+        out = logic.runBatch(cases, args.out, executor=ex, threads=threads, resume=args.resume,
+                             progress=bar)
     # seconds: the whole command (checks, cluster start and stop, files); run_seconds:
     # the run engine's part (the tasks, and writing their records)
     out = {"batch": str(args.batch), "out": str(args.out), **out,

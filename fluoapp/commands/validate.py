@@ -6,11 +6,11 @@ from __future__ import annotations
 import shlex
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
+from fluoapp.commands import module_logic
 from fluoapp.runopts import add_run_options, check_run_options, executor_for
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
@@ -127,9 +127,9 @@ def _mc(args):
                            _positive(args.musp, "--musp", 100) or 1.0,
                            n, g=0.9 if args.g is None else args.g)
         from fluoguide.runs.store import RunStore
-        from FluoTomoLib.montecarlo.engine import load_engine
 
-        load_engine(args.engine)      # missing engine: one line before any cluster starts
+        # missing engine: one line before any cluster starts
+        module_logic("FluoTomo").checkMonteCarloEngine(args.engine)
         # every run is a task of the run engine: written to OUT/mc_runs as it finishes
         # (--resume continues a killed set), split across Dask workers with --workers
         # or --scheduler; a seed draws the same photons wherever it runs
@@ -230,9 +230,9 @@ def _mc_fluorescence(args):
         runs = args.runs or (2 if args.quick else 3)
         radius = 2.0
         from fluoguide.runs.store import RunStore
-        from FluoTomoLib.montecarlo.engine import load_engine
 
-        load_engine(args.engine)      # missing engine: one line before any cluster starts
+        # missing engine: one line before any cluster starts
+        module_logic("FluoTomo").checkMonteCarloEngine(args.engine)
         with TqdmProgress("Monte Carlo") as bar, executor_for(args, threads) as ex:
             res = simulate_acquisition(*[case[k] for k in keys], photons=photons, seed=args.seed,
                                        runs=runs, detector_radius_mm=radius, engine=args.engine,
@@ -279,14 +279,11 @@ def _mc_fluorescence(args):
 
 
 def _mc_tomography(args):
-    from FluoTomoLib.pipelines import tube_mc
-
     from fluoguide.runs.grid import parse_values
 
     # an empty --depths is a mistake, not "the default depths"
-    depths = parse_values(args.depths, "--depths") if args.depths is not None \
-        else list(tube_mc.DEPTHS_MM)
-    for d in depths:
+    depths = parse_values(args.depths, "--depths") if args.depths is not None else None
+    for d in depths or ():
         if not 2.0 <= d <= 16.0:
             raise FluoInputError("tube depths must be within 2..16 mm", field="--depths", value=d)
     for name, v in (("--photons", args.photons), ("--workers", args.workers),
@@ -311,19 +308,15 @@ def _mc_tomography(args):
         raise FluoInputError("expected methods from NP, SP, HP, each once", field="--methods",
                              value=args.methods)
     out = _out_dir(args.out)
+    logic = module_logic("FluoTomo")
     if args.simulate:
-        from FluoTomoLib.montecarlo.engine import load_engine
-
-        load_engine("auto")
+        logic.checkMonteCarloEngine("auto")
     t0 = time.perf_counter()
     with TqdmProgress("mc-tomography") as bar, executor_for(args, threads) as ex:
-        res = tube_mc.validate_tube_mc(
-            depths, mc_root=args.mc_in, simulate=args.simulate,
-            photons=args.photons or tube_mc.PHOTONS, out_dir=out, methods=methods,
-            accuracy=args.accuracy, executor=ex, threads=threads, resume=args.resume,
-            progress=bar)
-    _mkdir(out)
-    res["figure"] = tube_mc.figure(res, out / "validate_mc_tomography.png")
+        res = logic.validateTubeMonteCarlo(
+            out, depths, mcIn=args.mc_in, simulate=args.simulate, photons=args.photons,
+            methods=methods, accuracy=args.accuracy, executor=ex, threads=threads,
+            resume=args.resume, progress=bar)
     _write_csv(out / "validate_mc_tomography.csv", res["rows"], list(res["rows"][0].keys()))
     res["table"] = str(out / "validate_mc_tomography.csv")
     res["seconds"] = time.perf_counter() - t0

@@ -75,25 +75,10 @@ class CalibPanel:
     def light_synth(self):
         """Write synthetic stack / illumination / laser sets (known truth) and point the
         folder field at the chosen one."""
-        from FluoCalibLib.radiometry.camera_response import write_stack
-        from FluoCalibLib.radiometry.synthetic import (
-            synthetic_illumination,
-            synthetic_laser,
-            synthetic_stack,
-            write_illumination_set,
-            write_laser_set,
-        )
-
         root = self.app.workspace.path("synthetic-light", "folder", what="folder", writable=True)
 
         def work(progress, cancel):
-            progress(0.1, "camera stack")
-            frames, truth = synthetic_stack()
-            write_stack(root / "stack", frames, {"truth": truth})
-            progress(0.5, "illumination images")
-            write_illumination_set(root / "illumination", *synthetic_illumination())
-            progress(0.8, "laser images")
-            write_laser_set(root / "laser", *synthetic_laser())
+            self.logic.writeSyntheticLight(root, progress=progress, cancel=cancel)
             return root
 
         def done(folder):

@@ -150,7 +150,7 @@ def probe_scheduler(address, timeout_s=None):
     FluoInputError
         The host name does not resolve.
     """
-    from distributed.comm import parse_address
+    from distributed.comm import CommClosedError, parse_address
     from distributed.comm.registry import get_backend
     from distributed.security import Security
     from tornado.iostream import StreamClosedError
@@ -172,8 +172,10 @@ def probe_scheduler(address, timeout_s=None):
                 if isinstance(cause, socket.gaierror):
                     raise FluoInputError("host name does not resolve", field="--scheduler",
                                          value=address) from None
-                if isinstance(cause, (StreamClosedError, ConnectionResetError)):
-                    raise       # accepted, then closed at once (reported below)
+                # accepted, then closed at once (reported below); Dask says so as
+                # CommClosedError (seen when a module file was imported before the probe)
+                if isinstance(cause, (StreamClosedError, ConnectionResetError, CommClosedError)):
+                    raise
                 if not isinstance(cause, ConnectionRefusedError):
                     raise FluoDeviceError(f"cannot connect to the Dask scheduler at {address} "
                                           f"({_error_text(cause)})") from None
@@ -213,8 +215,6 @@ def probe_scheduler(address, timeout_s=None):
     except (TimeoutError, asyncio.TimeoutError):
         done, info = False, None
     except Exception as exc:  # noqa: BLE001 - whatever the bytes made Dask's reader raise
-        from distributed.comm import CommClosedError
-
         if isinstance(exc, (CommClosedError, EOFError, ConnectionError)):
             when = ("as soon as it accepted it" if step["now"] == "a connection" else
                     f"while we waited for {step['now']}")

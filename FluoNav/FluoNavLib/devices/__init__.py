@@ -11,6 +11,7 @@ Modules
 - ``ndi_protocol``: NDI Combined API (Polaris/Aurora) serial protocol: commands, replies, CRC.
 - ``ndi_simulator``: A protocol-faithful simulated NDI tracker on a pseudo-terminal.
 - ``recorder``: Recording tracked frames to disk incrementally, and replaying them.
+- ``recording``: Tracked camera frames recorded to a folder through the live loop, with the simulated tracker.
 - ``tracker``: One interface over the pose sources: an NDI tracker on a serial port (or the simulator on a pseudo-terminal), an OpenIGTLink server, a recording.
 - ``timesync``: Time synchronisation of tracker poses to camera frames.
 - ``usb``: Find attached NDI trackers and cameras: serial ports (pyserial's ``list_ports``) and USB devices (pyusb), by vendor/product id and USB class.
@@ -26,6 +27,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "ndi_client": ["NDIClient", "TrackingStats"],
     "ndi_protocol": ["NDIProtocolError", "crc16", "with_crc", "check_reply", "command", "ToolPose", "TXReply", "parse_tx", "format_tx", "parse_phsr", "format_phsr", "ERROR_CODES", "PORT_OCCUPIED", "PORT_ENABLED", "PORT_OUT_OF_VOLUME", "PORT_PARTIAL_OUT_OF_VOLUME"],
     "ndi_simulator": ["Faults", "SimTool", "NDISimulator", "FAULT_KINDS"],
+    "recording": ["frame_source", "record_simulated"],
     "recorder": ["Recorder", "read_recording", "replay", "to_scene"],
     "timesync": ["PoseBuffer", "estimate_latency"],
     "tracker": ["SOURCES", "TrackerSession", "NDITracker", "IGTLTracker", "ReplayTracker", "open_tracker", "check_seconds", "parse_host_port", "finite_pose"],

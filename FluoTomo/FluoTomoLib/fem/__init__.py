@@ -9,6 +9,7 @@ Modules
 - ``jacobian_kernels``: Compiled (numba) loops of the Jacobians of boundary data.
 - ``kernels``: The compiled (numba) FEM kernels made ready before long work uses them, with progress.
 - ``locate``: Point location in simplex meshes and closest points on their boundary.
+- ``mesh_data``: Boundary data on a mesh file: the half-space answer where it applies, else the FEM, refused where too coarse.
 - ``operators``: Finite-element CW diffusion on linear triangles (2D) and tetrahedra (3D).
 - ``ordering``: Fill-reducing ordering of FEM matrices from the node coordinates.
 - ``pardiso``: MKL PARDISO through ctypes: sparse Cholesky for the diffusion operators.
@@ -24,6 +25,8 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "jacobian_kernels": ["node_elements", "pair_jacobian"],
     "kernels": ["prepare_kernels"],
     "locate": ["barycentric", "PointLocator", "locator", "BoundaryLocator", "boundary_locator"],
+    "mesh_data": ["read_forward_mesh", "read_points", "check_optodes", "half_space_data",
+                  "fem_data", "mesh_boundary_data"],
     "operators": ["SOLVERS", "check_solver", "geometry", "symmetric_from_upper", "weighted_mass", "stiffness", "MeshResolutionWarning", "DiffusionOperator", "snap_to_surface", "source_positions", "point_source_rhs", "detector_operator"],
     "ordering": ["geometric_nested_dissection"],
     "pardiso": ["mkl_pardiso", "PardisoPattern", "PardisoCholesky"],

@@ -7,6 +7,7 @@ Modules
 - ``nirfast_io``: NIRFAST mesh files: ``.node``, ``.elem``, ``.region``, ``.param``.
 - ``report``: Quality report of a tetrahedral mesh: counts, region volumes, angles, bad elements.
 - ``structured``: Structured simplex meshes: rectangles into triangles, boxes into tetrahedra.
+- ``to_file``: A label map to a tetrahedral mesh file with its quality report.
 - ``tetwild``: Quality tetrahedral meshing of a label map with fTetWild (pytetwild).
 - ``voxel``: Fast structured meshing of a label map: voxels to tetrahedra.
 - ``vtu_io``: Meshes to and from VTK: .vtu files, unstructured grids and surface polydata.
@@ -19,6 +20,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "nirfast_io": ["write_nirfast", "read_nirfast", "write_optodes", "read_optodes"],
     "report": ["dihedral_angles_deg", "aspect_ratio", "quality_report"],
     "structured": ["graded_axis", "optode_axis", "rectangle_mesh", "kuhn_paths", "box_mesh", "slab_mesh"],
+    "to_file": ["optode_edges", "mesh_to_file"],
     "tetwild": ["labelmap_volumes", "labelmap_surface", "decimate_surface", "mesh_labelmap_quality"],
     "voxel": ["mesh_labelmap_structured", "labelmap_region_volumes", "node_labels_from_labelmap", "nodal_volumes", "node_regions_volume_preserving", "region_centroid_mm", "target_refinement"],
     "vtu_io": ["to_vtk", "from_vtk", "write_vtu", "read_vtu", "read_mesh", "boundary_polydata"],

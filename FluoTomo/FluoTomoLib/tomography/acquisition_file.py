@@ -239,6 +239,14 @@ def _read_csv_rows(path, field, allow_unused=False):
     return np.array(rows, float), np.array(used, bool)
 
 
+def read_points_csv(path, field):
+    """Points (N, 3) [RAS mm] from a CSV file of ``x,y,z`` rows (one header line
+    and ``#`` comments allowed), refused naming ``path`` and ``field`` when a
+    row is not three finite numbers."""
+    rows, _ = _read_csv_rows(path, field)
+    return _points(rows, path, field)
+
+
 def _number(doc, key, file, positive=True, default=None):
     v = doc.get(key, default)
     if v is None:

@@ -210,7 +210,7 @@ def test_cli_quality_and_segmentation(tmp_path, fluo):
         simg.SetMetaData(f"Segment{n}_LabelValue", str(value))
         simg.SetMetaData(f"Segment{n}_Layer", "0")
     sitk.WriteImage(simg, str(tmp_path / "s.seg.nrrd"))
-    from fluoapp.commands.mesh import _read_labelmap
+    from fluoguide.labelmap_io import read_labelmap as _read_labelmap
 
     back, *_ = _read_labelmap(tmp_path / "s.seg.nrrd")
     np.testing.assert_array_equal(back, lab)     # segment n -> label n + 1
