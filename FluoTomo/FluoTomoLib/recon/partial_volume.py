@@ -150,3 +150,14 @@ class PartialVolumePrior(RegionPrior):
 
     def K(self):
         return self._F.copy()
+
+
+def region_unknowns(labels):
+    """The prior of a problem whose unknowns are the regions themselves (HP on a
+    region matrix J K): one "node" per region, each wholly its own region."""
+    import warnings
+
+    labels = np.asarray(labels)
+    with warnings.catch_warnings():          # one unknown per region by design
+        warnings.simplefilter("ignore")
+        return PartialVolumePrior(labels, labels, np.eye(len(labels)))

@@ -31,11 +31,9 @@ stop reason says so.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
-from FluoTomoLib.recon.partial_volume import PartialVolumePrior
+from FluoTomoLib.recon.partial_volume import region_unknowns
 from FluoTomoLib.recon.solver import reconstruct
 
 
@@ -68,7 +66,8 @@ FEEDBACK_PENDING = 0.62 / (1 - 0.62)
 
 def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
                                mua_per_yield, lam=10.0, passes=None, rel_tol=0.02,
-                               cancel=None, progress=None, region_weights=None, noise_rel=None):
+                               cancel=None, progress=None, region_weights=None, noise_rel=None,
+                               region_matrix=None):
     """Reconstruct with the fluorophore's absorption fed back into the model.
 
     Parameters
@@ -91,6 +90,9 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
         iterations inside it
     region_weights : SP's region means (``reconstruct``'s), passed on
     noise_rel : the data's relative noise (a fraction), passed on to every solve
+    region_matrix : (M, R) HP's first-pass region sensitivities J @ prior.K(), when
+        the caller has them without J (``TissueModel.region_matrix``; J may then
+        be None)
 
     Returns (ReconResult of the last pass with ``yield_per_mm`` nodal, list of
     the largest nodal yield after each pass).
@@ -133,11 +135,9 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
     # HP: the unknowns are the region values v, the model's data for region r
     # are those of the basis K[:, r]; each pass is forward solves only.
     K = prior.K()
-    with warnings.catch_warnings():          # one unknown per region by design
-        warnings.simplefilter("ignore")
-        unknowns = PartialVolumePrior(np.asarray(prior.labels), prior.labels,
-                                      np.eye(len(prior.labels)))
-    res = first = reconstruct(J @ K, y, "HP", lam=lam, prior=unknowns,
+    unknowns = region_unknowns(prior.labels)
+    A0 = J @ K if region_matrix is None else np.asarray(region_matrix, float)
+    res = first = reconstruct(A0, y, "HP", lam=lam, prior=unknowns,
                               progress=step(0, "first solve"), noise_rel=noise_rel)
     values = [res.yield_per_mm.copy()]     # every state the models were built from
     triple = [values[-1]]                  # the current fixed-point sequence

@@ -304,7 +304,8 @@ class TissueModel:
 
     Attributes
     ----------
-    J : (M, N) yield Jacobian of the used pairs (tissue properties, no dye)
+    J : (M, N) yield Jacobian of the used pairs (tissue properties, no dye), built
+        on first use (NP, SP)
     prior : PartialVolumePrior (HP basis: partial volumes; SP: volume-preserving
         node regions)
     model : FluorescenceModel with the tissue properties
@@ -341,12 +342,57 @@ class TissueModel:
                                        cut_facets=cut_facets, lean=True)
         self.model.progress = progress
         # the fields, then the factorisations freed (about a GB each on a 150k-node
-        # mesh) before the kernel: it and the solvers work on the fields and J
-        # (self-absorption builds its own models)
+        # mesh): the Jacobian kernel, HP's region sensitivities and the solvers
+        # work on the fields (self-absorption builds its own models)
         self.model.phi_x, self.model.adjoint_m      # in this order: lean frees each
         self.model.release()
-        self.J = self.model.jacobian_yield()[self.mask.ravel()]
+        self.timings = timings
+        self._J = None
         timings["jacobian"] = time.perf_counter() - t0
+
+    @property
+    def J(self):
+        """(M, N) yield Jacobian of the used pairs, built from the fields on first
+        use (NP and SP need it; HP works on :meth:`region_matrix` alone, so an
+        HP-only reconstruction never holds these M x N doubles)."""
+        if self._J is None:
+            t0 = time.perf_counter()
+            self._J = self.model.jacobian_yield()[self.mask.ravel()]
+            self.timings["jacobian"] = self.timings.get("jacobian", 0.0) + (
+                time.perf_counter() - t0)
+        return self._J
+
+    def region_matrix(self, prior):
+        """(M, R) the used data's sensitivity to each region's yield for HP's basis
+        (``prior.K()``'s columns, in ``prior.labels`` order).
+
+        Column r is ``J @ K[:, r]`` without J: J[(s, d), k] is the integral of
+        G_d F_s phi_k (excitation field F, emission adjoint G), so summed against
+        K[:, r] it is G_d^T M(K_r) F_s, with M(K_r) the mass matrix weighted by
+        the region's nodal share: one sparse product per region on the stored
+        fields (the self-absorption passes compute the same quantity by forward
+        solves).  Equal to ``J @ K`` to rounding; no (M, N) array.
+        """
+        from FluoTomoLib.fem.operators import weighted_mass
+
+        F, G = self.model.phi_x, self.model.adjoint_m
+        K = prior.K()
+        rows = self.mask.ravel()
+        cols = [(F.T @ (weighted_mass(self.mesh, K[:, r]) @ G)).ravel()[rows]
+                for r in range(K.shape[1])]
+        return np.stack(cols, axis=1)
+
+    def _solve_hp(self, A, y, lam, log_data, noise_rel, cancel=None, progress=None):
+        """HP on its region unknowns (``A`` = :meth:`region_matrix`), the result
+        with the nodal yield K @ values, as reconstruct() returns it."""
+        from FluoTomoLib.recon.partial_volume import region_unknowns
+        from FluoTomoLib.recon.solver import reconstruct
+
+        res = reconstruct(A, y, "HP", lam=lam, prior=region_unknowns(self.prior.labels),
+                          log_data=log_data, cancel=cancel, progress=progress,
+                          noise_rel=noise_rel)
+        res.yield_per_mm = self.prior.K() @ res.yield_per_mm
+        return res
 
     def prior_for(self, labels_kji, spacing_mm=None, origin_mm=None, basis_only=False):
         """(PartialVolumePrior, region_weights) of a segmentation on this model's mesh:
@@ -392,8 +438,15 @@ class TissueModel:
 
         def solve(prior, weights):
             check_cancel(cancel)
-            res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
-                              region_weights=weights, noise_rel=noise_rel)
+            if method == "HP":        # region unknowns: no nodal Jacobian needed
+                from FluoTomoLib.recon.partial_volume import region_unknowns
+
+                res = reconstruct(self.region_matrix(prior), y, "HP", lam=lam,
+                                  prior=region_unknowns(prior.labels), log_data=log_data,
+                                  noise_rel=noise_rel)
+            else:
+                res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
+                                  region_weights=weights, noise_rel=noise_rel)
             return res, {int(k): v["mean_yield_per_mm"]
                          for k, v in res.region_confidence.items()}
 
@@ -458,10 +511,16 @@ class TissueModel:
         feed = (method in tuple(self_absorption or ()) and method in ("HP", "SP")
                 and not log_data and (slopes[0] > 0 or slopes[1] > 0))
         if feed:
+            hp = method == "HP"
             res, passes = reconstruct_self_absorbing(
-                method, self.J, y, self.mask, self.prior, self.make_model, (0.0, 0.0), 0.0,
-                slopes, lam=lam, cancel=cancel, progress=progress,
-                region_weights=self.region_weights, noise_rel=noise_rel)
+                method, None if hp else self.J, y, self.mask, self.prior, self.make_model,
+                (0.0, 0.0), 0.0, slopes, lam=lam, cancel=cancel, progress=progress,
+                region_weights=self.region_weights, noise_rel=noise_rel,
+                region_matrix=self.region_matrix(self.prior) if hp else None)
+        elif method == "HP":
+            res = self._solve_hp(self.region_matrix(self.prior), y, lam, log_data, noise_rel,
+                                 cancel, progress)
+            passes = []
         else:
             res = reconstruct(self.J, y, method=method, lam=lam, prior=self.prior,
                               log_data=log_data, cancel=cancel, progress=progress,

@@ -37,7 +37,7 @@ _JACOBIAN_COPIES = 2
 #: a node, over one Jacobian): SP 6.8 (78,454 nodes) and 7.7 (issue #17's scene
 #: at balanced, 161,749 nodes, 10.0 GB in all); HP 0.8-1.0 and NP 1.4 (78,454 nodes).
 #: The estimate is then 1.12-1.28x the measured peak (docs/reliability.md)
-_PEAK_JACOBIAN_COPIES = {"NP": 2, "HP": 2, "SP": 9}
+_PEAK_JACOBIAN_COPIES = {"NP": 2, "HP": 0, "SP": 9}
 #: largest Jacobian memory [bytes] a reconstruction may take
 MAX_JACOBIAN_BYTES = 4e9
 #: largest regularisation lambda (docs/reconstruction.md's trade table ends at 1e3,
@@ -237,7 +237,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
             if mesh.meta.get("frame") not in (None, "local"):
                 raise FluoInputError("the mesh is not in the label map's frame", field="mesh")
         notes.extend(mesh.meta.get("warnings", []))
-        n_bytes = acquisition.n_measurements * mesh.n_nodes * 8.0 * _JACOBIAN_COPIES
+        # HP alone never builds the nodal Jacobian (TissueModel.region_matrix)
+        one_j = acquisition.n_measurements * mesh.n_nodes * 8.0
+        n_bytes = one_j * _JACOBIAN_COPIES if any(m != "HP" for m in methods) else 0.0
         if n_bytes > MAX_JACOBIAN_BYTES:
             raise FluoInputError(f"{acquisition.n_measurements} measurements x {mesh.n_nodes} "
                                  f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
@@ -247,8 +249,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
 
         # and what this machine has left, for the method that needs the most
         copies = max(_PEAK_JACOBIAN_COPIES[m] for m in methods)
-        check_fem_memory(mesh.n_nodes, n_bytes / _JACOBIAN_COPIES * copies, h,
-                         per_node=RECON_BYTES_PER_NODE)
+        check_fem_memory(mesh.n_nodes, one_j * copies, h, per_node=RECON_BYTES_PER_NODE)
         check_cancel(cancel)
         report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
                               f"{acquisition.n_measurements} measurements)")
