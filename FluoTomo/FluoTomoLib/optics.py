@@ -9,6 +9,7 @@ albedo outside diffusion's range (musp/mua < 10) warns.
 from __future__ import annotations
 
 import contextlib
+import functools
 import warnings
 
 import numpy as np
@@ -148,6 +149,17 @@ def fresnel_reflectance(cos_i, n):
     return out
 
 
+@functools.lru_cache(maxsize=4)
+def _gauss_legendre(points):
+    """Gauss-Legendre nodes and weights on [-1, 1], kept: every diffusion operator
+    asks (its boundary constant), and the 400-point rule is an eigenvalue
+    problem (0.2-0.4 s where BLAS threads compete for the cores)."""
+    x, w = np.polynomial.legendre.leggauss(points)
+    x.flags.writeable = False
+    w.flags.writeable = False
+    return x, w
+
+
 def fresnel_moments(n, points=400):
     """(R_phi, R_J): the Fresnel reflectance's fluence and flux moments
     R_phi = 2 int_0^1 R(mu) mu dmu, R_J = 3 int_0^1 R(mu) mu^2 dmu (mu = cos of the
@@ -156,7 +168,7 @@ def fresnel_moments(n, points=400):
     if n <= 1.0:
         return 0.0, 0.0
     mu_c = np.sqrt(1.0 - 1.0 / n**2)
-    x, w = np.polynomial.legendre.leggauss(points)
+    x, w = _gauss_legendre(int(points))
     # [0, mu_c]: total reflection (R = 1); [mu_c, 1]: Fresnel
     mu = mu_c + (1.0 - mu_c) * 0.5 * (x + 1.0)
     wm = w * 0.5 * (1.0 - mu_c)

@@ -13,9 +13,10 @@ import sys
 import time
 from contextlib import contextmanager
 
+import numpy as np
 import pytest
 
-from event_loop import watch
+from event_loop import Reports, watch
 from fluoguide.jobs import BackgroundJob
 
 
@@ -51,20 +52,34 @@ def kernels_frozen():
 
 @pytest.mark.slow      # a whole reconstruction (5-12 s) plus the shared scene's simulation
 def test_the_event_loop_keeps_turning_during_a_reconstruction(qt_app, reconstruction_job):
+    """... and the reconstruction reports at least every 2 s from start to end (the
+    moved segmentation's solves were 12-37 s silent, each self-absorption pass's
+    model 2-9 s: measured unpinned, as here and in Slicer)."""
     logic, work = reconstruction_job
+    reports = Reports()
     with kernels_frozen():       # and no kernel is compiled inside a step
-        job = BackgroundJob(work, name="Reconstruction").start()
+        job = BackgroundJob(reports.wrap(work), name="Reconstruction").start()
         ticks, states = watch(job)
         final = job.wait(60)
     assert final.status == "done", final.error
     gaps = [b - a for a, b in zip(ticks, ticks[1:])]
     # the loop ran all along: a 20 ms timer never waited a second (the GIL is
     # released in the numerical kernels); on the GUI thread it would not tick at all
-    assert len(ticks) > 20 and max(gaps) < 1.0, (len(ticks), max(gaps))
+    worst = int(np.argmax(gaps))
+    assert len(ticks) > 20 and max(gaps) < 1.0, (len(ticks), max(gaps), [
+        (round(t - ticks[worst], 2), m) for t, _, m in reports.items
+        if ticks[worst] - 3 < t < ticks[worst + 1] + 1])       # what ran then
     print(f"{len(ticks)} ticks of the 20 ms timer in {final.seconds:.1f} s; longest wait "
           f"{1000 * max(gaps):.0f} ms, median {1000 * sorted(gaps)[len(gaps) // 2]:.0f} ms; "
           f"{final.updates} progress reports, the longest step without one "
-          f"{max(st.step_seconds for st in states):.1f} s")
+          f"{max(st.step_seconds for st in states):.1f} s; longest gap between reports "
+          f"{reports.longest_gap():.2f} s")
+    # issue #33's rule, the whole way (1.1-1.4 s measured on a loaded 2-core machine)
+    assert reports.longest_gap() <= 2.0, [(round(t - reports.started, 2), m)
+                                          for t, _, m in reports.items]
+    for step in ("segmentation moved by", "moved by +1 mm (4 of 4)", "self-absorption pass 1",
+                 "excitation: factorising", "tissue-air nodes onto the surface"):
+        assert any(step in m for m in reports.messages), (step, reports.messages)
     node = logic.storeReconstructionResult(final.result)          # back on this thread
     assert node.GetName() == "FluoTomoYieldHP"
     # progress said what it was doing at each step, in order

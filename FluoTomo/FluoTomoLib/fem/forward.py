@@ -127,12 +127,19 @@ class FluorescenceModel:
         self._adj_x = None
         self.timings = {"assembly": self.op_x.assembly_seconds}
         # progress(fraction, message) of the steps a Jacobian takes (set by the
-        # caller: TissueModel); each step says what it is doing before it starts
+        # caller: TissueModel); each step says what it is doing before it starts,
+        # and a large factorisation its seconds as it goes (_factorized); cancel:
+        # a CancelToken checked there
         self.progress = None
+        self.cancel = None
 
     def _say(self, fraction, message):
         if self.progress is not None:
             self.progress(fraction, message)
+
+    def _factorized(self, op, fraction, message):
+        """``op`` factorised, reporting from beside a large factorisation."""
+        return op.factorize(self.progress, fraction, message, self.cancel)
 
     @property
     def op_m(self):
@@ -163,6 +170,8 @@ class FluorescenceModel:
             t0 = time.perf_counter()
             self._say(0.0, f"excitation: factorising ({self.mesh.n_nodes} nodes) and solving "
                            f"{self.n_sources} source(s)")
+            self._factorized(self.op_x, 0.0, f"excitation: factorising ({self.mesh.n_nodes} "
+                                             "nodes)")
             self._phi_x = self.op_x.solve(self.q, readout=self.P)
             self.timings["forward_x"] = time.perf_counter() - t0
             self.timings["factor"] = self.op_x.factor_seconds
@@ -177,6 +186,7 @@ class FluorescenceModel:
             t0 = time.perf_counter()
             self._say(0.4, f"emission: factorising and solving {self.n_detectors} detector "
                            "adjoint(s)")
+            self._factorized(self.op_m, 0.4, "emission: factorising")
             self._adj_m = self.op_m.solve(self.P.T.tocsc(), readout=self.q.T)
             self.timings["adjoint_m"] = time.perf_counter() - t0
             self.timings["factor"] = self.timings.get("factor", 0) + self.op_m.factor_seconds
@@ -186,6 +196,7 @@ class FluorescenceModel:
     def adjoint_x(self):
         """(N, D) excitation-wavelength adjoint fields."""
         if self._adj_x is None:
+            self._factorized(self.op_x, 0.0, "excitation: factorising")
             self._adj_x = self.op_x.solve(self.P.T.tocsc(), readout=self.q.T)
         return self._adj_x
 
@@ -204,6 +215,7 @@ class FluorescenceModel:
         """(N, S) emission fluence for a nodal yield (forward solves, no adjoint)."""
         gamma = np.asarray(yield_per_mm, float)
         rhs = weighted_mass(self.mesh, gamma) @ self.phi_x
+        self._factorized(self.op_m, 0.4, "emission: factorising")
         return self.op_m.solve(rhs)
 
     def emission_data(self, yield_per_mm):

@@ -19,6 +19,7 @@ import glob
 import os
 import site
 import sys
+import threading
 import time
 
 import numpy as np
@@ -126,8 +127,17 @@ class PardisoPattern:
         self._free = list(range(self.slots, 0, -1))
         self._analysed = False
         self.analysis_seconds = 0.0
+        # one call at a time on the handle: a factorisation may run on a helper
+        # thread (DiffusionOperator.factorize reporting beside it) and a factor's
+        # memory is freed by whichever thread collects its owner; re-entrant, as
+        # a collection can run on this thread while the arguments are built
+        self._lock = threading.RLock()
 
     def _call(self, phase, mnum, a, b, x, name):
+        with self._lock:
+            self._call_locked(phase, mnum, a, b, x, name)
+
+    def _call_locked(self, phase, mnum, a, b, x, name):
         err = ctypes.c_int32(0)
         nrhs = b.shape[1] if b.ndim == 2 else 1
         self._fn(self._pt.ctypes.data, _i32(self.slots), _i32(mnum), _i32(2), _i32(phase),
@@ -143,6 +153,10 @@ class PardisoPattern:
     def factor(self, a, name):
         """Numeric factorisation of the values ``a``; returns its slot, or None
         when every slot is taken (the caller then uses a handle of its own)."""
+        with self._lock:          # the analysis and the slots too
+            return self._factor(a, name)
+
+    def _factor(self, a, name):
         if not self._free:
             return None
         z = np.zeros((self.n, 1))
@@ -166,10 +180,11 @@ class PardisoPattern:
 
     def release_slot(self, mnum):
         """Free the factor in ``mnum`` (PARDISO phase 0) for the next matrix."""
-        if self._analysed and mnum not in self._free:
-            z = np.zeros((self.n, 1))
-            self._call(0, mnum, np.zeros(1), z, z, self.name)
-            self._free.append(mnum)
+        with self._lock:
+            if self._analysed and mnum not in self._free:
+                z = np.zeros((self.n, 1))
+                self._call(0, mnum, np.zeros(1), z, z, self.name)
+                self._free.append(mnum)
 
     def __del__(self):
         try:

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 
 @dataclass
@@ -424,7 +424,8 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         Kb = np.eye(A_s.shape[1]) if K is not None else prior.K()
         resolution = (Kb, _unresolved(method, prior, Jm, np.column_stack([Kb, x_start]),
                                       len(history) - 1, lam, lambda_decay,
-                                      {cached_lam: (RJt, ds)}))
+                                      {cached_lam: (RJt, ds)},
+                                      scaled(progress, it / max_iter, 1.0), cancel))
     excess = s_fit = None
     if sigma is not None:
         s_fit = np.broadcast_to(sigma / np.abs(y) if log_data else np.ldexp(sigma, -b_exp),
@@ -446,16 +447,23 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
                        conf, clipped, stop, diag, warn)
 
 
-def _unresolved(method, prior, Jm, V, iterations, lam, decay, cache):
+def _unresolved(method, prior, Jm, V, iterations, lam, decay, cache, progress=None,
+                cancel=None):
     """(I - T_k) ... (I - T_1) V for the columns of V, T_j = H_j^-1 J^T J the step
     operator of iteration j (damping lambda / decay^(j-1)). For linear data the
     solver's result from the start x0 is, in expectation, x0 + (I - P)(x - x0)
     for a truth x, P = (I - T_k)...(I - T_1): what the iterations leave
     unresolved of the truth. The non-negativity clip is not modelled.
-    ``cache``: {lambda: (R^-1 J^T, data-space system)} already built."""
+    ``cache``: {lambda: (R^-1 J^T, data-space system)} already built.
+    ``progress`` hears of each iteration replayed: with a decaying lambda (HP)
+    each builds its own data-space system, as long as an iteration of the
+    solve itself (seconds each where BLAS threads compete for the cores)."""
     V = np.array(V, float)
     lam_j = float(lam)
-    for _ in range(max(int(iterations), 0)):
+    n = max(int(iterations), 0)
+    for j in range(n):
+        check_cancel(cancel)
+        report(progress, j / n, f"{method} intervals: iteration {j + 1} of {n} replayed")
         if lam_j not in cache:
             _, _, _, RJt, ds = _step_system(method, prior, Jm, np.zeros(Jm.shape[1]), False,
                                             lam_j)

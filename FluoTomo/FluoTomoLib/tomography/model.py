@@ -63,11 +63,15 @@ def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refin
     optode_normals, burial_mm : the surface's outward normals at the optodes and
         the sources' burial depth: a band of cells burial_mm / 2 thick under them
         (:func:`surface_band`)
+    progress, cancel : progress(fraction, message) of each step (the target's
+        refinement, the grid's labels and tetrahedra, the fit to the surface)
+        and a CancelToken checked between them
 
     Returns
     -------
     Mesh (meta: ``edges_mm``, ``target``, volumes and fidelity warnings).
     """
+    from fluoguide.progress import check_cancel, report, scaled
     from FluoTomoLib.meshing.voxel import mesh_labelmap_structured, target_refinement
 
     labels = np.asarray(labels_kji)
@@ -94,6 +98,7 @@ def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refin
         if anchor is None:
             anchor = origin + ijk.mean(axis=0) * spacing
         if refine_factor is not None and refine_factor < 1:
+            report(progress, 0.0, f"cells across label {int(target)}")
             ref = target_refinement(labels, spacing, origin, roi, refine_factor * size_mm,
                                     margin_mm=2.0 * size_mm, label=int(target))
             for a in range(3):
@@ -127,7 +132,7 @@ def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refin
         warnings.simplefilter("ignore", MeshFidelityWarning)
         mesh = mesh_labelmap_structured(labels, spacing, origin, base, roi=roi,
                                         anchor_mm=anchor, refine=refine, name=name,
-                                        progress=progress, cancel=cancel)
+                                        progress=scaled(progress, 0.1, 0.7), cancel=cancel)
     if "edges_mm" not in mesh.meta:        # uniform grid: its lines, for the dual cells
         from FluoTomoLib.meshing.voxel import grid_edges
 
@@ -136,7 +141,10 @@ def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refin
     mesh.meta["coarse_mm"] = base
     mesh.meta["target"] = None if target is None else int(target)
     if surface is not None:
+        check_cancel(cancel)
+        report(progress, 0.7, f"tissue-air nodes onto the surface ({mesh.n_nodes} nodes)")
         mesh = fit_to_surface(mesh, surface, roi)
+    report(progress, 1.0, f"{mesh.n_nodes} nodes")
     return mesh
 
 
@@ -301,6 +309,8 @@ class TissueModel:
         label map, where the tissue goes on (``LabelMap.cut_facets``); default none
     progress : progress(fraction, message) of building the Jacobian (each step:
         factorisation and solves of either wavelength, the kernel)
+    nodal_jacobian : build the (M, N) Jacobian now (NP, SP); False: on first use
+        of ``J`` only (HP alone needs the fields and :meth:`region_matrix`)
 
     Attributes
     ----------
@@ -314,7 +324,8 @@ class TissueModel:
 
     def __init__(self, mesh, labels_kji, spacing_mm, optics, sources_mm, detectors_mm, mask,
                  origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None,
-                 cut_facets=None, progress=None):
+                 cut_facets=None, progress=None, nodal_jacobian=True):
+        from fluoguide.progress import report
         from FluoTomoLib.fem.forward import FluorescenceModel
 
         timings = {} if timings is None else timings
@@ -327,6 +338,7 @@ class TissueModel:
         self.source_normals = source_normals
         self.cut_facets = cut_facets
         labels = np.asarray(labels_kji)
+        report(progress, 0.0, f"partial volumes of the regions at {mesh.n_nodes} nodes")
         self.region_labels, self.fractions = membership(mesh, labels, spacing_mm, origin_mm)
         optics.check_labels(self.region_labels)
         self.props_x, self.props_m = optics.nodal(self.region_labels, self.fractions)
@@ -334,9 +346,11 @@ class TissueModel:
         self.background = max(vols, key=vols.get)
         self.labels_kji, self.spacing_mm = labels, np.asarray(spacing_mm, float)
         self.origin_mm = np.asarray(origin_mm, float)
+        report(progress, 0.0, "the priors (the regions' node weights)")
         self.prior, self.region_weights = self.prior_for(labels)
         timings["prior"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        report(progress, 0.0, "forward model")
         self.model = FluorescenceModel(mesh, self.props_x, self.props_m, self.sources_mm,
                                        self.detectors_mm, source_normals=source_normals,
                                        cut_facets=cut_facets, lean=True)
@@ -349,6 +363,9 @@ class TissueModel:
         self.timings = timings
         self._J = None
         timings["jacobian"] = time.perf_counter() - t0
+        if nodal_jacobian:
+            self.J                    # built now, inside this step's share of the bar
+        self.model.progress = None    # a later build would report into a finished bar
 
     @property
     def J(self):
@@ -419,7 +436,7 @@ class TissueModel:
                 label_mean_weights(self.mesh, labels_kji, sp, org, self.region_labels))
 
     def segmentation_shifts(self, y, method, lam, delta_mm, log_data=False, noise_rel=None,
-                            cancel=None, steps=2):
+                            cancel=None, steps=2, progress=None):
         """How the regions' values move with the segmentation's boundaries: every
         region but the background eroded and dilated by 1..``steps`` times
         ``delta_mm`` [mm] (:func:`perturb_regions`), the data solved again on the
@@ -432,25 +449,34 @@ class TissueModel:
         at each offset - unmoved value]} [1/mm], ``kept`` [bool per offset],
         ``base`` {label: unmoved value}, ``best_offset_mm`` (the best-fitting
         offset) and ``unmoved_ruled_out`` (the segmentation as given fits worse than
-        a moved one by more than that: it is likely off)."""
-        from fluoguide.progress import check_cancel
+        a moved one by more than that: it is likely off).
+
+        ``progress(fraction, message)`` hears of each solve (one per offset, and
+        the solver's iterations inside it) and of each moved segmentation's
+        prior; ``cancel`` is checked between them and in the solver."""
+        from fluoguide.progress import check_cancel, report, scaled
         from FluoTomoLib.recon.solver import reconstruct
 
-        def solve(prior, weights):
+        offsets = [k * delta_mm for k in range(-steps, steps + 1) if k != 0]
+        parts = len(offsets) + 1
+
+        def solve(k, what, prior, weights):
             check_cancel(cancel)
+            part = scaled(progress, k / parts, (k + 1) / parts, what)
             if method == "HP":        # region unknowns: no nodal Jacobian needed
                 from FluoTomoLib.recon.partial_volume import region_unknowns
 
                 res = reconstruct(self.region_matrix(prior), y, "HP", lam=lam,
                                   prior=region_unknowns(prior.labels), log_data=log_data,
-                                  noise_rel=noise_rel)
+                                  noise_rel=noise_rel, cancel=cancel, progress=part)
             else:
                 res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
-                                  region_weights=weights, noise_rel=noise_rel)
-            return res, {int(k): v["mean_yield_per_mm"]
-                         for k, v in res.region_confidence.items()}
+                                  region_weights=weights, noise_rel=noise_rel, cancel=cancel,
+                                  progress=part)
+            return res, {int(lab): v["mean_yield_per_mm"]
+                         for lab, v in res.region_confidence.items()}
 
-        res0, base = solve(self.prior, self.region_weights)
+        res0, base = solve(0, "as segmented", self.prior, self.region_weights)
         # a boundary moved by less than a voxel: on a grid f times finer (each voxel
         # split, labels kept), where delta_mm is at least one fine voxel
         f = int(min(max(np.ceil(np.max(self.spacing_mm) / delta_mm - 1e-9), 1), 3))
@@ -468,10 +494,16 @@ class TissueModel:
             fine = np.repeat(fine, f, axis=ax)
         sp = self.spacing_mm / f
         org = self.origin_mm + lo * self.spacing_mm - 0.5 * self.spacing_mm + 0.5 * sp
-        offsets = [k * delta_mm for k in range(-steps, steps + 1) if k != 0]
-        moved = [solve(*self.prior_for(perturb_regions(fine, sp, d, self.background), sp, org,
-                                       basis_only=method == "HP"))
-                 for d in offsets]
+        moved = []
+        for k, d in enumerate(offsets, start=1):
+            what = f"moved by {d:+.2g} mm ({k} of {len(offsets)})"
+            check_cancel(cancel)
+            # the moved labels on the finer grid and their partial volumes: about a
+            # solve's time of its own on a large region of interest
+            report(progress, k / parts, f"{what}: its prior")
+            prior = self.prior_for(perturb_regions(fine, sp, d, self.background), sp, org,
+                                   basis_only=method == "HP")
+            moved.append(solve(k, what, *prior))
         dof = max(len(y) - res0.diagnostics.get("effective_parameters", 0.0), 1.0)
         var = res0.residual / dof
         rss = [r.residual for r, _ in moved]

@@ -230,7 +230,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                        else None,
                                        optode_normals=lm.surface().closest(
                                            np.vstack([src, det]))[1],
-                                       burial_mm=mfp, cancel=cancel)
+                                       burial_mm=mfp, cancel=cancel,
+                                       progress=scaled(progress, 0.15, 0.3,
+                                                       "reconstruction mesh"))
             timings["meshing"] = time.perf_counter() - t0
         else:
             roi_info = {"chosen": "the mesh given", "truncation_max_pct": None}
@@ -256,7 +258,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         tm = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det,
                          acquisition.mask, source_normals=lm.surface().closest(src)[1],
                          timings=timings, cut_facets=lm.cut_facets(mesh),
-                         progress=scaled(progress, 0.3, 0.6, "Jacobian"))
+                         progress=scaled(progress, 0.3, 0.6, "Jacobian"),
+                         nodal_jacobian=any(m != "HP" for m in methods))
+        report(progress, 0.6, "the priors' volumes and the mesh's own error in the data")
         prior_volumes, prior_notes = check_prior_volumes(
             tm.prior, mesh, mesh.meta.get("labelmap_volumes_mm3", {}))
         forward_err = _forward_error(tm, acquisition.mask)
@@ -277,8 +281,10 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
             # SP re-solved cost 3 of their solves each; their region means over a
             # moved label move like HP's values, the data pinning the same total)
             report(progress, 0.985, f"segmentation moved by +-{seg_mm:.2g} mm")
-            shifts = tm.segmentation_shifts(y, "HP", lam, seg_mm, data_model == "log",
-                                            noise_rel, cancel)
+            shifts = tm.segmentation_shifts(
+                y, "HP", lam, seg_mm, data_model == "log", noise_rel, cancel,
+                progress=scaled(progress, 0.985, 0.999, f"segmentation moved by "
+                                f"+-{seg_mm:.2g} mm"))
     for text in _once(str(w.message) for w in caught):
         if text not in notes:
             notes.append(text)

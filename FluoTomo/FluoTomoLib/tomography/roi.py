@@ -128,9 +128,12 @@ def choose_roi(lm, optics, sources, detectors, mask, target=None, tol_pct=1.0, a
                 info["note"] = ("the region is the reference region: its own truncation is "
                                 "not estimated")
             break
-        report(progress, 0.02, f"region of interest: margin {margin:.0f} mm")
         if ref is None:
+            # two coarse forward models, a second or more each on a large map
+            report(progress, 0.02, "region of interest: the reference's data")
             ref, _ = _data(lm, optics, ref_roi, sources, detectors, mask, anchor, estimate_mm)
+            check_cancel(cancel)
+        report(progress, 0.02, f"region of interest: margin {margin:.0f} mm")
         got, _ = _data(lm, optics, roi, sources, detectors, mask, anchor, estimate_mm)
         rel = np.abs(got - ref) / np.maximum(np.abs(ref), 1e-300)
         info.update(margin_mm=margin, truncation_max_pct=100.0 * float(np.max(rel)),
