@@ -1,5 +1,6 @@
 # FluoGuide: the two commands of README.md.
-#   make demo   set up .venv and run the main job (end-to-end demo on the digital phantom)
+#   make demo   set up .venv and run the main job (the end-to-end demo on the digital
+#               phantoms, laptop-sized: fluo demo --quick; make demo-full for the study)
 #   make test   set up .venv if needed and run the whole test suite
 PYTHON ?= python3.11
 VENV   := .venv
@@ -7,7 +8,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-out
 
-.PHONY: demo demo-quick test test-fast bench venv clean system-deps
+.PHONY: demo demo-full demo-quick test test-fast bench venv clean system-deps
 
 venv: $(STAMP)
 
@@ -18,10 +19,13 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/fluo demo --out $(DEMO_OUT)
-
-demo-quick: $(STAMP)
 	$(VENV)/bin/fluo demo --quick --out $(DEMO_OUT)
+
+demo-quick: demo
+
+# the whole study (five tube depths at the balanced level): a workstation's memory
+demo-full: $(STAMP)
+	$(VENV)/bin/fluo demo --out $(DEMO_OUT)
 
 # one thread per library, as the fluo CLI's default (docs/performance.md): on a busy
 # 2-core machine the libraries' own defaults ran a reconstruction 7-11x slower
