@@ -239,14 +239,6 @@ APP_LIB_DEBT = {
         "FluoTomoLib.pipelines.cases": {"case_of_record", "case_tasks"},
         "FluoTomoLib.scene": {"store_reconstructions"},
     },
-    # fluo validate mc and mc-fluorescence: the half-space and fluorescence comparisons
-    "fluoapp/commands/validate.py": {
-        "FluoTomoLib.montecarlo": {"compare", "reference"},
-        "FluoTomoLib.montecarlo.acquisition": {"simulate_acquisition"},
-        "FluoTomoLib.montecarlo.halfspace": {"HalfSpace", "simulate_halfspace"},
-        "FluoTomoLib.montecarlo.plots": {"validation_figure"},
-        "FluoTomoLib.optics": {"robin_A"},
-    },
     # the web app's tracked stream: its own frame loop
     "fluoapp/webapp/nav_panel.py": {
         "FluoCalibLib.geometry": {"transforms"},
