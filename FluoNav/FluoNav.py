@@ -494,6 +494,90 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         return run_mapping_benchmark(repeats, binning, progress=progress)
 
+    @staticmethod
+    def validateSurfaceMapping(views=4, binning=4, seed=0, figureFile=None, progress=None,
+                               cancel=None):
+        """Surface mapping of the oral-cavity phantom (homogeneous fluorescence)
+        graded on frames the software did not make (rendered on the analytic
+        surface from the true poses, corrected with the CBCT mesh and tracked
+        poses) and on its own mesh with exact poses (self-consistent).
+
+        Parameters
+        ----------
+        views : int
+            Tracked views looking into the cavity.
+        binning : int
+            Camera binning (4: 348 x 260 pixels).
+        seed : int
+            Noise and pose-error seed.
+        figureFile : path, optional
+            PNG of view 1: raw counts, the transport without and with the
+            model-error guard, each with its 40 % contour.
+
+        Returns
+        -------
+        dict
+            Every case's transport and miss-rate numbers, guarded (``cases``)
+            and not (``cases_unguarded``), ``miss_rate_raw_pct`` per view,
+            ``images`` of view 1, and ``view_contours``: ``raw`` (counts above
+            offset [ADU]) and ``self-consistent`` (transport T) of view 1, each
+            ``image``, ``mask``, ``contour`` (40 % of the peak) and
+            ``miss_rate_pct`` [%].
+        """
+        from FluoNavLib.mapping.contours import miss_rate
+        from FluoNavLib.mapping.mismatch import mapping_under_mismatch, mismatch_figure
+
+        res = mapping_under_mismatch(n_views=views, binning=binning, seed=seed, keep_images=True,
+                                     progress=progress, cancel=cancel)
+        contours = {}
+        for name, (image, mask) in (("raw", res["images"]["raw"]),
+                                    ("self-consistent",
+                                     res["images"]["self-consistent"]["unguarded"])):
+            rate, contour, _ = miss_rate(image, mask)
+            contours[name] = {"image": image, "mask": mask, "contour": contour,
+                              "miss_rate_pct": rate}
+        res["view_contours"] = contours
+        if figureFile is not None:
+            mismatch_figure(figureFile, res)
+        return res
+
+    @staticmethod
+    def timeSurfaceCast(triangles=62000, seed=0, repeats=3, binnedRepeats=10, binning=10):
+        """Frame rate [1/s] of the per-pixel cast (every pixel's ray onto the
+        surface; no illumination model) of the open-field camera (1392 x 1040
+        px) into the oral-cavity phantom's surface of ``triangles`` triangles,
+        at full resolution and ``binning`` x binned: the median of ``repeats``
+        and ``binnedRepeats`` timed casts (the first includes compiling).
+
+        Returns
+        -------
+        dict
+            ``triangles``, ``frames_per_s_full``, ``frames_per_s_binned`` [1/s].
+        """
+        import time
+
+        import numpy as np
+
+        from FluoNavLib.mapping.pixel_cast import cast_camera
+        from FluoNavLib.mapping.synthetic import open_field_camera, oral_cavity_surface, view_poses
+
+        caster, _ = oral_cavity_surface(triangles, seed=seed)
+        camera = open_field_camera()
+        pose = view_poses(2)[1]
+
+        def median_s(n, **options):
+            ts = []
+            for _ in range(n):
+                t0 = time.perf_counter()
+                cast_camera(caster, camera, pose, **options)
+                ts.append(time.perf_counter() - t0)
+            return float(np.median(ts))
+
+        full = median_s(repeats)
+        binned = median_s(binnedRepeats, binning=binning)
+        return {"triangles": caster.n_faces, "frames_per_s_full": 1.0 / full,
+                "frames_per_s_binned": 1.0 / binned}
+
     # -- recordings ------------------------------------------------------------------
     def importRecording(self, folder):
         """A recording folder (``fluo record``) as frame_store nodes in this scene;

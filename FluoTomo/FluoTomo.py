@@ -1076,7 +1076,8 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     @staticmethod
     def validateTubeMonteCarlo(outputFolder, depths=None, mcIn=None, simulate=False,
                                photons=None, methods=("NP", "SP", "HP"), accuracy="fast",
-                               executor=None, threads=1, resume=False, progress=None):
+                               executor=None, threads=1, resume=False, progress=None,
+                               figureName="validate_mc_tomography.png"):
         """The cylinder-tube phantom reconstructed from Monte Carlo data and from
         diffusion-FEM data of the same optodes (docs/validation.md).
 
@@ -1084,7 +1085,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         folder of ``depth_<d>mm`` acquisitions (default: the stored ones);
         ``simulate``: run the Monte Carlo here (``photons`` per run) into
         ``outputFolder``/mc. Returns the rows (yield and centroid errors per
-        depth, method and data) and writes ``validate_mc_tomography.png`` to
+        depth, method and data) and writes the figure ``figureName`` to
         ``outputFolder`` (``figure``: its path)."""
         from pathlib import Path
 
@@ -1096,8 +1097,349 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             out_dir=outputFolder, methods=list(methods), accuracy=accuracy, executor=executor,
             threads=threads, resume=resume, progress=progress)
         Path(outputFolder).mkdir(parents=True, exist_ok=True)
-        res["figure"] = tube_mc.figure(res, Path(outputFolder) / "validate_mc_tomography.png")
+        res["figure"] = tube_mc.figure(res, Path(outputFolder) / figureName)
         return res
+
+    @staticmethod
+    def tomographyCaseTasks(tubeDepthsMm=(), oral=False, seed=0, tubeOptions=None,
+                            oralOptions=None):
+        """The run-engine tasks of the tomography cases (``fluo demo``'s): a
+        simulated tracked acquisition and its NP/SP/HP reconstructions of the
+        cylinder-tube phantom per depth, then the oral cavity's.
+
+        Parameters
+        ----------
+        tubeDepthsMm : sequence of float
+            Depth of the tube [mm], one case each.
+        oral : bool
+            Add the oral-cavity case.
+        seed : int
+            Each case's noise seed (and its phantom's).
+        tubeOptions, oralOptions : dict, optional
+            Options of the cases over their own (``fine_mm`` [mm],
+            ``n_sources``, ``accuracy``, ...); an unknown name is a
+            FluoInputError before any work.
+
+        Returns
+        -------
+        list of fluoguide.runs.Task
+            For :meth:`runTomographyCases`.
+        """
+        from FluoTomoLib.pipelines.cases import case_tasks
+
+        return case_tasks(tubeDepthsMm, oral=oral, seed=seed, tube_options=tubeOptions,
+                          oral_options=oralOptions)
+
+    @staticmethod
+    def runTomographyCases(tasks, recordFolder, resume=False, executor=None, threads=None,
+                           progress=None, cancel=None, label="tomography cases"):
+        """Run the tasks of :meth:`tomographyCaseTasks` on the run engine, each
+        case recorded in ``recordFolder`` as it finishes.
+
+        Parameters
+        ----------
+        tasks : list of fluoguide.runs.Task
+        recordFolder : path
+            Where the cases' records go; ``resume`` reuses the finished ones.
+        executor, threads
+            Where the cases run (None: serially in this process) and the
+            library threads of each (None: the process's).
+        label : str
+            The run's name in progress messages.
+
+        Returns
+        -------
+        dict
+            The run's account (``tasks``, ``computed``, ``reused``,
+            ``failures``, ``seconds`` [s], ``executor``, ``workers``,
+            ``failed``: each failed case's ``params`` and ``error``), ``store``
+            (the records folder) and ``cases``: each case as the tomography
+            pipeline returns it (``results``, ``coarse``, ``sections``, ...), in
+            task order; empty when a case failed.
+        """
+        from fluoguide.runs import RunStore, run_tasks
+        from FluoTomoLib.pipelines.cases import case_of_record
+
+        store = RunStore(recordFolder, resume=resume)
+        run = run_tasks(tasks, store=store, executor=executor, threads=threads,
+                        progress=progress, cancel=cancel, label=label)
+        run["store"] = str(store.dir)
+        run["cases"] = [] if run["failed"] else [case_of_record(rec, store.arrays(rec))
+                                                 for rec in run["records"]]
+        return run
+
+    @staticmethod
+    def writeReconstructionMesh(case, path, methods=("NP", "SP", "HP")):
+        """A case's reconstruction mesh as a VTU file, each method's yield
+        [1/mm] as point data (``case``: one of :meth:`runTomographyCases`)."""
+        from FluoTomoLib.meshing.vtu_io import write_vtu
+
+        write_vtu(case["coarse"], path,
+                  point_data={m: case["results"][m]["yield"] for m in methods})
+
+    # -- the diffusion model against Monte Carlo (fluo validate mc, mc-fluorescence) ------
+    @staticmethod
+    def _outputFolder(outputFolder):
+        """``outputFolder`` created (a folder that refuses it: one line naming ``--out``)."""
+        from pathlib import Path
+
+        from fluoguide import atomic
+
+        out = Path(outputFolder)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise atomic.output_error(exc, out, "--out") from None
+        return out
+
+    @staticmethod
+    def halfSpaceMonteCarlo(outputFolder, mua=None, musp=None, n=None, g=None, mcIn=None,
+                            photons=250_000, runs=4, seed=1, engine="auto", executor=None,
+                            threads=1, resume=False, commandLine=None, progress=None):
+        """Monte Carlo of a pencil beam on a semi-infinite medium (a 160 x 160 x
+        80 mm box of 1 mm voxels), run here or read from a stored set.
+
+        Parameters
+        ----------
+        outputFolder : path
+            Where the runs' records go (``mc_runs``, ``resume`` continues them)
+            and the set ``mc_halfspace.json`` (created when Monte Carlo runs).
+        mua, musp : float, optional
+            Absorption and reduced scattering [1/mm] (default 0.01, 1.0).
+        n, g : float, optional
+            Refractive index of the tissue (outside air; default 1.37) and
+            anisotropy (default 0.9).
+        mcIn : path, optional
+            A stored half-space set (JSON) instead of running Monte Carlo; the
+            properties given must then be the set's own.
+        photons, runs, seed : int
+            Photons per run, independent runs, the first run's seed.
+        engine : str
+            ``auto``, ``mcxcl`` or ``mcx`` (:meth:`checkMonteCarloEngine`).
+        commandLine : str, optional
+            The command that made the set, stored with it.
+
+        Returns
+        -------
+        dict
+            ``medium`` (HalfSpace), ``merged`` (the merged runs: reflectance
+            [1/mm^2], fluence, standard errors, energy balance, ...) and
+            ``mc_source`` (the set read, or "this run").
+        """
+        from pathlib import Path
+
+        import numpy as np
+
+        from fluoguide.errors import FluoInputError
+        from fluoguide.runs.store import RunStore
+        from FluoTomoLib.montecarlo import reference
+        from FluoTomoLib.montecarlo.halfspace import HalfSpace, simulate_halfspace
+
+        if mcIn is not None:        # '' is a (bad) file name, not 'run Monte Carlo'
+            data = reference.read_set(mcIn)
+            if data["kind"] != "halfspace":
+                raise FluoInputError("is not a half-space set", file=mcIn, field="kind",
+                                     value=data["kind"])
+            for name, given, key in (("--n", n, "n_inside"), ("--mua", mua, "mua_per_mm"),
+                                     ("--musp", musp, "musp_per_mm"), ("--g", g, "g")):
+                if given is not None and not np.isclose(given, data["medium"][key]):
+                    raise FluoInputError(f"differs from the set's medium ({data['medium'][key]:g})",
+                                         file=mcIn, field=name, value=given)
+            return {"medium": reference.medium_of_set(data),
+                    "merged": reference.merged_of_set(data), "mc_source": str(mcIn)}
+        medium = HalfSpace(0.01 if mua is None else mua, 1.0 if musp is None else musp,
+                           1.37 if n is None else n, g=0.9 if g is None else g)
+        # every run is a task of the run engine: written to mc_runs as it finishes
+        # (resume continues a killed set); a seed draws the same photons wherever it runs
+        merged = simulate_halfspace(medium, photons, runs=runs, seed=seed, engine=engine,
+                                    progress=progress, executor=executor, threads=threads,
+                                    store=RunStore(Path(outputFolder) / "mc_runs", resume=resume))
+        out = FluoTomoLogic._outputFolder(outputFolder)
+        reference.write_json_atomic(out / "mc_halfspace.json",
+                                    reference.halfspace_set(medium, merged, commandLine))
+        return {"medium": medium, "merged": merged, "mc_source": "this run"}
+
+    @staticmethod
+    def validateHalfSpace(outputFolder, monteCarlo, boundaries=("empirical", "fresnel"),
+                          meshLevel="normal", reference=None, progress=None):
+        """The FEM (one solve per boundary constant A), the dipole and the exact
+        Robin half-space against a Monte Carlo half-space set; the independent
+        stored run is the check of the Monte Carlo where the medium is its own.
+
+        Parameters
+        ----------
+        outputFolder : path
+            Where ``validate_mc.png`` goes (created when missing).
+        monteCarlo : dict
+            :meth:`halfSpaceMonteCarlo`'s result.
+        boundaries : tuple of str
+            ``empirical`` and/or ``fresnel``.
+        meshLevel : str
+            The FEM mesh of the quarter box: ``test``, ``coarse`` or ``normal``.
+        reference : path, optional
+            An independent R(rho) CSV to check the Monte Carlo against.
+
+        Returns
+        -------
+        dict
+            The medium, the Monte Carlo's account (photons, runs, seeds,
+            device, engine, seconds [s], energy balance), ``A``,
+            ``agree_from_mm`` [mm], ``rows`` (reflectance per distance [mm]:
+            Monte Carlo, FEM, dipole, in %), ``fluence_rows``, ``warnings`` and
+            ``figure`` (the PNG's path).
+        """
+        import numpy as np
+
+        from fluoguide.errors import FluoInputError
+        from FluoTomoLib.montecarlo import compare
+        from FluoTomoLib.montecarlo import reference as references
+        from FluoTomoLib.montecarlo.plots import validation_figure
+
+        medium, merged = monteCarlo["medium"], monteCarlo["merged"]
+        ref = None
+        if reference:
+            ref = references.read_independent_reflectance(reference)
+        elif (np.isclose(medium.n, 1.37) and np.isclose(medium.mua, 0.01)
+              and np.isclose(medium.musp, 1.0) and np.isclose(medium.g, 0.9)
+              and np.allclose(medium.size_mm, (160, 160, 80)) and medium.voxel_mm == 1.0):
+            ref = references.read_independent_reflectance()
+        if ref is not None and not np.isclose(ref["n_inside"], medium.n):
+            raise FluoInputError("the reference run's n differs from the medium's",
+                                 field="--reference", value=ref["n_inside"])
+        res = compare.validate_halfspace(medium, merged, boundaries=tuple(boundaries),
+                                         level=meshLevel, reference=ref, progress=progress)
+        text = f"mua {medium.mua:g}/mm, musp {medium.musp:g}/mm, g {medium.g:g}, n {medium.n:g}"
+        figure = FluoTomoLogic._outputFolder(outputFolder) / "validate_mc.png"
+        validation_figure(res, text, figure)
+        return {
+            "medium": medium.metadata()["medium"], "volume_mm": list(medium.size_mm),
+            "voxel_mm": medium.voxel_mm, "mc_source": monteCarlo["mc_source"],
+            "photons": merged["photons"], "runs": merged["runs"], "seeds": merged["seeds"],
+            "mc_executor": merged.get("executor"), "device": merged["device"],
+            "engine": merged["engine"],
+            "engine_version": merged["engine_version"], "mc_seconds": merged["seconds"],
+            "energy": merged["energy"], "A": res["A"], "boundary_default": res["boundary"],
+            "agree_within_pct": compare.AGREE_PCT, "agree_from_mm": res["agree_from_mm"],
+            "reference": res["reference"], "fem_nodes": res["fem_nodes"],
+            "fem_seconds": res["fem_seconds"], "rows": res["rows"],
+            "fluence_rows": res["fluence_rows"], "warnings": res["warnings"],
+            "figure": str(figure),
+        }
+
+    @staticmethod
+    def fluorescenceMonteCarlo(outputFolder, mcIn=None, photons=100_000, runs=3, seed=3001,
+                               engine="auto", executor=None, threads=1, resume=False,
+                               commandLine=None, progress=None):
+        """Monte Carlo of the stored fluorescence case (three optodes over a 4 mm
+        sphere 7 mm deep): excitation from each source, emission by reciprocity;
+        run here or read from a stored set.
+
+        Parameters
+        ----------
+        outputFolder : path
+            Where the runs' records go (``mc_runs``, ``resume`` continues them)
+            and the set ``mc_fluorescence.json`` (when Monte Carlo runs).
+        mcIn : path, optional
+            A stored fluorescence set (JSON) instead of running Monte Carlo.
+        photons, runs, seed : int
+            Photons per run, per optode and wavelength; independent runs; the
+            first run's seed.
+        engine : str
+            ``auto``, ``mcxcl`` or ``mcx``.
+        commandLine : str, optional
+            The command that made the set, stored with it.
+
+        Returns
+        -------
+        dict
+            ``case`` (the label map, optics and optodes), ``mc``
+            (``excitation``, ``emission`` and their standard errors, (S, D),
+            [1/mm^2 per W]), ``meta`` (the set's account: photons, runs,
+            device, engine) and ``detector_radius_mm`` [mm].
+        """
+        from pathlib import Path
+
+        import numpy as np
+
+        from fluoguide.errors import FluoInputError
+        from fluoguide.runs.store import RunStore
+        from FluoTomoLib.montecarlo import reference
+        from FluoTomoLib.montecarlo.acquisition import simulate_acquisition
+
+        case = reference.fluorescence_case()
+        keys = ("excitation", "excitation_se", "emission", "emission_se")
+        if mcIn is not None:        # '' is a (bad) file name, not 'run Monte Carlo'
+            data = reference.read_set(mcIn)
+            if data["kind"] != "fluorescence":
+                raise FluoInputError("is not a fluorescence set", file=mcIn, field="kind",
+                                     value=data["kind"])
+            return {"case": case, "mc": {k: np.asarray(data[k], float) for k in keys},
+                    "meta": data, "detector_radius_mm": data["detector_radius_mm"]}
+        radius = 2.0
+        res = simulate_acquisition(
+            *[case[k] for k in ("labels_kji", "ijk_to_ras", "optics_x", "optics_m",
+                                "sources_ras", "detectors_ras", "yield_per_label")],
+            photons=photons, seed=seed, runs=runs, detector_radius_mm=radius, engine=engine,
+            progress=progress, executor=executor, threads=threads,
+            store=RunStore(Path(outputFolder) / "mc_runs", resume=resume))
+        data = reference.fluorescence_set(case, res, commandLine)
+        reference.write_json_atomic(FluoTomoLogic._outputFolder(outputFolder)
+                                    / "mc_fluorescence.json", data)
+        return {"case": case, "mc": {k: np.asarray(res[k], float) for k in keys}, "meta": data,
+                "detector_radius_mm": radius}
+
+    @staticmethod
+    def validateFluorescence(monteCarlo, boundaries=("empirical", "fresnel")):
+        """The FEM's excitation and emission data of the fluorescence case
+        against :meth:`fluorescenceMonteCarlo`'s, per source-detector pair.
+
+        Parameters
+        ----------
+        monteCarlo : dict
+            :meth:`fluorescenceMonteCarlo`'s result.
+        boundaries : tuple of str
+            ``empirical`` and/or ``fresnel`` (the FEM's boundary constant A).
+
+        Returns
+        -------
+        dict
+            ``case`` (its description), the Monte Carlo's account, ``A`` per
+            boundary, ``rows`` (per pair: distance [mm], Monte Carlo and FEM
+            data [1/mm^2 per W], FEM vs Monte Carlo [%]) and ``warnings``.
+        """
+        import numpy as np
+
+        from FluoTomoLib.montecarlo import compare, reference
+        from FluoTomoLib.optics import robin_A
+
+        case, mc, meta = monteCarlo["case"], monteCarlo["mc"], monteCarlo["meta"]
+        n = float(case["optics_x"][1][2])
+        fem = {b: compare.fem_acquisition(case, A=robin_A(n, b),
+                                          detector_radius_mm=monteCarlo["detector_radius_mm"])
+               for b in boundaries}
+        src = np.asarray(case["sources_ras"])
+        det = np.asarray(case["detectors_ras"])
+        rows = []
+        for s in range(len(src)):
+            for d in range(len(det)):
+                row = {"source": s, "detector": d,
+                       "distance_mm": float(np.linalg.norm(src[s] - det[d])),
+                       "mc_excitation": float(mc["excitation"][s, d]),
+                       "mc_excitation_se": float(mc["excitation_se"][s, d]),
+                       "mc_emission": float(mc["emission"][s, d]),
+                       "mc_emission_se": float(mc["emission_se"][s, d])}
+                for b, f in fem.items():
+                    for kind in ("excitation", "emission"):
+                        row[f"fem_{b}_{kind}"] = float(f[kind][s, d])
+                        row[f"fem_{b}_{kind}_vs_mc_pct"] = compare._pct(f[kind][s, d],
+                                                                        mc[kind][s, d])
+                rows.append(row)
+        warnings = ["excitation pairs closer than 5 mm (a source's own position) are "
+                    "diffusion's near-source regime: not a test of the model"]
+        doc = reference.fluorescence_case.__doc__.strip().split("\n\n")[1].replace("\n", " ")
+        return {"case": doc, "photons_per_run": meta["photons_per_run"], "runs": meta["runs"],
+                "device": meta["device"], "engine_version": meta["engine_version"],
+                "A": {b: f["A"] for b, f in fem.items()}, "rows": rows, "warnings": warnings}
 
     def simulateAcquisition(self, labelNode, optics, yieldByLabel, scan=None, noise=1.0, seed=0,
                             sources=None, detectors=None, accuracy="balanced", engine="fem",

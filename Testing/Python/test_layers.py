@@ -214,39 +214,6 @@ APP_LIB_IMPORTS = {
 # Debt still to move behind the logic classes (issue #30), file by file: what
 # these files import today. Shrink it; never grow it.
 APP_LIB_DEBT = {
-    # the demo (another change moves its stages onto the logic classes)
-    "fluoapp/demo/": {
-        "FluoCalibLib.geometry": {"handeye"},
-        "FluoCalibLib.geometry.boards": {"parse_board"},
-        "FluoCalibLib.geometry.camera_model": {"CameraModel"},
-        "FluoCalibLib.geometry.intrinsics": {"calibrate_camera", "view_poses"},
-        "FluoCalibLib.geometry.scene": {"store_handeye", "store_intrinsics"},
-        "FluoCalibLib.geometry.synthetic_boards": {"make_dataset"},
-        "FluoCalibLib.radiometry": {"scene"},
-        "FluoCalibLib.radiometry.camera_response": {"characterize"},
-        "FluoCalibLib.radiometry.illumination_fit": {"calibrate_illumination"},
-        "FluoCalibLib.radiometry.laser_line": {"calibrate_laser"},
-        "FluoCalibLib.radiometry.plots": {"plot_radiometry", "plot_ratio_images"},
-        "FluoCalibLib.radiometry.synthetic": {"endoscope_camera", "synthetic_illumination",
-                                              "synthetic_laser", "synthetic_stack"},
-        "FluoNavLib.mapping.contours": {"miss_rate"},
-        "FluoNavLib.mapping.mismatch": {"mapping_under_mismatch", "mismatch_figure"},
-        "FluoNavLib.mapping.pixel_cast": {"cast_camera"},
-        "FluoNavLib.mapping.synthetic": {"open_field_camera", "oral_cavity_surface",
-                                         "view_poses"},
-        "FluoTomoLib.meshing.vtu_io": {"write_vtu"},
-        "FluoTomoLib.pipelines": {"tube_mc"},
-        "FluoTomoLib.pipelines.cases": {"case_of_record", "case_tasks"},
-        "FluoTomoLib.scene": {"store_reconstructions"},
-    },
-    # fluo validate mc and mc-fluorescence: the half-space and fluorescence comparisons
-    "fluoapp/commands/validate.py": {
-        "FluoTomoLib.montecarlo": {"compare", "reference"},
-        "FluoTomoLib.montecarlo.acquisition": {"simulate_acquisition"},
-        "FluoTomoLib.montecarlo.halfspace": {"HalfSpace", "simulate_halfspace"},
-        "FluoTomoLib.montecarlo.plots": {"validation_figure"},
-        "FluoTomoLib.optics": {"robin_A"},
-    },
     # the web app's tracked stream: its own frame loop
     "fluoapp/webapp/nav_panel.py": {
         "FluoCalibLib.geometry": {"transforms"},

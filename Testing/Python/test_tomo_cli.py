@@ -367,3 +367,28 @@ def test_optics_in_1_per_cm_are_refused_naming_the_unit(own_scene, tmp_path, flu
         assert "musp_per_mm" in line and "1/cm" in line and "label 3" in line, line
         assert "cells" not in line
         assert not (tmp_path / "out").exists()
+
+
+def test_logic_forward_refuses_a_mesh_too_coarse_for_its_optics_unless_forced(tmp_path):
+    """``FluoTomoLogic.forward`` applies the resolution guard ``fluo forward``
+    applies: a 4 mm mesh of tissue with mueff ~1.7 /mm (mueff h ~8: the fluence
+    oscillates) is refused naming the size, and computed with ``force=True``."""
+    from fluoguide import mrml_io
+    from fluoguide.errors import FluoInputError
+    from FluoTomo import FluoTomoLogic
+    from small_cases import OWN_SCENE
+
+    sc = write_scene(tmp_path, **OWN_SCENE)
+    optics = json.loads((tmp_path / "optics.json").read_text())
+    for label in ("3", "7"):
+        optics["excitation"][label] = {"mua_per_mm": 0.3, "musp_per_mm": 3.0}
+    logic = FluoTomoLogic(mrml_io.new_scene())
+    lab = logic.loadLabelMap(tmp_path / "labels.nrrd")
+    top = np.asarray(sc["surface_point_ras_mm"])
+    sources = [top]
+    detectors = [top + [4.0, 0.0, -0.5], top + [0.0, 5.0, -0.5]]
+    with pytest.raises(FluoInputError, match="force=True") as refused:
+        logic.forward(lab, optics, sources, detectors, sizeMm=4.0)
+    assert refused.value.field == "sizeMm" and refused.value.value == 4.0
+    forced = logic.forward(lab, optics, sources, detectors, sizeMm=4.0, force=True)
+    assert forced["excitation"].shape == (1, 2) and forced["fluorescence"] is None

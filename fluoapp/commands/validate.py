@@ -95,10 +95,6 @@ def _write_json(path, result):
 
 
 def _mc(args):
-    from FluoTomoLib.montecarlo import compare, reference
-    from FluoTomoLib.montecarlo.halfspace import HalfSpace, simulate_halfspace
-    from FluoTomoLib.montecarlo.plots import validation_figure
-
     _check_budget(args)
     threads = check_run_options(args)
     out = _out_dir(args.out)
@@ -108,76 +104,32 @@ def _mc(args):
         budget["photons"] = args.photons
     if args.runs is not None:
         budget["runs"] = args.runs
-    if args.mc_in is not None:        # '' is a (bad) file name, not 'run Monte Carlo'
-        data = reference.read_set(args.mc_in)
-        if data["kind"] != "halfspace":
-            raise FluoInputError("is not a half-space set", file=args.mc_in, field="kind",
-                                 value=data["kind"])
-        for name, given, key in (("--n", args.n, "n_inside"), ("--mua", args.mua, "mua_per_mm"),
-                                 ("--musp", args.musp, "musp_per_mm"), ("--g", args.g, "g")):
-            if given is not None and not np.isclose(given, data["medium"][key]):
-                raise FluoInputError(f"differs from the set's medium ({data['medium'][key]:g})",
-                                     file=args.mc_in, field=name, value=given)
-        medium = reference.medium_of_set(data)
-        merged = reference.merged_of_set(data)
-        mc_source = str(args.mc_in)
+    logic = module_logic("FluoTomo")
+    medium = {"mua": args.mua, "musp": args.musp, "n": args.n, "g": args.g}
+    if args.mc_in is not None:
+        mc = logic.halfSpaceMonteCarlo(out, mcIn=args.mc_in, **medium)
     else:
-        n = 1.37 if args.n is None else args.n
-        medium = HalfSpace(_positive(args.mua, "--mua", 10) or 0.01,
-                           _positive(args.musp, "--musp", 100) or 1.0,
-                           n, g=0.9 if args.g is None else args.g)
-        from fluoguide.runs.store import RunStore
-
+        medium.update(mua=_positive(args.mua, "--mua", 10),
+                      musp=_positive(args.musp, "--musp", 100))
         # missing engine: one line before any cluster starts
-        module_logic("FluoTomo").checkMonteCarloEngine(args.engine)
+        logic.checkMonteCarloEngine(args.engine)
         # every run is a task of the run engine: written to OUT/mc_runs as it finishes
         # (--resume continues a killed set), split across Dask workers with --workers
-        # or --scheduler; a seed draws the same photons wherever it runs
+        # or --scheduler
         with TqdmProgress("Monte Carlo") as bar, executor_for(args, threads) as ex:
-            merged = simulate_halfspace(medium, budget["photons"], runs=budget["runs"],
-                                        seed=args.seed, engine=args.engine, progress=bar,
-                                        executor=ex, threads=threads,
-                                        store=RunStore(out / "mc_runs", resume=args.resume))
-        mc_source = "this run"
-        _mkdir(out)
-        reference.write_json_atomic(out / "mc_halfspace.json",
-                                    reference.halfspace_set(medium, merged, _command_line()))
-    ref = None
-    if args.reference:
-        ref = reference.read_independent_reflectance(args.reference)
-    elif (np.isclose(medium.n, 1.37) and np.isclose(medium.mua, 0.01)
-          and np.isclose(medium.musp, 1.0) and np.isclose(medium.g, 0.9)
-          and np.allclose(medium.size_mm, (160, 160, 80)) and medium.voxel_mm == 1.0):
-        ref = reference.read_independent_reflectance()
-    if ref is not None and not np.isclose(ref["n_inside"], medium.n):
-        raise FluoInputError("the reference run's n differs from the medium's", field="--reference",
-                             value=ref["n_inside"])
+            mc = logic.halfSpaceMonteCarlo(
+                out, **medium, photons=budget["photons"], runs=budget["runs"], seed=args.seed,
+                engine=args.engine, executor=ex, threads=threads, resume=args.resume,
+                commandLine=_command_line(), progress=bar)
     boundaries = ("empirical", "fresnel") if args.boundary == "both" else (args.boundary,)
     with TqdmProgress("FEM") as bar:
-        res = compare.validate_halfspace(medium, merged, boundaries=boundaries,
-                                         level=args.mesh_level, reference=ref, progress=bar)
-    text = f"mua {medium.mua:g}/mm, musp {medium.musp:g}/mm, g {medium.g:g}, n {medium.n:g}"
-    _mkdir(out)
-    validation_figure(res, text, out / "validate_mc.png")
-    rkeys = list(res["rows"][0].keys())
-    _write_csv(out / "validate_mc_reflectance.csv", res["rows"], rkeys)
-    _write_csv(out / "validate_mc_fluence.csv", res["fluence_rows"],
-               list(res["fluence_rows"][0].keys()))
-    result = {
-        "medium": medium.metadata()["medium"], "volume_mm": list(medium.size_mm),
-        "voxel_mm": medium.voxel_mm, "mc_source": mc_source,
-        "photons": merged["photons"], "runs": merged["runs"], "seeds": merged["seeds"],
-        "mc_executor": merged.get("executor"), "device": merged["device"],
-        "engine": merged["engine"],
-        "engine_version": merged["engine_version"], "mc_seconds": merged["seconds"],
-        "energy": merged["energy"], "A": res["A"], "boundary_default": res["boundary"],
-        "agree_within_pct": compare.AGREE_PCT, "agree_from_mm": res["agree_from_mm"],
-        "reference": res["reference"], "fem_nodes": res["fem_nodes"],
-        "fem_seconds": res["fem_seconds"], "rows": res["rows"],
-        "fluence_rows": res["fluence_rows"], "warnings": res["warnings"],
-        "figure": str(out / "validate_mc.png"),
-        "tables": [str(out / "validate_mc_reflectance.csv"), str(out / "validate_mc_fluence.csv")],
-    }
+        result = logic.validateHalfSpace(out, mc, boundaries, args.mesh_level, args.reference,
+                                         progress=bar)
+    _write_csv(out / "validate_mc_reflectance.csv", result["rows"], list(result["rows"][0]))
+    _write_csv(out / "validate_mc_fluence.csv", result["fluence_rows"],
+               list(result["fluence_rows"][0]))
+    result["tables"] = [str(out / "validate_mc_reflectance.csv"),
+                        str(out / "validate_mc_fluence.csv")]
     result["seconds"] = time.perf_counter() - t0
     _write_json(out / "validate_mc.json", result)
     if not args.json:
@@ -205,77 +157,28 @@ def _print_table(result):
 
 
 def _mc_fluorescence(args):
-    from FluoTomoLib.montecarlo import compare, reference
-    from FluoTomoLib.montecarlo.acquisition import simulate_acquisition
-    from FluoTomoLib.optics import robin_A
-
     _check_budget(args)
     threads = check_run_options(args)
     out = _out_dir(args.out)
     t0 = time.perf_counter()
-    case = reference.fluorescence_case()
-    if args.mc_in is not None:        # '' is a (bad) file name, not 'run Monte Carlo'
-        data = reference.read_set(args.mc_in)
-        if data["kind"] != "fluorescence":
-            raise FluoInputError("is not a fluorescence set", file=args.mc_in, field="kind",
-                                 value=data["kind"])
-        mc = {k: np.asarray(data[k], float) for k in ("excitation", "excitation_se", "emission",
-                                                      "emission_se")}
-        meta = data
-        radius = data["detector_radius_mm"]
+    logic = module_logic("FluoTomo")
+    if args.mc_in is not None:
+        mc = logic.fluorescenceMonteCarlo(out, mcIn=args.mc_in)
     else:
-        keys = ("labels_kji", "ijk_to_ras", "optics_x", "optics_m", "sources_ras",
-                "detectors_ras", "yield_per_label")
-        photons = args.photons or (20_000 if args.quick else 100_000)
-        runs = args.runs or (2 if args.quick else 3)
-        radius = 2.0
-        from fluoguide.runs.store import RunStore
-
         # missing engine: one line before any cluster starts
-        module_logic("FluoTomo").checkMonteCarloEngine(args.engine)
+        logic.checkMonteCarloEngine(args.engine)
         with TqdmProgress("Monte Carlo") as bar, executor_for(args, threads) as ex:
-            res = simulate_acquisition(*[case[k] for k in keys], photons=photons, seed=args.seed,
-                                       runs=runs, detector_radius_mm=radius, engine=args.engine,
-                                       progress=bar, executor=ex, threads=threads,
-                                       store=RunStore(out / "mc_runs", resume=args.resume))
-        data = reference.fluorescence_set(case, res, _command_line())
-        _mkdir(out)
-        reference.write_json_atomic(out / "mc_fluorescence.json", data)
-        mc = {k: np.asarray(res[k], float) for k in ("excitation", "excitation_se", "emission",
-                                                     "emission_se")}
-        meta = data
+            mc = logic.fluorescenceMonteCarlo(
+                out, photons=args.photons or (20_000 if args.quick else 100_000),
+                runs=args.runs or (2 if args.quick else 3), seed=args.seed, engine=args.engine,
+                executor=ex, threads=threads, resume=args.resume, commandLine=_command_line(),
+                progress=bar)
     boundaries = ("empirical", "fresnel") if args.boundary == "both" else (args.boundary,)
-    n = float(case["optics_x"][1][2])
-    fem = {b: compare.fem_acquisition(case, A=robin_A(n, b), detector_radius_mm=radius)
-           for b in boundaries}
-    src = np.asarray(case["sources_ras"])
-    det = np.asarray(case["detectors_ras"])
-    rows = []
-    for s in range(len(src)):
-        for d in range(len(det)):
-            row = {"source": s, "detector": d,
-                   "distance_mm": float(np.linalg.norm(src[s] - det[d])),
-                   "mc_excitation": float(mc["excitation"][s, d]),
-                   "mc_excitation_se": float(mc["excitation_se"][s, d]),
-                   "mc_emission": float(mc["emission"][s, d]),
-                   "mc_emission_se": float(mc["emission_se"][s, d])}
-            for b, f in fem.items():
-                row[f"fem_{b}_excitation"] = float(f["excitation"][s, d])
-                row[f"fem_{b}_excitation_vs_mc_pct"] = compare._pct(f["excitation"][s, d],
-                                                                    mc["excitation"][s, d])
-                row[f"fem_{b}_emission"] = float(f["emission"][s, d])
-                row[f"fem_{b}_emission_vs_mc_pct"] = compare._pct(f["emission"][s, d],
-                                                                  mc["emission"][s, d])
-            rows.append(row)
+    result = logic.validateFluorescence(mc, boundaries)
     _mkdir(out)
-    _write_csv(out / "validate_mc_fluorescence.csv", rows, list(rows[0].keys()))
-    warnings = ["excitation pairs closer than 5 mm (a source's own position) are diffusion's "
-                "near-source regime: not a test of the model"]
-    return {"case": reference.fluorescence_case.__doc__.strip().split("\n\n")[1].replace("\n", " "),
-            "photons_per_run": meta["photons_per_run"], "runs": meta["runs"],
-            "device": meta["device"], "engine_version": meta["engine_version"],
-            "A": {b: f["A"] for b, f in fem.items()}, "rows": rows, "warnings": warnings,
-            "seconds": time.perf_counter() - t0}
+    _write_csv(out / "validate_mc_fluorescence.csv", result["rows"], list(result["rows"][0]))
+    result["seconds"] = time.perf_counter() - t0
+    return result
 
 
 def _mc_tomography(args):
@@ -424,8 +327,8 @@ def register(sub):
     p.add_argument("--depths", default=None, metavar="D1,D2,...",
                    help="tube depths [mm] (default 2.7,4.7,6.7, the stored sets)")
     p.add_argument("--simulate", action="store_true",
-                   help="run the Monte Carlo here (about 15-25 min per depth on 2 CPU cores; "
-                   "its runs go where --workers/--scheduler say, recorded in OUT/mc_runs) and "
+                   help="run the Monte Carlo here (minutes per depth: docs/validation.md "
+                   "gives the measured time; its runs go where --workers/--scheduler say, recorded in OUT/mc_runs) and "
                    "write the acquisitions to OUT/mc (default: read the stored ones)")
     p.add_argument("--photons", type=int, default=None,
                    help="--simulate: photons per run, 2 runs per optode (default 100000)")

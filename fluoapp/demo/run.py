@@ -74,7 +74,7 @@ class DemoContext:
     executor: object = None
     threads: int | None = None
     resume: bool = False
-    # options of the tube cases (FluoTomoLib.pipelines.cases.tube_case) over the
+    # options of the tube cases (FluoTomoLogic.tomographyCaseTasks) over the
     # mode's own: a test's coarser tube, say
     case_options: dict = field(default_factory=dict)
 
@@ -108,7 +108,7 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     serial in this process) and the library threads of each; ``resume``: reuse
     the cases an earlier (killed) demo finished in ``out_dir/runs``.
     ``case_options``: options of the tube cases over the mode's own
-    (``FluoTomoLib.pipelines.cases.tube_case``: ``fine_mm``, ``n_sources``, ...;
+    (``FluoTomoLogic.tomographyCaseTasks``: ``fine_mm``, ``n_sources``, ...;
     a test's coarser tube); an unknown one is a FluoInputError before any work.
     Raises FluoInputError for an unknown stage name (before anything is
     written) and FluoError (after writing metrics.json and report.html) when a
@@ -116,9 +116,10 @@ def run_demo(out_dir, quick=False, seed=0, progress=None, cancel=None, only=None
     """
     names = stages_to_run(only)
     if case_options:
-        from FluoTomoLib.pipelines.cases import case_tasks
+        from fluoapp.commands import module_logic
 
-        case_tasks((), tube_options=dict(case_options))   # checks the option names
+        # checks the option names
+        module_logic("FluoTomo").tomographyCaseTasks((), tubeOptions=dict(case_options))
     out = Path(out_dir).resolve()
     check_number("seed", seed, 0, 2**32 - 1, integer=True)
     try:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fluoapp.commands import module_logic
 from fluoguide import atomic, mrml_io
 from fluoguide.phantoms import add_phantom_to_scene, make_phantom, write_phantom
 from fluoguide.progress import report, scaled
@@ -208,28 +209,26 @@ def _run_cases(ctx, name, tasks):
     """The tomography cases of a stage on the run engine (``fluo demo --workers`` /
     ``--scheduler``; serial in this process by default), recorded in
     OUT/runs/NAME (``--resume`` reuses the finished ones); the cases as
-    ``cases.case_of_record`` rebuilds them, in task order.  A failed case
-    fails the stage, naming it."""
+    ``FluoTomoLogic.runTomographyCases`` returns them, in task order.  A failed
+    case fails the stage, naming it."""
     from fluoguide.errors import FluoError
-    from fluoguide.runs import RunStore, run_tasks
-    from FluoTomoLib.pipelines.cases import case_of_record
 
-    store = RunStore(ctx.out / "runs" / name, resume=ctx.resume)
-    run = run_tasks(tasks, store=store, executor=ctx.executor, threads=ctx.threads,
-                    progress=ctx.progress, cancel=ctx.cancel, label=f"fluo demo: {name}")
+    run = module_logic("FluoTomo").runTomographyCases(
+        tasks, ctx.out / "runs" / name, resume=ctx.resume, executor=ctx.executor,
+        threads=ctx.threads, progress=ctx.progress, cancel=ctx.cancel,
+        label=f"fluo demo: {name}")
     ctx.metrics.setdefault("runs", {})[name] = {
         k: run[k] for k in ("tasks", "computed", "reused", "failures", "seconds", "executor",
                             "workers")}
     if run["failed"]:
         f = run["failed"][0]
         raise FluoError(f"{len(run['failed'])} of {len(tasks)} cases failed; the first "
-                        f"({f['params']}): {f['error']} (records in {store.dir})")
-    return [case_of_record(rec, store.arrays(rec)) for rec in run["records"]]
+                        f"({f['params']}): {f['error']} (records in {run['store']})")
+    return run["cases"]
 
 
 def stage_tomography(ctx):
     """Tracked non-contact acquisition and NP/SP/HP reconstruction at each tube depth."""
-    from FluoTomoLib.pipelines.cases import case_tasks
 
     # The public label-map path (fluo tomo reconstruct's): the simulation meshes
     # the whole phantom, the region of interest is chosen from the decay length
@@ -240,9 +239,9 @@ def stage_tomography(ctx):
     # same depth and seed) and returns plain arrays, so the depths can go to
     # Dask workers side by side (about 10 GB each in quick mode).
     depths = sorted(ctx.state["tube_phantoms"])
-    tasks = case_tasks(depths, seed=ctx.seed,
-                       tube_options={"accuracy": "fast" if ctx.quick else "balanced",
-                                     **ctx.case_options})
+    tasks = module_logic("FluoTomo").tomographyCaseTasks(
+        depths, seed=ctx.seed,
+        tubeOptions={"accuracy": "fast" if ctx.quick else "balanced", **ctx.case_options})
     runs = dict(zip(depths, _run_cases(ctx, "tomography", tasks)))
     methods = ["NP", "SP", "HP"]
     ctx.metrics["yield_error_pct"] = {m: [runs[d]["results"][m]["peak_error_pct"] for d in depths]
@@ -299,15 +298,13 @@ def stage_tomography(ctx):
 
 def _tomo_to_scene(ctx, run, phantom):
     """Reconstructions as volumes on the CBCT grid (for fusion) and the mesh surface."""
-    from FluoTomoLib.scene import store_reconstructions
-    from FluoTomoLib.meshing.vtu_io import write_vtu
-
     scene = ctx.state["scene"]
+    tomo = module_logic("FluoTomo", scene)
     results = {m: run["results"][m] for m in ("NP", "SP", "HP")}
-    store_reconstructions(scene, run["coarse"], results, phantom.labels.shape,
-                          phantom.spacing_mm, phantom.origin_mm)
-    write_vtu(run["coarse"], ctx.out / "reconstruction_mesh.vtu",
-              point_data={m: r["yield"] for m, r in results.items()})
+    tomo.storeReconstruction({"coarse": run["coarse"], "results": results},
+                             (phantom.labels.shape, {"spacing": phantom.spacing_mm,
+                                                     "origin": phantom.origin_mm}))
+    tomo.writeReconstructionMesh(run, ctx.out / "reconstruction_mesh.vtu")
     mrml_io.save_scene(scene, ctx.out / "scene.mrml")
 
 
@@ -315,15 +312,13 @@ def stage_tomography_mc(ctx):
     """The cylinder-tube reconstructed from Monte Carlo data (stored MCX acquisitions,
     photon transport written outside the project) next to diffusion-FEM data of the
     same optodes: the honest accuracy figure (docs/validation.md)."""
-    from FluoTomoLib.pipelines import tube_mc
-
     # Quick: the middle stored depth; full: all of them.  Nothing here runs Monte
-    # Carlo (about 20 min per depth on 2 cores): the acquisitions are stored with
-    # the command that regenerates them.
-    depths = (4.7,) if ctx.quick else tube_mc.DEPTHS_MM
-    res = tube_mc.validate_tube_mc(depths, progress=ctx.progress)
-    fig = tube_mc.figure(res, ctx.out / "tomography_mc.png")
-    ctx.figure("tomography_mc", Path(fig).name,
+    # Carlo: the acquisitions are stored with the command that regenerates them.
+    res = module_logic("FluoTomo").validateTubeMonteCarlo(
+        ctx.out, depths=[4.7] if ctx.quick else None, figureName="tomography_mc.png",
+        progress=ctx.progress)
+    depths = [g["depth_mm"] for g in res["depths"]]
+    ctx.figure("tomography_mc", Path(res["figure"]).name,
                "Tube yield and centroid errors from Monte Carlo data (solid) and from "
                "diffusion-FEM data (dashed) of the same 12 sources and 13 detectors")
     summary = {}
@@ -352,21 +347,15 @@ def stage_tomography_mc(ctx):
 
 def stage_camera_calibration(ctx):
     """Camera intrinsics and hand-eye from rendered board images with known truth."""
-    from pathlib import Path
-
-    from FluoCalibLib.geometry import handeye as he
-    from FluoCalibLib.geometry.boards import parse_board
-    from FluoCalibLib.geometry.scene import store_handeye, store_intrinsics
-    from FluoCalibLib.geometry.intrinsics import calibrate_camera, view_poses
-    from FluoCalibLib.geometry.synthetic_boards import make_dataset
-
+    calib = module_logic("FluoCalib", ctx.state["scene"])
+    board = "chessboard:9x6:20"
     n_views = 10 if ctx.quick else 16
-    data = make_dataset(ctx.out / "calibration-images", board="chessboard:9x6:20",
-                        n_views=n_views, seed=ctx.seed,
-                        progress=scaled(ctx.progress, 0.0, 0.6, "rendering board views"))
+    data = calib.writeSyntheticBoards(ctx.out / "calibration-images", board, n_views, ctx.seed,
+                                      progress=scaled(ctx.progress, 0.0, 0.6,
+                                                      "rendering board views"))
     images = [str(ctx.out / "calibration-images" / n) for n in data["images"]]
-    res = calibrate_camera(images, "chessboard:9x6:20", holdout=2,
-                           progress=scaled(ctx.progress, 0.6, 0.9, "intrinsics"))
+    res = calib.calibrateCamera(images, board, holdout=2,
+                                progress=scaled(ctx.progress, 0.6, 0.9, "intrinsics"))
     report(ctx.progress, 0.9, "hand-eye, six methods")
     cam = res.camera
     true = data["camera"]
@@ -378,96 +367,70 @@ def stage_camera_calibration(ctx):
         "fy error %": 100 * (cam.fy - true["fy"]) / true["fy"],
         "cx, cy error [px]": [cam.cx - true["cx"], cam.cy - true["cy"]],
     }
-    board = parse_board("chessboard:9x6:20")
-    index = {Path(p).name: i for i, p in enumerate(images)}
-    keep = [v for v in res.views if v.status in ("used", "holdout")]
-    views = view_poses(cam, board, keep)
-    B = [v.board_to_camera for v in views]
-    A = [np.asarray(data["tool_to_tracker"][index[Path(v.name).name]]) for v in views]
-    cmp = he.compare_methods(cam, board, B, A, [(v.ids, v.image_points) for v in views],
-                             np.asarray(data["board_to_tracker"]), he.METHODS,
-                             truth_camera_to_tool=data["camera_to_tool"], holdout=2)
-    for method, r in cmp.items():
+    # every method on the same views, graded against the true hand-eye; TSAI's is stored
+    he = calib.calibrateHandEye(images, board, data["tool_to_tracker"], camera=cam,
+                                boardToTracker=np.asarray(data["board_to_tracker"]),
+                                methods="ALL", storeMethod="TSAI", holdout=2,
+                                truthCameraToTool=data["camera_to_tool"])
+    for method, r in he["methods"].items():
         out[f"hand-eye {method}: translation error [mm]"] = r["translation_error_mm"]
         out[f"hand-eye {method}: held-out 3D [mm] / 2D [px] error"] = [
             r.get("holdout_err3d_mean_mm"), r.get("holdout_err2d_mean_px")]
-    scene = ctx.state["scene"]
-    store_intrinsics(scene, cam, {"rms_px": res.rms_px})
-    store_handeye(scene, cmp["TSAI"]["camera_to_tool"], {"method": "TSAI"})
-    mrml_io.save_scene(scene, ctx.out / "scene.mrml")
+    mrml_io.save_scene(ctx.state["scene"], ctx.out / "scene.mrml")
     ctx.metrics["camera_calibration"] = out
     ctx.note("camera_calibration", f"{n_views} synthetic 9x6 chessboard views rendered for a "
              "known camera and tracked tool; thesis: 3D error 0.17 mm, 2D error 2.77 px "
              "(31 mm open-field lens).")
 
 
+def _angle_deg(a, b):
+    """Angle [deg] between two unit vectors."""
+    return float(np.degrees(np.arccos(np.clip(np.dot(a, b), -1, 1))))
+
+
 def stage_light_calibration(ctx):
     """Camera response, broad-beam illumination and laser line from synthetic
-    images with known truth (docs/physics.md sections 5-7)."""
-    from FluoCalibLib.radiometry import scene as light_scene
-    from FluoCalibLib.geometry.camera_model import CameraModel
-    from FluoCalibLib.radiometry.camera_response import characterize
-    from FluoCalibLib.radiometry.illumination_fit import calibrate_illumination
-    from FluoCalibLib.radiometry.laser_line import calibrate_laser
-    from FluoCalibLib.radiometry.plots import plot_radiometry, plot_ratio_images
-    from FluoCalibLib.radiometry.synthetic import (
-        endoscope_camera,
-        synthetic_illumination,
-        synthetic_laser,
-        synthetic_stack,
-    )
+    images with known truth (docs/physics.md sections 5-7): the sets ``fluo calib
+    synth-light`` writes, calibrated as ``fluo calib`` does, kept in
+    OUT/light-calibration."""
+    import shutil
 
-    report(ctx.progress, 0.0, "camera response")
-    frames, truth = synthetic_stack(seed=ctx.seed)
-    rad = characterize(frames)
-    cam = truth["camera"]
+    calib = module_logic("FluoCalib", ctx.state["scene"])
+    root = ctx.out / "light-calibration"
+    plots = root / "plots"
+    report(ctx.progress, 0.0, "synthetic camera stack, illumination and laser images")
+    sets = calib.writeSyntheticLight(root, ctx.seed, progress=scaled(ctx.progress, 0.0, 0.1))
+    report(ctx.progress, 0.1, "camera response")
+    rad = calib.characterizeCamera(sets["stack"], plotsFolder=plots)
+    cam = rad["truth"]["camera"]
     out = {f"{k} (truth {cam[k]:g})": rad[k] for k in ("gain_adu_per_e", "dark_current_e_per_s",
                                                       "bias_e", "read_noise_e")}
     out.update({"linearity R^2": rad["linearity_r2"], "nonlinearity %": rad["nonlinearity_pct"],
                 "dynamic range": rad["dynamic_range"]})
-    import shutil
-
-    for src, name in zip(plot_radiometry(rad, ctx.out / "light-plots"),
-                         ("radiometry_ptc.png", "radiometry_linearity.png", "radiometry_dark.png")):
-        shutil.move(src, ctx.out / name)
+    for src, name in zip(rad["plots"], ("radiometry_ptc.png", "radiometry_linearity.png",
+                                        "radiometry_dark.png")):
+        shutil.copyfile(src, ctx.out / name)
     ctx.figure("light_calibration", "radiometry_ptc.png",
                "Photon-transfer curve of the synthetic camera stack (slope = gain).")
     report(ctx.progress, 0.3, "illumination images")
-    imgs, t_il = synthetic_illumination(seed=ctx.seed)
-    il = calibrate_illumination(imgs, endoscope_camera(), t_il["phantom_to_camera"], t_il["rd"],
-                                t_il["offset_adu"],
-                                progress=scaled(ctx.progress, 0.4, 0.8, "illumination cone"))
-    c = t_il["cone"]
-    out["illumination: axis error [deg]"] = float(np.degrees(np.arccos(np.clip(
-        np.dot(il["axis"], c["axis"]), -1, 1))))
+    il = calib.calibrateIllumination(sets["illumination"], plotsFolder=plots,
+                                     progress=scaled(ctx.progress, 0.3, 0.8, "illumination cone"))
+    c = il["truth"]["cone"]
+    out["illumination: axis error [deg]"] = _angle_deg(il["axis"], c["axis"])
     out["illumination: half-angle [deg] (truth 35)"] = il["half_angle_deg"]
     for k in ("alpha", "gamma_per_mm", "system_gain_adu"):
         out[f"illumination: {k} error %"] = 100 * (il[k] - c[k]) / c[k]
     out["illumination: ratio mean (SD)"] = [il["ratio_mean"], il["ratio_sd"]]
     out["illumination: model"] = il["model"]
-    shutil.move(plot_ratio_images(il["ratio_images"], ctx.out / "light-plots",
-                                  t_il["phantom_to_camera"])[0],
-                ctx.out / "illumination_ratio.png")
-    shutil.rmtree(ctx.out / "light-plots", ignore_errors=True)
+    shutil.copyfile(il["plots"][0], ctx.out / "illumination_ratio.png")
     ctx.figure("light_calibration", "illumination_ratio.png",
                "Measured / fitted cone model for the five phantom poses (endoscope light; the "
                "cone leaves the image in the nearest view).")
     report(ctx.progress, 0.8, "laser line")
-    limgs, t_la = synthetic_laser(seed=ctx.seed)
-    la = calibrate_laser(limgs, CameraModel.from_dict(t_la["camera"]), t_la["camera_to_tracker"],
-                         t_la["laser_to_tracker"], t_la["phantom_to_tracker"],
-                         t_la["pointer_origin_tool_mm"])
-    out["laser: direction error [deg]"] = float(np.degrees(np.arccos(np.clip(
-        np.dot(la["direction"], t_la["direction"]), -1, 1))))
+    la = calib.calibrateLaser(sets["laser"])
+    out["laser: direction error [deg]"] = _angle_deg(la["direction"], la["truth"]["direction"])
     out["laser: held-out 3D error [mm] / 2D [px]"] = [la["error_3d_mm"], la["error_2d_px"]]
-    scene = ctx.state["scene"]
-    light_scene.store_calibration(scene, light_scene.RADIOMETRY_KEY,
-                                  {k: v for k, v in rad.items() if k not in ("ptc", "linearity", "dark")})
-    light_scene.store_calibration(scene, light_scene.ILLUMINATION_KEY,
-                                  {**{k: v for k, v in il.items() if k not in ("cone", "ratio_images")},
-                                   "cone": il["cone"].to_dict()})
-    light_scene.store_calibration(scene, light_scene.LASER_KEY,
-                                  {k: v for k, v in la.items() if k != "spots_px"})
+    mrml_io.save_scene(ctx.state["scene"], ctx.out / "scene.mrml")
     ctx.metrics["light_calibration"] = out
     ctx.note("light_calibration", "Targets: gain, dark current, bias, read noise within 3 %; cone "
              "axis < 0.5 deg, half-angle < 0.2 deg, alpha/gamma/gain within 3 %, ratio 1.00 +- "
@@ -479,52 +442,28 @@ def stage_surface_mapping(ctx):
     ray casting, optical-transport correction, 40 % contour miss rates; graded on
     frames the software did not make (analytic surface, true poses) as well as on
     its own mesh (the self-consistent figure earlier versions reported alone)."""
-    import time
-
     from FluoNavLib.mapping.contours import overlay_png
-    from FluoNavLib.mapping.mismatch import mapping_under_mismatch, mismatch_figure
-    from FluoNavLib.mapping.synthetic import (
-        open_field_camera,
-        oral_cavity_surface,
-        view_poses,
-    )
-    from FluoNavLib.mapping.pixel_cast import cast_camera
 
+    nav = module_logic("FluoNav")
     views = 2 if ctx.quick else 4
-    mm = mapping_under_mismatch(n_views=views, binning=4, seed=ctx.seed, keep_images=True,
-                                progress=scaled(ctx.progress, 0.0, 0.8))
+    mm = nav.validateSurfaceMapping(views=views, binning=4, seed=ctx.seed,
+                                    figureFile=ctx.out / "mapping_mismatch.png",
+                                    progress=scaled(ctx.progress, 0.0, 0.8))
     indep, indep_raw = mm["cases"]["all (CBCT intensities)"], mm["cases_unguarded"]["all (CBCT intensities)"]
     labels_g = mm["cases"]["all (label map)"]
     own = mm["cases_unguarded"]["self-consistent"]
-    raw, vis = mm["images"]["raw"]
-    T_own, ok_own = mm["images"]["self-consistent"]["unguarded"]
-    from FluoNavLib.mapping.contours import miss_rate
-
-    r_raw, c_raw, _ = miss_rate(raw, vis)
-    r_own, c_own, _ = miss_rate(T_own, ok_own)
-    overlay_png(ctx.out / "mapping_raw.png", raw, c_raw,
-                f"raw counts above offset, 40 % contour: miss {r_raw:.1f} %", vis,
-                colorbar_label="counts above offset [ADU]")
-    overlay_png(ctx.out / "mapping_corrected.png", T_own, c_own,
-                f"corrected T on its own mesh, exact poses (truth 0.3): miss {r_own:.1f} %", ok_own,
+    raw, cor = mm["view_contours"]["raw"], mm["view_contours"]["self-consistent"]
+    overlay_png(ctx.out / "mapping_raw.png", raw["image"], raw["contour"],
+                f"raw counts above offset, 40 % contour: miss {raw['miss_rate_pct']:.1f} %",
+                raw["mask"], colorbar_label="counts above offset [ADU]")
+    overlay_png(ctx.out / "mapping_corrected.png", cor["image"], cor["contour"],
+                f"corrected T on its own mesh, exact poses (truth 0.3): miss "
+                f"{cor['miss_rate_pct']:.1f} %", cor["mask"],
                 colorbar_label="optical transport T (dimensionless)")
-    mismatch_figure(ctx.out / "mapping_mismatch.png", mm)
-    caster, _ = oral_cavity_surface(62000, seed=ctx.seed)
     report(ctx.progress, 0.8, "timing the per-pixel cast")
-    full = open_field_camera()
-    pose = view_poses(2)[1]
-    ts = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        cast_camera(caster, full, pose)
-        ts.append(time.perf_counter() - t0)
-    ts_b = []
-    for _ in range(10):
-        t0 = time.perf_counter()
-        cast_camera(caster, full, pose, binning=10)
-        ts_b.append(time.perf_counter() - t0)
+    cast = nav.timeSurfaceCast(62000, seed=ctx.seed, repeats=3, binnedRepeats=10, binning=10)
     ctx.metrics["surface_mapping"] = {
-        "views": views, "triangles": caster.n_faces,
+        "views": views, "triangles": cast["triangles"],
         "miss rate raw % (per view)": mm["miss_rate_raw_pct"],
         "self-consistent: visible pixels with transport within 5 %":
             own["within_5pct"],
@@ -540,8 +479,8 @@ def stage_surface_mapping(ctx):
         "label-map mesh instead: visible pixels within 5 % (guard)": labels_g["within_5pct"],
         "label-map mesh instead: corrected pixels within 5 % (guard)":
             labels_g["within_5pct_of_accepted"],
-        "frames/s full resolution 1392x1040 (median)": 1.0 / float(np.median(ts)),
-        "frames/s 10x binned (median)": 1.0 / float(np.median(ts_b)),
+        "frames/s full resolution 1392x1040 (median)": cast["frames_per_s_full"],
+        "frames/s 10x binned (median)": cast["frames_per_s_binned"],
     }
     ctx.figure("surface_mapping", "mapping_raw.png",
                "Raw fluorescence of homogeneous tissue seen by the tracked camera (rendered on the "
@@ -566,12 +505,12 @@ def stage_surface_mapping(ctx):
 def stage_oral_tomography(ctx):
     """The same acquisition and reconstruction on the oral cavity: a curved surface,
     beams and camera looking into the cavity, the ICG-rich tongue as the target."""
-    from FluoTomoLib.pipelines.cases import case_tasks
 
     # the same meshes in quick mode: at 2 mm the tongue's 0.7 mm decay length is
     # not resolved (measured: HP's agar value ran away).  A run-engine task like
     # the tube's depths (its phantom is stage_phantoms' oral cavity, rebuilt from the seed)
-    run, = _run_cases(ctx, "oral_tomography", case_tasks(oral=True, seed=ctx.seed))
+    run, = _run_cases(ctx, "oral_tomography",
+                      module_logic("FluoTomo").tomographyCaseTasks(oral=True, seed=ctx.seed))
     methods = ["NP", "SP", "HP"]
     out = {}
     for m in methods:
