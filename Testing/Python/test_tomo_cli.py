@@ -203,7 +203,7 @@ def issue_scene(issue_acquisition):
     return issue_acquisition.dir, issue_acquisition.sc
 
 
-@pytest.mark.heavy(gb=10)     # SP at the balanced level on issue #17's scene: 9.6 GB measured
+@pytest.mark.heavy(gb=6.5)     # SP at the balanced level on issue #17's scene: 5.2 GB measured
 @pytest.mark.slow
 def test_issue_scene_through_the_cli(issue_scene, fluo):
     """HP within 15 %, SP within 30 %, the half-maximum centroid within 1 mm of
@@ -225,7 +225,7 @@ def test_issue_scene_through_the_cli(issue_scene, fluo):
     print("issue scene, CLI:", {m: f"{100 * e:+.1f} %" for m, e in errors.items()})
 
 
-@pytest.mark.heavy(gb=10)     # the same reconstructions as the CLI test: 8.6 GB measured
+@pytest.mark.heavy(gb=6.5)     # the same reconstructions as the CLI test: 5.5 GB measured
 @pytest.mark.slow
 def test_issue_scene_through_the_logic(issue_scene):
     """The same through FluoTomoLogic with node objects; the mesh the app would

@@ -31,13 +31,13 @@ from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 
 #: Jacobian-sized arrays the solver holds at once (J and R^-1 J^T for NP / SP)
 _JACOBIAN_COPIES = 2
-#: Jacobian-sized arrays at the peak, per method, for the memory estimate: SP's
-#: R^-1 = (L^T L)^-1 applied to J^T makes several (N, M) temporaries. Measured
-#: (/usr/bin/time -v, peak less the 0.43 GB of imports, less RECON_BYTES_PER_NODE
-#: a node, over one Jacobian): SP 6.8 (78,454 nodes) and 7.7 (issue #17's scene
-#: at balanced, 161,749 nodes, 10.0 GB in all); HP 0.8-1.0 and NP 1.4 (78,454 nodes).
-#: The estimate is then 1.12-1.28x the measured peak (docs/reliability.md)
-_PEAK_JACOBIAN_COPIES = {"NP": 2, "HP": 0, "SP": 9}
+#: Jacobian-sized arrays at the peak, per method, for the memory estimate: NP and
+#: SP hold J and R^-1 J^T (built block by block, solver.RINV_BLOCK); SP's one
+#: self-absorption pass builds a second J and its R^-1 J^T while the first J is
+#: kept; HP alone builds none (TissueModel.region_matrix). Measured with
+#: simulate.RECON_BYTES_PER_NODE (its comment): SP 3.3 Jacobians above 14 kB a
+#: node (228,371 nodes, 684 pairs)
+_PEAK_JACOBIAN_COPIES = {"NP": 2, "HP": 0, "SP": 4}
 #: largest Jacobian memory [bytes] a reconstruction may take
 MAX_JACOBIAN_BYTES = 4e9
 #: largest regularisation lambda (docs/reconstruction.md's trade table ends at 1e3,

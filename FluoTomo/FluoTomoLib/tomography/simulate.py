@@ -170,12 +170,14 @@ def simulation_mesh(lm, points_local, target, size_mm, coarse_mm, margin_mm, bur
 FEM_BYTES_PER_NODE = 14e3
 #: the same for a reconstruction, besides its Jacobian-sized arrays
 #: (``reconstruct._PEAK_JACOBIAN_COPIES`` of measurements x nodes doubles): the
-#: tissue model, the prior and the solver's other arrays. Measured (``fluo tomo
-#: reconstruct``, the same ellipsoid, 684 measurements; HP at fast and balanced,
-#: 78,454 and 101,970 nodes: 1.90 and 2.60 GB above the imports, NP at fast 2.17,
-#: SP at fast 4.51; SP on issue #17's scene at balanced, 161,749 nodes: 10.0 GB);
-#: 20 kB a node plus the method's Jacobians is 1.12-1.28x the measured
-RECON_BYTES_PER_NODE = 20e3
+#: tissue model, its fields, one factorisation at a time (``lean``), the prior and
+#: the solver's other arrays. Measured (/usr/bin/time -v or the test suite's
+#: memory report, less the 0.43 GB of imports): HP alone at balanced on a 70 x 60 x
+#: 40 mm ellipsoid, 315,033 nodes: 3.43 GB (10.9 kB a node, no Jacobian); SP at fast
+#: on the same, 228,371 nodes and 684 pairs: 7.27 GB; HP then SP at balanced on
+#: issue #17's scene (``test_issue_scene_through_the_cli``): 5.16 GB. 14 kB a node
+#: plus the method's Jacobians is 1.12-1.29x the measured (docs/reliability.md)
+RECON_BYTES_PER_NODE = 14e3
 
 
 def check_fem_memory(n_nodes, jacobian_bytes, size_mm, per_node=FEM_BYTES_PER_NODE):
