@@ -12,8 +12,8 @@ is doing and how long it has run, every ``every_s`` seconds, and honours a
 cancel.
 
 The signatures come from :func:`_examples`: tiny arrays of the dtypes the call
-sites pass (``test_progress_gaps.py`` checks that a simulation and a
-reconstruction after it compile nothing more).
+sites pass (``Testing/Python/test_jobs.py``'s slow reconstruction test checks that a
+simulation and a reconstruction after it compile nothing more).
 """
 
 from __future__ import annotations

@@ -342,6 +342,7 @@ def test_mc_acquisition_small_case_against_the_fem():
 
 
 @pytest.mark.slow
+@pytest.mark.heavy(gb=5)     # 4.0 GB in CI (the default allowance is 4)
 def test_cli_validate_mc_quick_end_to_end(tmp_path):
     r = _fluo("validate", "mc", "--quick", "--out", str(tmp_path), "--json")
     assert r.returncode == 0, r.stderr[-2000:]
