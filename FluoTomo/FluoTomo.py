@@ -1179,20 +1179,6 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
     # -- the diffusion model against Monte Carlo (fluo validate mc, mc-fluorescence) ------
     @staticmethod
-    def _outputFolder(outputFolder):
-        """``outputFolder`` created (a folder that refuses it: one line naming ``--out``)."""
-        from pathlib import Path
-
-        from fluoguide import atomic
-
-        out = Path(outputFolder)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise atomic.output_error(exc, out, "--out") from None
-        return out
-
-    @staticmethod
     def halfSpaceMonteCarlo(outputFolder, mua=None, musp=None, n=None, g=None, mcIn=None,
                             photons=250_000, runs=4, seed=1, engine="auto", executor=None,
                             threads=1, resume=False, commandLine=None, progress=None):
@@ -1230,6 +1216,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         import numpy as np
 
+        from fluoguide import atomic
         from fluoguide.errors import FluoInputError
         from fluoguide.runs.store import RunStore
         from FluoTomoLib.montecarlo import reference
@@ -1254,7 +1241,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         merged = simulate_halfspace(medium, photons, runs=runs, seed=seed, engine=engine,
                                     progress=progress, executor=executor, threads=threads,
                                     store=RunStore(Path(outputFolder) / "mc_runs", resume=resume))
-        out = FluoTomoLogic._outputFolder(outputFolder)
+        out = atomic.make_folder(outputFolder)
         reference.write_json_atomic(out / "mc_halfspace.json",
                                     reference.halfspace_set(medium, merged, commandLine))
         return {"medium": medium, "merged": merged, "mc_source": "this run"}
@@ -1290,6 +1277,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         """
         import numpy as np
 
+        from fluoguide import atomic
         from fluoguide.errors import FluoInputError
         from FluoTomoLib.montecarlo import compare
         from FluoTomoLib.montecarlo import reference as references
@@ -1309,7 +1297,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         res = compare.validate_halfspace(medium, merged, boundaries=tuple(boundaries),
                                          level=meshLevel, reference=ref, progress=progress)
         text = f"mua {medium.mua:g}/mm, musp {medium.musp:g}/mm, g {medium.g:g}, n {medium.n:g}"
-        figure = FluoTomoLogic._outputFolder(outputFolder) / "validate_mc.png"
+        figure = atomic.make_folder(outputFolder) / "validate_mc.png"
         validation_figure(res, text, figure)
         return {
             "medium": medium.metadata()["medium"], "volume_mm": list(medium.size_mm),
@@ -1361,6 +1349,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         import numpy as np
 
+        from fluoguide import atomic
         from fluoguide.errors import FluoInputError
         from fluoguide.runs.store import RunStore
         from FluoTomoLib.montecarlo import reference
@@ -1383,7 +1372,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             progress=progress, executor=executor, threads=threads,
             store=RunStore(Path(outputFolder) / "mc_runs", resume=resume))
         data = reference.fluorescence_set(case, res, commandLine)
-        reference.write_json_atomic(FluoTomoLogic._outputFolder(outputFolder)
+        reference.write_json_atomic(atomic.make_folder(outputFolder)
                                     / "mc_fluorescence.json", data)
         return {"case": case, "mc": {k: np.asarray(res[k], float) for k in keys}, "meta": data,
                 "detector_radius_mm": radius}

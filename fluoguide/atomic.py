@@ -97,6 +97,18 @@ def output_error(exc, path, field=None):
     return exc
 
 
+def make_folder(path, field="--out"):
+    """``path`` created with its parents (an existing one is fine) and returned as a
+    Path; a folder the user cannot create there is one ``FluoInputError`` naming
+    it and ``field`` (:func:`output_error`)."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(exc, out, field) from None
+    return out
+
+
 def crash_point(name, path=None):
     """Die here (SIGKILL) when ``FLUO_CRASH_AT`` names this point and hit.
 

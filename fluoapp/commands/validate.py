@@ -77,16 +77,6 @@ def _write_csv(path, rows, keys):
     atomic.write_text(path, fh.getvalue(), field="--out")
 
 
-def _mkdir(out):
-    """Create the output folder; a folder that refuses it is the user's to fix (one line)."""
-    from fluoguide import atomic
-
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise atomic.output_error(exc, out, "--out") from None
-
-
 def _write_json(path, result):
     from fluoguide import atomic
     from fluoguide.jsonable import dumps
@@ -157,6 +147,8 @@ def _print_table(result):
 
 
 def _mc_fluorescence(args):
+    from fluoguide import atomic
+
     _check_budget(args)
     threads = check_run_options(args)
     out = _out_dir(args.out)
@@ -175,7 +167,7 @@ def _mc_fluorescence(args):
                 progress=bar)
     boundaries = ("empirical", "fresnel") if args.boundary == "both" else (args.boundary,)
     result = logic.validateFluorescence(mc, boundaries)
-    _mkdir(out)
+    atomic.make_folder(out)
     _write_csv(out / "validate_mc_fluorescence.csv", result["rows"], list(result["rows"][0]))
     result["seconds"] = time.perf_counter() - t0
     return result

@@ -399,16 +399,17 @@ class TissueModel:
                 for r in range(K.shape[1])]
         return np.stack(cols, axis=1)
 
-    def _solve_hp(self, A, y, lam, log_data, noise_rel, cancel=None, progress=None):
-        """HP on its region unknowns (``A`` = :meth:`region_matrix`), the result
-        with the nodal yield K @ values, as reconstruct() returns it."""
+    def _solve_hp(self, prior, y, lam, log_data, noise_rel, cancel=None, progress=None):
+        """HP of ``prior``'s basis on its region unknowns (:meth:`region_matrix`: no
+        nodal Jacobian), the result with the nodal yield K @ values, as
+        reconstruct() returns it."""
         from FluoTomoLib.recon.partial_volume import region_unknowns
         from FluoTomoLib.recon.solver import reconstruct
 
-        res = reconstruct(A, y, "HP", lam=lam, prior=region_unknowns(self.prior.labels),
-                          log_data=log_data, cancel=cancel, progress=progress,
-                          noise_rel=noise_rel)
-        res.yield_per_mm = self.prior.K() @ res.yield_per_mm
+        res = reconstruct(self.region_matrix(prior), y, "HP", lam=lam,
+                          prior=region_unknowns(prior.labels), log_data=log_data,
+                          cancel=cancel, progress=progress, noise_rel=noise_rel)
+        res.yield_per_mm = prior.K() @ res.yield_per_mm
         return res
 
     def prior_for(self, labels_kji, spacing_mm=None, origin_mm=None, basis_only=False):
@@ -463,12 +464,8 @@ class TissueModel:
         def solve(k, what, prior, weights):
             check_cancel(cancel)
             part = scaled(progress, k / parts, (k + 1) / parts, what)
-            if method == "HP":        # region unknowns: no nodal Jacobian needed
-                from FluoTomoLib.recon.partial_volume import region_unknowns
-
-                res = reconstruct(self.region_matrix(prior), y, "HP", lam=lam,
-                                  prior=region_unknowns(prior.labels), log_data=log_data,
-                                  noise_rel=noise_rel, cancel=cancel, progress=part)
+            if method == "HP":
+                res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part)
             else:
                 res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
                                   region_weights=weights, noise_rel=noise_rel, cancel=cancel,
@@ -550,8 +547,7 @@ class TissueModel:
                 region_weights=self.region_weights, noise_rel=noise_rel,
                 region_matrix=self.region_matrix(self.prior) if hp else None)
         elif method == "HP":
-            res = self._solve_hp(self.region_matrix(self.prior), y, lam, log_data, noise_rel,
-                                 cancel, progress)
+            res = self._solve_hp(self.prior, y, lam, log_data, noise_rel, cancel, progress)
             passes = []
         else:
             res = reconstruct(self.J, y, method=method, lam=lam, prior=self.prior,

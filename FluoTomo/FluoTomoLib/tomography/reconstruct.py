@@ -240,8 +240,9 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                 raise FluoInputError("the mesh is not in the label map's frame", field="mesh")
         notes.extend(mesh.meta.get("warnings", []))
         # HP alone never builds the nodal Jacobian (TissueModel.region_matrix)
+        nodal_j = any(m != "HP" for m in methods)
         one_j = acquisition.n_measurements * mesh.n_nodes * 8.0
-        n_bytes = one_j * _JACOBIAN_COPIES if any(m != "HP" for m in methods) else 0.0
+        n_bytes = one_j * _JACOBIAN_COPIES if nodal_j else 0.0
         if n_bytes > MAX_JACOBIAN_BYTES:
             raise FluoInputError(f"{acquisition.n_measurements} measurements x {mesh.n_nodes} "
                                  f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
@@ -259,7 +260,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                          acquisition.mask, source_normals=lm.surface().closest(src)[1],
                          timings=timings, cut_facets=lm.cut_facets(mesh),
                          progress=scaled(progress, 0.3, 0.6, "Jacobian"),
-                         nodal_jacobian=any(m != "HP" for m in methods))
+                         nodal_jacobian=nodal_j)
         report(progress, 0.6, "the priors' volumes and the mesh's own error in the data")
         prior_volumes, prior_notes = check_prior_volumes(
             tm.prior, mesh, mesh.meta.get("labelmap_volumes_mm3", {}))
