@@ -665,8 +665,8 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         yieldByLabel : {label: yield [1/mm]}
         sources, detectors : (S, 3), (D, 3) RAS mm, or None for the default scan
         noise : relative Gaussian noise per measurement [%]
-        options : exclude_mm, simulate_mm, target, photons, executor, mc_store,
-            threads (``simulate_acquisition``)
+        options : exclude_mm, simulate_mm, target, scan_targets, photons,
+            executor, mc_store, threads (``simulate_acquisition``)
 
         Returns
         -------

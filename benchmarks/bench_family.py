@@ -14,6 +14,8 @@ read while it goes.
 
     python -m benchmarks family -- --seeds 1-24 --accuracy fast --json family.jsonl
     python -m benchmarks family -- --seeds 101-112 --segmentation-error-mm 1 --json seg.jsonl
+    python -m benchmarks family -- --seeds 101-112 --segmentation-error-mm 1 \
+        --segmentation-mm 1 --json seg1.jsonl      # the error stated to the reconstruction
 """
 
 from __future__ import annotations
@@ -41,6 +43,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m benchmarks family")
     ap.add_argument("--seeds", default="1-6", help="scenes, e.g. 1-24 or 3,5,9")
     ap.add_argument("--segmentation-error-mm", type=float, default=0.0)
+    ap.add_argument("--segmentation-mm", type=float, default=None,
+                    help="the segmentation's accuracy stated to the reconstruction [mm] "
+                    "(default: its own, half the largest voxel side)")
     ap.add_argument("--accuracy", default="fast", choices=["fast", "balanced", "fine"])
     ap.add_argument("--methods", default="HP,SP")
     ap.add_argument("--json", default=None, help="append the rows here (JSON lines)")
@@ -52,7 +57,8 @@ def main(argv=None):
         scene = make_scene(seed, segmentation_error_mm=args.segmentation_error_mm)
         print(f"scene {seed}: {scene.description} (segmentation {scene.segmentation})",
               flush=True)
-        mine = grade_scene(scene, methods=args.methods.split(","), accuracy=args.accuracy)
+        mine = grade_scene(scene, methods=args.methods.split(","), accuracy=args.accuracy,
+                           segmentation_mm=args.segmentation_mm)
         for r in mine:
             ci = r["ci_half_width_pct"]
             print(f"  {r['method']} label {r['label']}: error {r['error_pct']:+.1f} %, 95 % "

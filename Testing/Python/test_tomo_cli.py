@@ -38,6 +38,10 @@ def test_simulate_writes_a_folder_a_person_can_read(small):
     assert len(rows) == out["sources"] and all(len(r.split(",")) == out["detectors"]
                                                for r in rows)
     assert sum(r.count("-") for r in rows) > 0            # near-source pairs marked unused
+    # the default scan's patch lies over the one inclusion, which it sees
+    assert [p["targets"] for p in out["scan_patches"]] == [[7]]
+    assert out["scan_coverage"]["7"]["seen"] and out["scan_coverage"]["7"]["pairs_seeing"] > 0
+    assert doc["simulation"]["scan_coverage"]["regions"]["7"] == out["scan_coverage"]["7"]
 
 
 @pytest.mark.parametrize("case", ["labels-missing", "off-surface", "off-surface-detector",
@@ -113,6 +117,11 @@ def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
                  "--yield", "9:0.001", "--out", tmp_path / "out")
         _one_line_exit_2(r, "not in the label map")
         assert not (tmp_path / "out").exists()
+        for bad, needle in (("9", "not in the label map"), ("7,x", "comma")):
+            r = fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics", optics,
+                     "--yield", "7:0.001", "--scan-targets", bad, "--out", tmp_path / "out")
+            _one_line_exit_2(r, "--scan-targets")
+            assert needle in r.stderr and not (tmp_path / "out").exists()
         return
     elif case == "bad-accuracy-size":
         extra = ["--element-mm", "-1"]

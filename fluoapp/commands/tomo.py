@@ -77,6 +77,28 @@ def _check_simulate_options(args):
                              field="--resume")
 
 
+def _scan_targets(args, lm):
+    """The labels the default scan covers: --scan-targets, else --target alone,
+    else None (every inclusion: the Lib's default)."""
+    if args.scan_targets is None:
+        return None if args.target is None else [args.target]
+    if args.sources:
+        raise FluoInputError("the scan's targets are for the default scan: the positions "
+                             "were given", field="--scan-targets", value=args.scan_targets)
+    if args.scan_targets.strip().lower() == "inclusions":
+        return None
+    try:
+        labels = [int(v) for v in args.scan_targets.split(",") if v.strip()]
+    except ValueError:
+        raise FluoInputError("expected labels separated by commas, or 'inclusions'",
+                             field="--scan-targets", value=args.scan_targets) from None
+    missing = [v for v in labels if v not in lm.labels]
+    if not labels or missing:
+        raise FluoInputError("label is not in the label map", file=args.labels,
+                             field="--scan-targets", value=missing or args.scan_targets)
+    return labels
+
+
 def _simulate(args):
     from fluoguide import atomic
 
@@ -96,6 +118,7 @@ def _simulate(args):
         if label not in lm.labels:
             raise FluoInputError("label is not in the label map", file=args.labels,
                                  field="--yield", value=label)
+    scan_targets = _scan_targets(args, lm)
     src = det = None
     if args.sources:            # read, and on the tissue surface, before any progress
         src = logic.readPoints(args.sources, "--sources", lm, "sources")
@@ -111,13 +134,16 @@ def _simulate(args):
             lm, optics, yields, args.out, src, det, noise=args.noise_pct, seed=args.seed,
             engine=args.engine, accuracy=args.accuracy, progress=bar,
             exclude_mm=args.exclude_mm, simulate_mm=args.element_mm, target=args.target,
-            photons=args.photons, executor=ex, mc_store=store, threads=threads)
+            photons=args.photons, executor=ex, mc_store=store, threads=threads,
+            scan_targets=scan_targets)
     return {"output": str(args.out), "sources": len(acq.sources_ras_mm),
             "detectors": len(acq.detectors_ras_mm), "measurements": acq.n_measurements,
             "engine": info["engine"], "simulation_mesh_nodes": info.get("mesh_nodes"),
             "photon_noise_pct": info.get("photon_noise_pct"),
             "mc_executor": info.get("mc_executor"),
             "noise_pct": info["noise_pct"], "seed": info["seed"], "target": info["target"],
+            "scan_patches": None if not info.get("scan") else info["scan"]["patches"],
+            "scan_coverage": info["scan_coverage"]["regions"],
             "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
 
 
@@ -216,12 +242,17 @@ def register(subparsers):
                    help="relative Gaussian noise per measurement [%%] (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--sources", default=None, help="CSV of source points x,y,z (RAS mm) on the "
-                   "tissue surface (default: a 4 x 4 grid, 3 mm pitch, over the target)")
+                   "tissue surface (default: a 4 x 4 grid, 3 mm pitch, over each target)")
     p.add_argument("--detectors", default=None, help="CSV of detector points x,y,z (RAS mm) "
-                   "(default: a 7 x 7 grid, 1.5 mm pitch, over the target)")
-    p.add_argument("--target", type=int, default=None, help="label the default scan is centred "
-                   "over and meshed finely around (default: the smallest region that is not "
-                   "the largest)")
+                   "(default: a 7 x 7 grid, 1.5 mm pitch, over each target)")
+    p.add_argument("--target", type=int, default=None, help="label meshed finely around (and "
+                   "the default scan's only target when --scan-targets is not given; default: "
+                   "the smallest region that is not the largest)")
+    p.add_argument("--scan-targets", default=None, metavar="LABEL[,...]|inclusions",
+                   help="labels the default scan lays one patch over each (at most 4; "
+                   "default: --target, or else every inclusion: each label under a tenth of "
+                   "the tissue's volume). The JSON's scan_coverage says what the scan sees "
+                   "of every region")
     p.add_argument("--exclude-mm", type=float, default=None, help="pairs closer than this to "
                    "their source are marked unused (default 3)")
     p.add_argument("--engine", choices=["fem", "mc"], default="fem",

@@ -29,6 +29,10 @@ MAX_LABELS = 64
 CUT_TOLERANCE_VOXELS = 0.75
 
 
+#: a label holding more of the tissue's volume than this is a tissue, not an inclusion
+INCLUSION_MAX_SHARE = 0.1
+
+
 @dataclass(eq=False)
 class LabelMap:
     """Label map (0 = air / outside) and its RAS geometry.
@@ -196,6 +200,20 @@ class LabelMap:
             return None
         largest = max(vols, key=vols.get)
         return min((v for v in vols if v != largest), key=vols.get)
+
+    def inclusion_labels(self, max_share=INCLUSION_MAX_SHARE):
+        """The regions a default scan covers when the user names none: every label
+        that is not the largest and holds at most ``max_share`` of the tissue's
+        volume (inclusions, not tissue layers), smallest first; the default target
+        alone when no label is that small; [] with one tissue label."""
+        vols = self.region_volumes()
+        if len(vols) < 2:
+            return []
+        largest = max(vols, key=vols.get)
+        total = sum(vols.values())
+        small = sorted((v for v in vols if v != largest and vols[v] <= max_share * total),
+                       key=vols.get)
+        return small or [self.default_target()]
 
     def tissue_bounds_local(self):
         """(lo, hi) local box of every non-zero voxel."""

@@ -141,6 +141,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     one Jacobian).  Returns {method: result}."""
     from FluoTomoLib.fem.kernels import prepare_kernels
     from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
+    from FluoTomoLib.tomography.coverage import scan_coverage
     from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
                                               reconstruction_mesh)
     from FluoTomoLib.tomography.roi import choose_roi, label_map_cut, roi_from_ras
@@ -199,6 +200,12 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         check_cancel(cancel)
         cut_info = label_map_cut(lm, optics, src, det, acquisition.mask, cancel=cancel)
         notes.extend(cut_info.pop("warnings"))
+        # what the scan sees of each region, said before anything is solved
+        coverage = scan_coverage(lm, optics, lm.to_ras(src), lm.to_ras(det), acquisition.mask,
+                                 1.0 if noise_pct is None else noise_pct)
+        for text in coverage["warnings"]:
+            report(progress, 0.02, text)
+        notes.extend(coverage.pop("warnings"))
         h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
         if h < settings["recon_mm"]:
             remarks.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
@@ -297,6 +304,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                               dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
                               t_common + res.seconds)
         out[method]["summary"]["label_map_cut"] = cut_info
+        out[method]["summary"]["scan_coverage"] = coverage
         out[method]["summary"]["noise"] = {
             "pct": noise_pct, "source": None if noise_pct is None else noise_from,
             "note": "one SD per measurement [%], tested against the fit" if noise_pct

@@ -46,15 +46,26 @@ def _tangent_basis(n):
     return u, np.cross(n, u)
 
 
+#: most patches a default scan lays (one per target); name the targets for more
+MAX_SCAN_PATCHES = 4
+
+
 def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
                  detectors_per_side=None, detector_pitch_mm=None):
     """Sources and detectors (RAS mm) on square grids in the tangent plane of the
-    skin point nearest the target's centre (the tissue's centre without a
+    skin point nearest each target's centre (the tissue's centre without a
     target), dropped onto the skin along its normal. Skin only: a cut face of
     the label map (its border, where the tissue was cropped) is never scanned;
     where the grids centred there would run off the skin (past the tissue's edge
     or onto a cut), they move along the plane by the least amount that keeps
-    them on it (steps of half the source pitch, up to the grids' span)."""
+    them on it (steps of half the source pitch, up to the grids' span).
+
+    ``target`` is a label, a list of labels (one patch each, at most
+    MAX_SCAN_PATCHES; a target whose skin point lies within half a patch of an
+    earlier patch's centre shares that patch) or None. The configuration
+    returned lists the patches and, for each source and detector, its patch
+    (``source_patch``, ``detector_patch``): a pair across patches is not a
+    measurement of either target (:func:`scan_pairs`)."""
     cfg = dict(DEFAULT_SCAN)
     for k, v in (("sources_per_side", sources_per_side), ("source_pitch_mm", source_pitch_mm),
                  ("detectors_per_side", detectors_per_side),
@@ -67,18 +78,57 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
     for k in ("source_pitch_mm", "detector_pitch_mm"):
         if not (np.isfinite(cfg[k]) and cfg[k] > 0):
             raise FluoInputError("must be a positive number", field=k, value=cfg[k])
+    targets = [None] if target is None else \
+        [int(t) for t in np.atleast_1d(np.asarray(target, dtype=object))]
+    if not targets:
+        raise FluoInputError("no target to scan over", field="scan targets", value=[])
+    if len(targets) > MAX_SCAN_PATCHES:
+        raise FluoInputError(f"at most {MAX_SCAN_PATCHES} targets per default scan (give the "
+                             "positions for more)", field="scan targets", value=targets)
+    for t in targets:
+        if t is not None and t not in lm.labels:
+            raise FluoInputError("label is not in the label map", file=lm.source,
+                                 field="scan targets", value=t)
     surf = lm.surface().skin_only()
     if len(surf.triangles) == 0:
         raise FluoInputError("the label map has no skin: its tissue fills every side of the "
                              "volume (every border is a cut face)", file=lm.source,
                              field="labels")
-    if target is not None:
-        c = lm.region_centroid_local(target)
-    else:
-        k, j, i = np.nonzero(lm.labels_kji > 0)
-        c = np.array([i.mean(), j.mean(), k.mean()]) * lm.spacing_mm
-    p, nrm, _ = surf.closest(c)
-    p, nrm = p[0], nrm[0]
+    span = max((cfg["sources_per_side"] - 1) * cfg["source_pitch_mm"],
+               (cfg["detectors_per_side"] - 1) * cfg["detector_pitch_mm"])
+    src, det, patches, s_of, d_of = [], [], [], [], []
+    for t in targets:
+        if t is not None:
+            c = lm.region_centroid_local(t)
+        else:
+            k, j, i = np.nonzero(lm.labels_kji > 0)
+            c = np.array([i.mean(), j.mean(), k.mean()]) * lm.spacing_mm
+        p, nrm, _ = surf.closest(c)
+        p, nrm = p[0], nrm[0]
+        near = [n for n, q in enumerate(patches)
+                if np.linalg.norm(np.asarray(q["_skin_local"]) - p) <= 0.5 * span]
+        if near:
+            patches[near[0]]["targets"].append(t)
+            continue
+        s_l, d_l, shift = _patch(surf, p, nrm, cfg, span)
+        n = len(patches)
+        patches.append({"targets": [t], "centre_ras_mm": lm.to_ras(p)[0].round(3).tolist(),
+                        "shift_mm": shift, "_skin_local": p.tolist()})
+        src.append(s_l)
+        det.append(d_l)
+        s_of += [n] * len(s_l)
+        d_of += [n] * len(d_l)
+    for q in patches:
+        q.pop("_skin_local")
+    cfg["shift_mm"] = max(q["shift_mm"] for q in patches)
+    cfg["patches"] = patches
+    cfg["source_patch"], cfg["detector_patch"] = s_of, d_of
+    return lm.to_ras(np.vstack(src)), lm.to_ras(np.vstack(det)), cfg
+
+
+def _patch(surf, p, nrm, cfg, span):
+    """One patch's sources and detectors (local mm) around skin point ``p``
+    (outward normal ``nrm``), moved the least amount that keeps it on skin."""
     u, v = _tangent_basis(nrm)
 
     def grid(centre, n, pitch):
@@ -88,8 +138,6 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
         hit, face = surf.cast(pts + 30.0 * nrm, np.tile(-nrm, (len(pts), 1)))
         return None if np.any(face < 0) else hit
 
-    span = max((cfg["sources_per_side"] - 1) * cfg["source_pitch_mm"],
-               (cfg["detectors_per_side"] - 1) * cfg["detector_pitch_mm"])
     step = 0.5 * cfg["source_pitch_mm"]
     reach = int(np.ceil(span / step))
     shifts = sorted(((a * step, b * step) for a in range(-reach, reach + 1)
@@ -100,12 +148,22 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
         det = None if src is None else grid(centre, cfg["detectors_per_side"],
                                             cfg["detector_pitch_mm"])
         if det is not None:
-            cfg["shift_mm"] = float(np.hypot(da, db))
-            return lm.to_ras(src), lm.to_ras(det), cfg
+            return src, det, float(np.hypot(da, db))
     raise FluoInputError("the scan does not fit on the skin near the target (past the tissue's "
                          "edge or onto a cut face of the label map, wherever it is moved): use "
                          "fewer or closer positions", field="scan",
                          value=float(cfg["source_pitch_mm"]))
+
+
+def scan_pairs(cfg, n_sources, n_detectors):
+    """(S, D) bool: the pairs of one patch (every pair for a scan without patches)."""
+    if not cfg or "source_patch" not in cfg:
+        return np.ones((n_sources, n_detectors), bool)
+    s = np.asarray(cfg["source_patch"])
+    d = np.asarray(cfg["detector_patch"])
+    if len(s) != n_sources or len(d) != n_detectors:
+        return np.ones((n_sources, n_detectors), bool)
+    return s[:, None] == d[None, :]
 
 
 def add_noise(y, noise_pct, rng):
@@ -334,7 +392,8 @@ ENGINES = {"fem": simulate_fem, "mc": simulate_mc}
 def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors_ras=None,
                          scan=None, noise_pct=1.0, seed=0, engine="fem", exclude_mm=None,
                          accuracy="balanced", simulate_mm=None, target=None, photons=None,
-                         progress=None, cancel=None, executor=None, mc_store=None, threads=1):
+                         progress=None, cancel=None, executor=None, mc_store=None, threads=1,
+                         scan_targets=None):
     """A simulated acquisition of a label map.
 
     Parameters
@@ -343,7 +402,9 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
     optics : Optics (every label of the map must be listed)
     yield_by_label : {label: yield [1/mm]} (labels not listed: 0)
     sources_ras, detectors_ras : (S, 3), (D, 3) RAS mm, or None for the
-        default scan (``scan``: DEFAULT_SCAN keys) over the target
+        default scan (``scan``: DEFAULT_SCAN keys): one patch over each of
+        ``scan_targets`` (None: every inclusion, LabelMap.inclusion_labels,
+        at most MAX_SCAN_PATCHES of them), pairs within a patch
     noise_pct : relative Gaussian noise per measurement [%]
     seed : random seed of the noise
     engine : "fem" or "mc" (see ENGINES)
@@ -390,7 +451,9 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
         settings["photons"] = check_photons(photons)
     scan_cfg = None
     if sources_ras is None or detectors_ras is None:
-        sources_ras, detectors_ras, scan_cfg = default_scan(lm, target, **(scan or {}))
+        if scan_targets is None:
+            scan_targets = lm.inclusion_labels()[:MAX_SCAN_PATCHES] or target
+        sources_ras, detectors_ras, scan_cfg = default_scan(lm, scan_targets, **(scan or {}))
     sources_ras = np.atleast_2d(np.asarray(sources_ras, float))
     detectors_ras = np.atleast_2d(np.asarray(detectors_ras, float))
     src_l, d_src = place_on_surface(lm, sources_ras, "sources")
@@ -405,12 +468,16 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
     if not (np.isfinite(ex) and 0 <= ex <= 100):
         raise FluoInputError("must be a distance within 0..100 mm", field="exclude_mm", value=ex)
     dist = np.linalg.norm(sources_ras[:, None] - detectors_ras[None], axis=2)
-    mask = dist > ex
+    mask = (dist > ex) & scan_pairs(scan_cfg, len(sources_ras), len(detectors_ras))
     if not mask.any():
         raise FluoInputError("every pair is closer than this to its source: no measurement "
                              "left", field="exclude_mm", value=ex)
+    from FluoTomoLib.tomography.coverage import scan_coverage
     from FluoTomoLib.tomography.roi import label_map_cut
 
+    coverage = scan_coverage(lm, optics, sources_ras, detectors_ras, mask, noise_pct)
+    for w in coverage["warnings"]:
+        report(progress, 0.0, w)
     cut_info = label_map_cut(lm, optics, src_l, det_l, mask, cancel=cancel)
     cut_warnings = cut_info.pop("warnings")
     if engine == "mc" and cut_info["sides"]:
@@ -426,7 +493,8 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
     info = out["info"]
     mesh, y_nodes = info.pop("_mesh", None), info.pop("_yield_nodes", None)
     info["warnings"] = (sorted({str(w.message) for w in caught}) + info.pop("mesh_warnings", [])
-                        + cut_warnings)
+                        + cut_warnings + coverage.pop("warnings"))
+    info["scan_coverage"] = coverage
     info["label_map_cut"] = cut_info
     noisy = np.asarray(out["data"], float)
     clean = noisy if out.get("clean") is None else np.asarray(out["clean"], float)

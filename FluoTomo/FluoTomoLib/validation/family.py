@@ -74,7 +74,8 @@ class Scene:
         return LabelMap(lab, self.spacing_mm, self.origin_mm, self.direction)
 
     def target(self):
-        """The first (shallowest drawn) inclusion's label: the scan's target."""
+        """The first (shallowest drawn) inclusion's label: the reconstruction's
+        target (meshed finely; the default scan covers every inclusion)."""
         return int(self.inclusions[0]["label"])
 
 
@@ -248,7 +249,7 @@ def _segmentation_error(labels, masks, spacing, mm, rng):
 
 
 def simulate(scene, engine="fem", accuracy="fine", photons=None):
-    """The scene's acquisition (default scan over its first inclusion), simulated
+    """The scene's acquisition (the default scan: a patch over each inclusion), simulated
     on the TRUE label map with the engine's own mesh and the scene's noise.
     Returns (Acquisition, info)."""
     from FluoTomoLib.tomography import optics_from_dict, simulate_acquisition

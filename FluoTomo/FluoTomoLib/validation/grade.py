@@ -18,10 +18,12 @@ import numpy as np
 
 
 def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
-                acquisition=None, progress=None, cancel=None):
+                acquisition=None, progress=None, cancel=None, segmentation_mm=None):
     """Simulate ``scene`` (unless ``acquisition`` is given), reconstruct it with
-    each method at ``accuracy`` on the label map the scene hands over, and grade
-    the results. Returns a list of row dicts (one per method and inclusion)."""
+    each method at ``accuracy`` on the label map the scene hands over (with the
+    segmentation's stated accuracy ``segmentation_mm``, None: the reconstruction's
+    default), and grade the results. Returns a list of row dicts (one per method
+    and inclusion)."""
     from FluoTomoLib.tomography import optics_from_dict
     from FluoTomoLib.tomography.reconstruct import reconstruct_labelmap_methods
     from FluoTomoLib.validation.family import simulate
@@ -35,7 +37,7 @@ def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
     t0 = time.perf_counter()
     out = reconstruct_labelmap_methods(lm, optics, acquisition, methods=list(methods),
                                accuracy=accuracy, target=scene.target(), progress=progress,
-                               cancel=cancel)
+                               cancel=cancel, segmentation_mm=segmentation_mm)
     t_rec = time.perf_counter() - t0
     rows = []
     for method in methods:
