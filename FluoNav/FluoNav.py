@@ -666,6 +666,17 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return info
 
     # -- correction --------------------------------------------------------------------
+    @staticmethod
+    def prepareKernels(progress=None, fraction=0.0, cancel=None):
+        """Compile (first run after installing, about 15 s) or load the compiled
+        surface-mapping kernels (ray casting, illumination), reporting at
+        ``fraction`` of ``progress`` every second; a cancel stops the wait. Returns
+        the seconds spent (0.0 when they are ready). The frame jobs call it first;
+        a live stream calls it before its first frame."""
+        from FluoNavLib.mapping.kernels import prepare_kernels
+
+        return prepare_kernels(progress, fraction, cancel)
+
     def correctionContext(self, surfaceModelNode=None, calibration=None):
         """What every frame shares (camera, light, radiometric model, the surface's
         ray caster, the pose chain), read from the scene; reused while none of
@@ -739,6 +750,7 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         def job(progress=None, cancel=None):
             check_cancel(cancel)
+            self.prepareKernels(progress, 0.0, cancel)   # first run: compiled, reported
             report(progress, 0.0, f"ray casting and correcting frame {index}")
             r = correct_image(ctx, frame, cameraPose, frame=index, max_model_error=maxModelError)
             report(progress, 1.0, "done")
@@ -826,6 +838,8 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             from FluoNavLib.mapping.correct import correct_image, map_frames_to_surface
 
             results, refused = list(precomputed), list(skipped)
+            if read:                # a frame to cast: first run compiles, reported
+                self.prepareKernels(progress, 0.0, cancel)
             for k, (n, counts, pose) in enumerate(read):
                 check_cancel(cancel)
                 report(progress, 0.95 * k / max(len(read), 1),

@@ -9,7 +9,7 @@ import queue
 import numpy as np
 
 from fluoguide import mrml_io
-from fluoguide.errors import FluoInputError
+from fluoguide.errors import FluoCancelled, FluoInputError
 
 __all__ = ["NavPanel"]
 
@@ -111,8 +111,14 @@ class NavPanel:
                 room.makeSyntheticAcquisition(views=0, binning=8, triangles=20000)
                 correct = room.prepareFrameCorrection()
                 ctx = correct.context
+                # the ray caster's kernels compile here on a first run, reported as
+                # they go, not silently inside the first frame
+                try:
+                    room.prepareKernels(progress, 0.0, cancel)
+                except FluoCancelled:
+                    pass            # Stop meanwhile: the loop below ends the stream normally
                 # the stream runs ``seconds`` from its first frame (the first one also
-                # compiles the ray caster and starts the plotting: slow on a busy machine)
+                # starts the plotting: slow on a busy machine)
                 t_end = time.monotonic() + seconds + 120.0
                 while time.monotonic() < t_end:
                     if cancel is not None and cancel.cancelled:

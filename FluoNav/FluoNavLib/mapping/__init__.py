@@ -8,6 +8,7 @@ Modules
 - ``correct``: Correct recorded tracked frames with the navigated illumination model (``fluo nav correct``): everything it needs comes from the MRML scene.
 - ``flux_map``: The navigated illumination model on ray-cast pixels (docs/physics.md section 6.1).
 - ``illumination_kernel``: The illumination cone evaluated per pixel in one compiled pass (video rate).
+- ``kernels``: The compiled (numba) surface-mapping kernels made ready before long work uses them, with progress.
 - ``mismatch``: Surface-flux mapping validated on data it did not make itself: frames rendered on a finer true surface from true poses, corrected with the CBCT surface and tracked poses (tracking and hand-eye error).
 - ``pixel_cast``: Every camera pixel's ray cast onto the tissue surface.
 - ``rasterize``: Primary-ray casting by z-buffer rasterisation (the video-rate path).
@@ -24,6 +25,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "correct": ["NavContext", "FrameResult", "load_context", "read_frame", "correct_image", "correct_frame", "map_frames_to_surface"],
     "flux_map": ["ViewModel", "view_model", "forward_image", "transport_image", "surface_flux", "accumulate_on_faces", "plane_hits"],
     "illumination_kernel": ["cone_factors_from_cast"],
+    "kernels": ["prepare_kernels"],
     "mismatch": ["MISMATCH_CASES", "mapping_under_mismatch", "mismatch_figure"],
     "pixel_cast": ["SurfaceCaster", "PixelHits", "cast_camera", "reference_cast"],
     "rasterize": ["RayGrid", "raster_cast"],

@@ -70,8 +70,10 @@ def run_mapping_benchmark(repeats=5, binning=10, decimated_triangles=15000, prog
         render_view,
         view_poses,
     )
+    from FluoNavLib.mapping.kernels import prepare_kernels
     from FluoNavLib.mapping.pixel_cast import cast_camera
 
+    prepare_kernels(progress, 0.0)             # first run: compiled, reported as it goes
     caster, _ = oral_cavity_surface(62000)
     coarse, _ = oral_cavity_surface(decimated_triangles)
     cone = coupled_light()

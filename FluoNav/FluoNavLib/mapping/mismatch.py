@@ -133,6 +133,7 @@ def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
         transport_image,
         view_model,
     )
+    from FluoNavLib.mapping.kernels import prepare_kernels
     from FluoNavLib.mapping.pixel_cast import cast_camera
     from FluoNavLib.mapping.synthetic import (
         coupled_light,
@@ -160,6 +161,7 @@ def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
     if not (np.isfinite(tol) and tol > 0):
         raise FluoInputError("must be a finite number > 0", field="max_model_error", value=tol)
 
+    prepare_kernels(progress, 0.0, cancel)      # first run: compiled, reported as it goes
     report(progress, 0.02, "the CBCT surfaces")
     geometry = make_phantom("oral-cavity", voxel_mm=cbct_voxel_mm, seed=seed).truth()["geometry"]
     casters = {}

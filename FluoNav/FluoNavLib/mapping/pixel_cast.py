@@ -38,8 +38,12 @@ class SurfaceCaster:
     """Ray casting onto one triangle surface (RAS mm)."""
 
     def __init__(self, points_mm, triangles):
-        P = np.asarray(points_mm, float)
-        T = np.asarray(triangles, np.int64)
+        # own C-ordered copies: the BVH is built from them (a caller's array changed
+        # later must not change the raster path alone), and they are the argument
+        # types the compiled kernels are prepared for (``kernels.py``): a column
+        # slice or a read-only buffer would be compiled again at the first cast
+        P = np.array(points_mm, float, order="C")
+        T = np.array(triangles, np.int64, order="C")
         if P.ndim != 2 or P.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 3 or len(T) == 0:
             raise FluoInputError("surface needs (N, 3) points and (M, 3) triangles",
                                  field="surface", value=(P.shape, T.shape))

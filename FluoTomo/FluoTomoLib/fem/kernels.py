@@ -6,10 +6,10 @@ happens once per installation (and per numba version), but then it takes
 11-14 s (the parallel Jacobian kernel most of it) inside whatever step first
 calls a kernel, and that step reports nothing meanwhile.
 :func:`prepare_kernels` compiles (or loads from the cache) every kernel for the
-argument types the FEM code calls it with, on a helper thread
-(``fluoguide.progress.run_reporting``), while the caller's thread says what it
-is doing and how long it has run, every ``every_s`` seconds, and honours a
-cancel.
+argument types the FEM code calls it with, on a helper thread, while the
+caller's thread says what it is doing and how long it has run, every
+``every_s`` seconds, and honours a cancel (``fluoguide.kernels.prepare``, which
+FluoNav's surface-mapping kernels use too).
 
 The signatures come from :func:`_examples`: tiny arrays of the dtypes the call
 sites pass (``Testing/Python/test_jobs.py``'s slow reconstruction test checks that a
@@ -18,15 +18,12 @@ simulation and a reconstruction after it compile nothing more).
 
 from __future__ import annotations
 
-import os
-import time
-
 import numpy as np
 
-from fluoguide.progress import run_reporting
+from fluoguide import kernels as _kernels
 
-#: the longest wait between two reports while the kernels compile [s]
-REPORT_EVERY_S = 1.0
+#: the kernels' name in the reports ("compiling the FEM kernels (first run only)")
+WHAT = "FEM kernels"
 
 
 def _examples():
@@ -59,25 +56,9 @@ def _examples():
     ]
 
 
-def _signatures():
-    """[(dispatcher, numba signature)] of :func:`_examples`."""
-    from numba import typeof
-
-    return [(d, tuple(typeof(a) for a in args)) for d, args in _examples()]
-
-
 def missing():
     """[(dispatcher, signature)] not compiled in this process yet."""
-    return [(d, sig) for d, sig in _signatures() if sig not in d.overloads]
-
-
-def _cached_on_disk(dispatcher):
-    """Whether numba's on-disk cache has an index for ``dispatcher`` (False when
-    it cannot tell: its cache layout is numba's own)."""
-    try:
-        return os.path.exists(dispatcher._cache._cache_file._index_path)
-    except AttributeError:
-        return False
+    return _kernels.missing(_examples())
 
 
 def prepare_kernels(progress=None, fraction=0.0, cancel=None, every_s=None):
@@ -91,23 +72,10 @@ def prepare_kernels(progress=None, fraction=0.0, cancel=None, every_s=None):
     cancel : CancelToken or None; a cancel raises FluoCancelled at the next report
         (the compilation goes on to its end on its helper thread, then serves the
         next call)
-    every_s : seconds between reports (None: :data:`REPORT_EVERY_S`)
+    every_s : seconds between reports (None: ``fluoguide.kernels.REPORT_EVERY_S``)
 
     Returns
     -------
     float: seconds spent (0.0 when every kernel was ready)
     """
-    todo = missing()
-    if not todo:
-        return 0.0
-    what = ("loading the compiled FEM kernels" if all(_cached_on_disk(d) for d, _ in todo)
-            else "compiling the FEM kernels (first run only)")
-
-    def compile_all():
-        for dispatcher, sig in todo:
-            dispatcher.compile(sig)
-
-    t0 = time.monotonic()
-    run_reporting(compile_all, progress, fraction, what, cancel,
-                  REPORT_EVERY_S if every_s is None else float(every_s))
-    return time.monotonic() - t0
+    return _kernels.prepare(_examples(), WHAT, progress, fraction, cancel, every_s)
