@@ -512,7 +512,6 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     if len(tets) == 0:
         raise FluoInputError("no tissue inside the roi at this element size", field="roi",
                              value=roi.tolist())
-    shape = tuple(len(e) for e in edges)
     used, inverse = np.unique(tets, return_inverse=True)
     X, Y, Z = np.meshgrid(*edges, indexing="ij")
     all_nodes = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
