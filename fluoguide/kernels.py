@@ -26,7 +26,8 @@ import time
 
 from fluoguide.progress import run_reporting
 
-__all__ = ["REPORT_EVERY_S", "signatures", "missing", "cached_on_disk", "prepare"]
+__all__ = ["REPORT_EVERY_S", "signatures", "missing", "cached_on_disk", "prepare",
+           "KernelSet"]
 
 #: the longest wait between two reports while kernels compile [s]
 REPORT_EVERY_S = 1.0
@@ -100,3 +101,27 @@ def prepare(examples, what, progress=None, fraction=0.0, cancel=None, every_s=No
     run_reporting(compile_all, progress, fraction, message, cancel,
                   REPORT_EVERY_S if every_s is None else float(every_s))
     return time.monotonic() - t0
+
+
+class KernelSet:
+    """One Lib's kernels: ``examples()`` lists them as ``[(dispatcher, example
+    arguments)]`` (called when needed: importing the Lib compiles nothing) and
+    ``what`` names them in the reports. A Lib module exposes its set's
+    :meth:`missing` and :meth:`prepare` (``FluoTomoLib.fem.kernels``,
+    ``FluoNavLib.mapping.kernels``)."""
+
+    def __init__(self, examples, what):
+        self.examples = examples
+        self.what = str(what)
+
+    def missing(self):
+        """[(dispatcher, signature)] not compiled in this process yet."""
+        return missing(self.examples())
+
+    def prepare(self, progress=None, fraction=0.0, cancel=None, every_s=None):
+        """Compile (or load from numba's cache) the kernels not ready in this
+        process, reporting at ``fraction`` of ``progress`` at least every
+        ``every_s`` seconds (:func:`prepare`; None: :data:`REPORT_EVERY_S`); a
+        cancel raises FluoCancelled at the next report. Returns the seconds spent
+        (0.0 when every kernel was ready)."""
+        return prepare(self.examples(), self.what, progress, fraction, cancel, every_s)

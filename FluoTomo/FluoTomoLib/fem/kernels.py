@@ -56,26 +56,11 @@ def _examples():
     ]
 
 
-def missing():
-    """[(dispatcher, signature)] not compiled in this process yet."""
-    return _kernels.missing(_examples())
-
-
-def prepare_kernels(progress=None, fraction=0.0, cancel=None, every_s=None):
-    """Compile (or load from numba's cache) the FEM kernels not ready in this process,
-    reporting at ``fraction`` of ``progress`` at least every ``every_s`` seconds.
-
-    Parameters
-    ----------
-    progress : ``progress(fraction, message)`` or None
-    fraction : the fraction reported meanwhile (this step's place in the caller's job)
-    cancel : CancelToken or None; a cancel raises FluoCancelled at the next report
-        (the compilation goes on to its end on its helper thread, then serves the
-        next call)
-    every_s : seconds between reports (None: ``fluoguide.kernels.REPORT_EVERY_S``)
-
-    Returns
-    -------
-    float: seconds spent (0.0 when every kernel was ready)
-    """
-    return _kernels.prepare(_examples(), WHAT, progress, fraction, cancel, every_s)
+#: this Lib's kernels (fluoguide.kernels.KernelSet)
+KERNELS = _kernels.KernelSet(_examples, WHAT)
+#: [(dispatcher, signature)] not compiled in this process yet
+missing = KERNELS.missing
+#: compile (or load from numba's cache) the kernels not ready in this process, with
+#: progress: ``prepare_kernels(progress=None, fraction=0.0, cancel=None, every_s=None)``
+#: -> seconds spent (fluoguide.kernels.KernelSet.prepare)
+prepare_kernels = KERNELS.prepare
