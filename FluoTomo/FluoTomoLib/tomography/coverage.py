@@ -100,16 +100,17 @@ def scan_coverage(lm, optics, sources_ras, detectors_ras, mask=None, noise_pct=1
     vols = lm.region_volumes()
     body = max(vols, key=vols.get)
     (mx, sx), (mm, sm) = optics.excitation[body], optics.emission[body]
+    from scipy.spatial import cKDTree
+
     parts = {}
     nearest = {}
-    optodes = np.vstack([src, det])
+    optodes = cKDTree(np.vstack([src, det]))
     for lab in vols:
         pts, w = _region_points(lm, lab)
         gx = _green_half_space(src, -n_src, pts, mx, sx, optics.n)
         gm = _green_half_space(det, -n_det, pts, mm, sm, optics.n)
         parts[lab] = w * (gx @ gm.T)                       # (S, D) signal at unit yield
-        d2 = ((pts[:, None, :] - optodes[None, :, :]) ** 2).sum(axis=2)
-        nearest[lab] = float(np.sqrt(d2.min()))
+        nearest[lab] = float(optodes.query(pts)[0].min())
     total = sum(parts.values())
     used = mask & (total > 0)
     noise = max(float(noise_pct), 1e-3) / 100.0
