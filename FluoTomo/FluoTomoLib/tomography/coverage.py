@@ -5,7 +5,7 @@ passes through it. :func:`scan_coverage` screens this cheaply, with no mesh
 and no solve: each pair's sensitivity to fluorophore at a point is the product
 of the excitation fluence from the source and the emission fluence from the
 detector (the adjoint), each a half-space diffusion Green's function with an
-extrapolated-boundary image (docs/physics.md 8.2, "Scan coverage"), in the
+extrapolated-boundary image (docs/physics.md section 8.2, "Scan coverage"), in the
 optical properties of the largest tissue label. The screen gives, per region:
 
 ``share``
@@ -44,7 +44,7 @@ POINTS_PER_REGION = 40000
 def _green_half_space(optode_local, inward, points, mua, musp, n):
     """Half-space fluence [1/mm^2 per unit power] at ``points`` (P, 3) from a
     unit source buried z0 = 1/mut' below ``optode_local`` along ``inward``, with
-    its image above the extrapolated boundary (docs/physics.md 3.2); one row per
+    its image above the extrapolated boundary (docs/physics.md section 3.2); one row per
     optode (O, P)."""
     from FluoTomoLib.optics import robin_A
 
