@@ -410,6 +410,7 @@ def _batch_whole(out, ref, computed, reused, result):
     assert hidden(out) == []                                          # no debris anywhere
 
 
+@pytest.mark.slow      # a batch killed and resumed: 20.7 s under CI's load (2026-11-27)
 def test_tomo_batch_killed_writing_a_case_record_resumes_to_the_same_table(batch_ref, tmp_path):
     d, out, ids = batch_ref["dir"], tmp_path / "runs", batch_ref["ids"]
     batch = ["tomo", "batch", "batch.csv", "--out", out, "--accuracy", "fast"]
