@@ -124,8 +124,8 @@ def scan_coverage(lm, optics, sources_ras, detectors_ras, mask=None, noise_pct=1
                 1.0 if best >= 1.0 else noise * (1.0 - best) / (best * (1.0 - noise)))
         seen = bool(lab == body or need <= UNSEEN_CONTRAST)
         out[str(lab)] = {"share": best, "pairs_seeing": int((share >= noise).sum()),
-                         "contrast_to_be_seen": float(need) if np.isfinite(need) else None, "nearest_optode_mm": nearest[lab],
-                         "seen": seen}
+                         "contrast_to_be_seen": float(need) if np.isfinite(need) else None,
+                         "nearest_optode_mm": nearest[lab], "seen": seen}
         if not seen:
             warnings.append(
                 f"the scan does not see region {lab}: its best pair draws {best:.2g} of its "

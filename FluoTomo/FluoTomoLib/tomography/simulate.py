@@ -96,7 +96,7 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
                              field="labels")
     span = max((cfg["sources_per_side"] - 1) * cfg["source_pitch_mm"],
                (cfg["detectors_per_side"] - 1) * cfg["detector_pitch_mm"])
-    src, det, patches, s_of, d_of = [], [], [], [], []
+    src, det, patches, skin, s_of, d_of = [], [], [], [], [], []
     for t in targets:
         if t is not None:
             c = lm.region_centroid_local(t)
@@ -105,21 +105,19 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
             c = np.array([i.mean(), j.mean(), k.mean()]) * lm.spacing_mm
         p, nrm, _ = surf.closest(c)
         p, nrm = p[0], nrm[0]
-        near = [n for n, q in enumerate(patches)
-                if np.linalg.norm(np.asarray(q["_skin_local"]) - p) <= 0.5 * span]
+        near = [n for n, q in enumerate(skin) if np.linalg.norm(q - p) <= 0.5 * span]
         if near:
             patches[near[0]]["targets"].append(t)
             continue
         s_l, d_l, shift = _patch(surf, p, nrm, cfg, span)
         n = len(patches)
         patches.append({"targets": [t], "centre_ras_mm": lm.to_ras(p)[0].round(3).tolist(),
-                        "shift_mm": shift, "_skin_local": p.tolist()})
+                        "shift_mm": shift})
+        skin.append(p)
         src.append(s_l)
         det.append(d_l)
         s_of += [n] * len(s_l)
         d_of += [n] * len(d_l)
-    for q in patches:
-        q.pop("_skin_local")
     cfg["shift_mm"] = max(q["shift_mm"] for q in patches)
     cfg["patches"] = patches
     cfg["source_patch"], cfg["detector_patch"] = s_of, d_of
