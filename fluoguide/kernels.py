@@ -21,10 +21,15 @@ examined: this module costs nothing to import.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 
 from fluoguide.progress import run_reporting
+
+#: where a compile with no ``progress`` reporter is announced (a Lib function called
+#: directly, outside the logic's jobs): a first run is then slow for a stated reason
+log = logging.getLogger("fluoguide.kernels")
 
 __all__ = ["REPORT_EVERY_S", "signatures", "missing", "cached_on_disk", "prepare",
            "KernelSet"]
@@ -74,7 +79,8 @@ def prepare(examples, what, progress=None, fraction=0.0, cancel=None, every_s=No
     examples : [(dispatcher, tuple of example arguments)]
     what : the kernels' name in the reports: "compiling the {what} (first run
         only)", or "loading the compiled {what}" when numba's cache holds every one
-    progress : ``progress(fraction, message)`` or None
+    progress : ``progress(fraction, message)`` or None (None: the message and the
+        seconds spent go to the ``fluoguide.kernels`` logger at INFO)
     fraction : the fraction reported meanwhile (this step's place in the caller's job)
     cancel : CancelToken or None; a cancel raises FluoCancelled at the next report
         (the compilation goes on to its end on its helper thread, then serves the
@@ -98,9 +104,14 @@ def prepare(examples, what, progress=None, fraction=0.0, cancel=None, every_s=No
             dispatcher.compile(sig)
 
     t0 = time.monotonic()
+    if progress is None:
+        log.info("%s ...", message)
     run_reporting(compile_all, progress, fraction, message, cancel,
                   REPORT_EVERY_S if every_s is None else float(every_s))
-    return time.monotonic() - t0
+    seconds = time.monotonic() - t0
+    if progress is None:
+        log.info("%s: done in %.1f s", message, seconds)
+    return seconds
 
 
 class KernelSet:

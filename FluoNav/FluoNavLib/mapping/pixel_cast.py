@@ -183,7 +183,8 @@ class PixelHits:
         return self._normal
 
 
-def cast_camera(caster, camera, camera_to_world, binning=1, max_view_deg=89.0, method="auto"):
+def cast_camera(caster, camera, camera_to_world, binning=1, max_view_deg=89.0, method="auto",
+                progress=None, cancel=None):
     """Cast every (binned) pixel of a calibrated camera at a pose onto the surface.
 
     Parameters
@@ -197,6 +198,10 @@ def cast_camera(caster, camera, camera_to_world, binning=1, max_view_deg=89.0, m
     method : "auto" (z-buffer rasterisation for pinhole cameras, with or without
         distortion; the BVH for fisheye lenses), "raster" (forced; approximate
         for a fisheye where triangles are smaller than a pixel) or "embree".
+    progress : ``progress(fraction, message)`` or None: reports the compilation of
+        the ray-casting kernels when this process has not compiled them yet (a
+        first run: seconds; ``FluoNavLib.mapping.kernels``), at fraction 0
+    cancel : CancelToken or None, checked while they compile
 
     Returns
     -------
@@ -216,6 +221,11 @@ def cast_camera(caster, camera, camera_to_world, binning=1, max_view_deg=89.0, m
         # a triangle smaller than a cell can hide between cell centres
         # ("raster" forces that approximation).
         if grid.usable and (grid.exact or grid.pixel_space or method == "raster"):
+            # a caller that did not prepare the kernels (a direct call, a script)
+            # still hears why its first cast takes seconds; prepared: a no-op
+            from FluoNavLib.mapping.kernels import prepare_kernels
+
+            prepare_kernels(progress, 0.0, cancel)
             return _cast_raster(caster, grid, M, max_view_deg)
         if method == "raster":
             raise FluoInputError("camera rays reach 90 deg or beyond: rasterisation impossible",

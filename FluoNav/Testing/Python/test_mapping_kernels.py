@@ -45,6 +45,29 @@ if sys.argv[1] == "logic":
     out["missing_before"] = len(kernels.missing())
     out["start"] = time.monotonic()
     out["mapped"] = int(logic.correctFrame(0, progress=progress).mapped.sum())
+elif sys.argv[1] in ("cast", "log"):
+    # no preparation: a script's own first cast, with a reporter ("cast") or with
+    # none, where the logger says it ("log")
+    import logging
+    import numpy as np
+    from FluoCalibLib.geometry import transforms as tf
+    from FluoCalibLib.geometry.camera_model import CameraModel
+    from FluoNavLib.mapping.pixel_cast import SurfaceCaster, cast_camera
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            reports.append((time.monotonic(), record.getMessage()))
+
+    logging.getLogger("fluoguide.kernels").addHandler(Keep())
+    logging.getLogger("fluoguide.kernels").setLevel(logging.INFO)
+    plane = SurfaceCaster(np.array([[-50.0, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]]),
+                          np.array([[0, 1, 2], [0, 2, 3]]))
+    out["missing_before"] = len(kernels.missing())
+    out["start"] = time.monotonic()
+    hits = cast_camera(plane, CameraModel(300.0, 300.0, 79.5, 59.5, (0.0,) * 5, 160, 120),
+                       tf.look_at([0.0, 0.0, 100.0], [0.0, 0.0, 0.0], up=(0, 1, 0)),
+                       progress=progress if sys.argv[1] == "cast" else None)
+    out["plane_seen"] = int(hits.visible.sum())
 else:
     out["missing_before"] = len(kernels.missing())
     out["start"] = time.monotonic()
@@ -115,6 +138,20 @@ def test_a_cast_and_its_illumination_after_prepare_compile_nothing():
     messages = [m for _, m in out["reports"]]
     # this run's numba cache decides which, once per installation
     assert messages and messages[0] in (COMPILING, LOADING), messages
+
+
+@pytest.mark.parametrize("mode", ["cast", "log"])
+def test_a_direct_cast_prepares_its_kernels_and_says_so(mode):
+    """``cast_camera`` called by a script that prepared nothing makes every kernel
+    ready itself, telling its reporter, or, given none, the ``fluoguide.kernels``
+    logger, what it is doing (a first run used to be slow for no stated reason)."""
+    out = _probe(mode)
+    _check_nothing_compiled_after(out)
+    assert out["plane_seen"] > 0
+    messages = [m for _, m in out["reports"]]
+    assert messages and messages[0].startswith((COMPILING, LOADING)), messages
+    if mode == "log":
+        assert messages[-1].split(": done in ")[0] == messages[0].removesuffix(" ..."), messages
 
 
 @pytest.mark.slow      # the kernels compiled from nothing: 14-16 s on 2 cores

@@ -53,10 +53,12 @@ def surface_caster(mesh, facet_mask=None):
     return SurfaceCaster(mesh.nodes_mm, facets), facets
 
 
-def cast(caster, camera, camera_to_world):
+def cast(caster, camera, camera_to_world, progress=None, cancel=None):
+    """The camera's pixels cast onto the surface (``FluoNavLib``'s cast_camera;
+    ``progress`` hears its kernels compile on a first run)."""
     from FluoNavLib.mapping.pixel_cast import cast_camera
 
-    return cast_camera(caster, camera, camera_to_world)
+    return cast_camera(caster, camera, camera_to_world, progress=progress, cancel=cancel)
 
 
 def surface_values(hits, facets, nodes_mm, nodal):

@@ -13,7 +13,7 @@ import numpy as np
 
 from fluoguide.errors import FluoInputError
 from fluoguide.optics_table import icg_absorption_per_yield
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.acquisition.camera_frames import (
     camera_pose_above,
@@ -77,7 +77,8 @@ def render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_cen
     cam_true = camera_pose_above(camera_centre_mm, camera_distance_mm)
     cam_rep = cam_true @ tracking.perturb(np.eye(4), rng)
     caster, facets = surface_caster(fine, facet_mask)
-    hits_true = cast(caster, camera, cam_true)
+    hits_true = cast(caster, camera, cam_true, scaled(progress, 0.27, 0.27, "camera frames"),
+                     cancel)
     radiance = frame_radiance(hits_true, facets, fine.nodes_mm, fields, robin_A, laser_power_w)
     if camera_gain is None:
         pts = hits_true.point_mm
@@ -127,7 +128,7 @@ def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_
                       timings, progress, cancel)
     t0 = time.perf_counter()
     caster, _ = surface_caster(fine, facet_mask)
-    hits_rep = cast(caster, r["camera"], r["camera_reported"])
+    hits_rep = cast(caster, r["camera"], r["camera_reported"], cancel=cancel)   # compiled above
     counts, roi_pixels = detector_counts(r["frames"], r["saturated"], hits_rep, det_rep)
     lost = mask & ~np.isfinite(counts)
     if np.any(lost):
