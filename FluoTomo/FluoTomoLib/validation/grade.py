@@ -49,12 +49,15 @@ def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
             r = s["regions"].get(str(lab), {})
             val = r.get("yield_per_mm")
             ci = r.get("ci95_per_mm")
+            corr = (r.get("interval_parts") or {}).get("resolution_corrected_per_mm")
             row = {"seed": scene.seed, "method": method, "label": lab,
                    "target": lab == scene.target(), "segmentation": scene.segmentation,
                    "noise_pct": scene.noise_pct, "depth_mm": inc["depth_mm"],
                    "diameter_mm": 2 * max(inc["radii_mm"]), "truth_per_mm": truth,
                    "yield_per_mm": val,
                    "error_pct": None if val is None else 100.0 * (val - truth) / truth,
+                   "resolution_corrected_error_pct": None if corr is None else
+                   100.0 * (corr - truth) / truth,
                    "sd_pct": None if not r.get("sd_per_mm") or not np.isfinite(
                        r["sd_per_mm"]) else 100.0 * r["sd_per_mm"] / truth,
                    "ci95_per_mm": ci,
