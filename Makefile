@@ -8,7 +8,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-out
 
-.PHONY: demo demo-full demo-quick test test-fast bench venv clean system-deps
+.PHONY: demo demo-full demo-quick test test-fast bench docs venv clean system-deps
 
 venv: $(STAMP)
 
@@ -54,6 +54,11 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks
+
+# the API reference from the docstrings (docs/api), every Sphinx warning an error,
+# as Testing/Python/test_api_reference.py builds it in CI; open build/docs/index.html
+docs: $(STAMP)
+	$(TEST_THREADS) $(PY) -m sphinx -W --keep-going -b html docs/api build/docs
 
 clean:
 	rm -rf $(VENV) build *.egg-info $(DEMO_OUT) test-artifacts

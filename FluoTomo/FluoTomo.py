@@ -649,6 +649,15 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             place_on_surface(self.labelMap(labelNode), points, what or field, file=path)
         return points
 
+    def checkScanTargets(self, labelNode, targets, field="scan targets"):
+        """The labels the default scan is to cover (``scan_targets`` of
+        :meth:`simulateToFolder`), checked before any work: at most
+        ``MAX_SCAN_PATCHES``, each in the label map; refused in one line naming
+        ``field`` otherwise. Returns them as a list (None: every inclusion)."""
+        from FluoTomoLib.tomography import check_scan_targets
+
+        return check_scan_targets(self.labelMap(labelNode), targets, field=field)
+
     # ------------------------------------------------------ folders in and out
     # The ``fluo tomo`` commands: files and folders in, folders out.
 

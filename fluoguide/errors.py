@@ -43,6 +43,9 @@ class FluoError(Exception):
 class FluoInputError(FluoError, ValueError):
     """Bad input: a file, field or value that cannot be used.
 
+    The message is one line whatever the parts hold (:func:`one_line`); the
+    attributes keep them as given.
+
     Parameters
     ----------
     problem : str
@@ -53,9 +56,6 @@ class FluoInputError(FluoError, ValueError):
         The field, argument or node name.
     value : object, optional
         The offending value (shown with ``repr``).
-
-    The message is one line whatever the parts hold (:func:`one_line`); the
-    attributes keep them as given.
     """
 
     def __init__(self, problem, file=None, field=None, value=None):

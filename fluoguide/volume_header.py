@@ -32,7 +32,7 @@ from fluoguide.errors import FluoInputError
 
 #: largest header read [bytes]: a real NRRD header is < 4 KB; more is not a header
 MAX_HEADER_BYTES = 1 << 20
-#: |D^T D - I| allowed for an orthonormal direction matrix: the tolerance of
+#: ``max |D^T D - I|`` allowed for an orthonormal direction matrix: the tolerance of
 #: ``FluoTomoLib.meshing.voxel.check_direction``, the mesher's own check (a float32
 #: NIfTI matrix is orthonormal to ~1e-7)
 ORTHONORMAL_TOL = 1e-5

@@ -83,8 +83,24 @@ def surface_fluence(rho_mm, mua_per_mm, musp_per_mm, n):
         return (np.exp(-me * r1) / r1 - np.exp(-me * r2) / r2) / (4 * np.pi * D)
 
 
-def _robin_parameters(mua_per_mm, musp_per_mm, n):
-    """(z0, zb, D, mueff) of the Robin half-space problem, validated."""
+def robin_parameters(mua_per_mm, musp_per_mm, n):
+    """The lengths of the Robin half-space problem (docs/physics.md section 3.2), validated.
+
+    Parameters
+    ----------
+    mua_per_mm, musp_per_mm : float
+        Absorption and reduced scattering [1/mm] (``check_properties``: a bad one
+        raises FluoInputError).
+    n : float
+        Refractive index of the tissue.
+
+    Returns
+    -------
+    (z0, zb, D, mueff) : tuple of float
+        The depth of the buried source 1/mut' [mm], the extrapolation distance
+        2 A D [mm], the diffusion coefficient D = 1/(3 mut') [mm] and the effective
+        attenuation sqrt(3 mua mut') [1/mm].
+    """
     mua, musp = check_properties(mua_per_mm, musp_per_mm, n, warn=False)
     mua, musp = float(mua), float(musp)
     mut = mua + musp
@@ -132,7 +148,7 @@ _EXPONENT_END = 50.0
 def log_robin_surface_fluence(rho_mm, mua_per_mm, musp_per_mm, n):
     """ln of :func:`robin_surface_fluence` [ln(1/mm^2)]: finite at any distance
     (the fluence itself underflows beyond ~700 decay lengths)."""
-    z0, zb, D, me = _robin_parameters(mua_per_mm, musp_per_mm, n)
+    z0, zb, D, me = robin_parameters(mua_per_mm, musp_per_mm, n)
     rho = check_distances(rho_mm)
     u, inv = np.unique(rho.ravel(), return_inverse=True)   # each distance once
     out = np.empty(len(u))

@@ -117,11 +117,17 @@ def test_bad_input_one_line_exit_2_nothing_written(small, tmp_path, case, fluo):
                  "--yield", "9:0.001", "--out", tmp_path / "out")
         _one_line_exit_2(r, "not in the label map")
         assert not (tmp_path / "out").exists()
-        for bad, needle in (("9", "not in the label map"), ("7,x", "comma")):
+        # the labels are checked by the Lib (default_scan's own check), before any work
+        for bad, needle in (("9", "not in the label map"), ("7,x", "comma"),
+                            ("7,7,7,7,7", "at most 4"), (",", "no target")):
             r = fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics", optics,
                      "--yield", "7:0.001", "--scan-targets", bad, "--out", tmp_path / "out")
             _one_line_exit_2(r, "--scan-targets")
             assert needle in r.stderr and not (tmp_path / "out").exists()
+        r = fluo("tomo", "simulate", "--labels", d / "labels.nrrd", "--optics", optics,
+                 "--yield", "7:0.001", "--target", "9", "--out", tmp_path / "out")
+        _one_line_exit_2(r, "--target")
+        assert "not in the label map" in r.stderr and not (tmp_path / "out").exists()
         return
     elif case == "bad-accuracy-size":
         extra = ["--element-mm", "-1"]

@@ -77,11 +77,13 @@ def _check_simulate_options(args):
                              field="--resume")
 
 
-def _scan_targets(args, lm):
+def _scan_targets(args, logic, lm):
     """The labels the default scan covers: --scan-targets, else --target alone,
-    else None (every inclusion: the Lib's default)."""
+    else None (every inclusion: the Lib's default); the labels are checked by
+    the Lib (``logic.checkScanTargets``) before any progress is drawn."""
     if args.scan_targets is None:
-        return None if args.target is None else [args.target]
+        return None if args.target is None else \
+            logic.checkScanTargets(lm, [args.target], field="--target")
     if args.sources:
         raise FluoInputError("the scan's targets are for the default scan: the positions "
                              "were given", field="--scan-targets", value=args.scan_targets)
@@ -92,11 +94,7 @@ def _scan_targets(args, lm):
     except ValueError:
         raise FluoInputError("expected labels separated by commas, or 'inclusions'",
                              field="--scan-targets", value=args.scan_targets) from None
-    missing = [v for v in labels if v not in lm.labels]
-    if not labels or missing:
-        raise FluoInputError("label is not in the label map", file=args.labels,
-                             field="--scan-targets", value=missing or args.scan_targets)
-    return labels
+    return logic.checkScanTargets(lm, labels, field="--scan-targets")
 
 
 def _simulate(args):
@@ -118,7 +116,7 @@ def _simulate(args):
         if label not in lm.labels:
             raise FluoInputError("label is not in the label map", file=args.labels,
                                  field="--yield", value=label)
-    scan_targets = _scan_targets(args, lm)
+    scan_targets = _scan_targets(args, logic, lm)
     src = det = None
     if args.sources:            # read, and on the tissue surface, before any progress
         src = logic.readPoints(args.sources, "--sources", lm, "sources")

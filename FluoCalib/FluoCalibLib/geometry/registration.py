@@ -127,7 +127,7 @@ def register_points(moving_mm, fixed_mm, weights=None):
 
 
 def target_registration_error(transform, targets_moving_mm, targets_fixed_mm):
-    """TRE [mm] per target: |T(target in moving frame) - target in fixed frame|."""
+    """TRE [mm] per target: ``|T(target in moving frame) - target in fixed frame|``."""
     a = _points("targets_moving_mm", targets_moving_mm)
     b = _points("targets_fixed_mm", targets_fixed_mm)
     if a.shape != b.shape:

@@ -6,7 +6,7 @@ Modules
 - ``camera_response``: Camera response characterisation from image stacks, reported as EMVA 1288 does.
 - ``datasets``: Reading the illumination and laser calibration folders, checked.
 - ``illumination_fit``: Calibration of a broad-beam light (cone model of ``illumination_model``) from images of a flat phantom of known reflectance, as in docs/physics.md section 6.2.
-- ``illumination_model``: Broad-beam illumination model: a right circular cone with angular, obliquity and distance roll-off (docs/physics.md section 6.1)::
+- ``illumination_model``: Broad-beam illumination model: a right circular cone with angular, obliquity and distance roll-off (docs/physics.md section 6.1).
 - ``laser_line``: Laser beam-line calibration (docs/physics.md section 7).
 - ``plots``: PNG plots of the radiometric calibrations (photon transfer, linearity, dark signal, ratio images) that a person can read.
 - ``radiometric_model``: Radiometric camera model: counts [ADU] <-> radiance [W/mm^2/sr], and noise.

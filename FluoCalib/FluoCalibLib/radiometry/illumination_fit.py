@@ -165,9 +165,9 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
 
     Returns
     -------
-    dict with ``cone`` (IlluminationCone), the JSON keys of ``fluo calib
-    illumination`` and ``ratio_images`` (measured / model, NaN outside the
-    active region).
+    dict
+        ``cone`` (IlluminationCone), the JSON keys of ``fluo calib illumination``
+        and ``ratio_images`` (measured / model, NaN outside the active region).
     """
     if len(images) != len(phantom_to_camera):
         raise FluoInputError("one phantom pose per image", field="phantom_to_camera",

@@ -144,9 +144,10 @@ def element_gradients(nodes, el):
 def upper_values(el, pos, grad, vol, c3, D, w, nnz):
     """CSR data of the upper triangle of K(D) + M(w).
 
-    K: stiffness with the element-mean of the nodal D, |e| D_e grad_a . grad_b;
+    K: stiffness with the element-mean of the nodal D, ``|e| D_e grad_a . grad_b``;
     M: mass weighted by the nodal w, exact P1 triple products
-    |e| c3 [S (1 + d_ab) + w_a + w_b + 2 d_ab w_a] (S: sum of w over e).
+    ``|e| c3 [S (1 + d_ab) + w_a + w_b + 2 d_ab w_a]`` (``|e|``: the element's
+    volume; S: sum of w over e).
     """
     M, nl = el.shape
     dim = grad.shape[2]

@@ -155,22 +155,23 @@ def _jacobian_by_node(el, start, n2e, w, grad, vol_nl, c, F, G, out, nchunks, wi
 
 def pair_jacobian(elements, triple_weight, F, G, grad=None, grad_weight=None, node_coef=None,
                   adjacency=None):
-    """Sum over elements of products of two nodal fields, for every (s, d) pair.
+    """Sum over elements of products of two nodal fields, for every (s, d) pair::
 
-    out[k, s, d] = sum over the elements e containing k of
-        triple_weight[e] * sum_ij F_s(i) G_d(j) (1 + d_ij + d_ik + d_jk + 2 d_ijk)
-      + node_coef[k] * grad_weight[e] * grad F_s . grad G_d            (if grad given)
+        out[k, s, d] = sum over the elements e containing k of
+            triple_weight[e] * sum_ij F_s(i) G_d(j) (1 + d_ij + d_ik + d_jk + 2 d_ijk)
+          + node_coef[k] * grad_weight[e] * grad F_s . grad G_d        (if grad given)
 
-    With triple_weight = |e| d!/(d+3)! the first term is the exact P1 integral
-    of F_s G_d phi_k over e (i, j run over e's nodes; d_ij Kronecker deltas).
+    With ``triple_weight = |e| d!/(d+3)!`` (``|e|``: the element's volume) the
+    first term is the exact P1 integral of F_s G_d phi_k over e (i, j run over
+    e's nodes; d_ij Kronecker deltas).
 
     Parameters
     ----------
     elements : (M, d+1) node indices
-    triple_weight : (M,) per element, |e| d!/(d+3)! times any scale
+    triple_weight : (M,) per element, ``|e| d!/(d+3)!`` times any scale
     F, G : (N, S), (N, D) nodal fields
     grad : (M, d+1, d) gradients of the element's P1 basis functions, or None
-    grad_weight : (M,) weight of the gradient product per element (|e|/(d+1))
+    grad_weight : (M,) weight of the gradient product per element (``|e|/(d+1)``)
     node_coef : (N,) nodal factor of the gradient term
     adjacency : :func:`node_elements` of ``elements`` if already known
 

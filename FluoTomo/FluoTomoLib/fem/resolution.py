@@ -6,7 +6,7 @@ the P1 FEM depends on three dimensionless numbers (the problem is scale-free):
 burial depth 1/mut') and ``rho / h`` (the source-detector distance in
 elements), plus the refractive index and where the source and the detector
 sit within their elements.  ``benchmarks/bench_fem_accuracy.py`` measured
-|ln(FEM / exact)| against the exact Robin solution on Kuhn-cube meshes for six
+``|ln(FEM / exact)|`` against the exact Robin solution on Kuhn-cube meshes for six
 source positions within a cell, 16 directions and n = 1.0, 1.37 and 1.6; the
 tables below are, per grid point, the worst case over all of those
 (``WORST``) and the median (``MEDIAN``).  docs/fem.md prints them.
@@ -43,7 +43,7 @@ DISPERSION_SLOPE = 0.2
 def element_sizes(mesh, elements=None):
     """Size h of each element [mm] (or of the given element ids): the edge of
     the Kuhn cube (or square) it is a part of for structured meshes, ~0.9 x
-    the edge for regular tetrahedra; the larger of (d! |e|)^(1/d) and the
+    the edge for regular tetrahedra; the larger of ``(d! |e|)^(1/d)`` and the
     longest edge / sqrt(d), so that flat elements count with their long side.
     All elements: computed once per mesh and cached."""
     from math import factorial
@@ -118,7 +118,7 @@ def _lookup(table, n, mueff_h, mutp_h, rho_h):
 
 
 def log_error_estimate(mueff_h, mutp_h, rho_h, n=1.37, worst=True):
-    """Estimated |ln(FEM / exact)| for a buried source and a surface detector.
+    """Estimated ``|ln(FEM / exact)|`` for a buried source and a surface detector.
 
     Parameters
     ----------

@@ -95,6 +95,11 @@ class Mesh:
     name: str = "mesh"
     meta: dict = field(default_factory=dict)
 
+    #: ``meta`` entries that hold one value per node (a dict: one array per name),
+    #: which :meth:`keep_elements` keeps for the kept nodes: VTU point data
+    #: (``vtu_io.read_vtu``), NIRFAST's node regions and parameters (``nirfast_io``)
+    NODE_DATA = ("point_data", "node_region", "params")
+
     def __post_init__(self):
         self.nodes_mm = np.ascontiguousarray(self.nodes_mm, dtype=float)
         self.elements = np.ascontiguousarray(self.elements, dtype=np.int64)
@@ -178,6 +183,46 @@ class Mesh:
         self._boundary  # noqa: B018 (cached; the FEM needs it anyway)
         self._topology_ok = self.elements
         return self
+
+    def keep_elements(self, keep):
+        """The mesh of the elements ``keep`` selects, the nodes they leave unused dropped.
+
+        Parameters
+        ----------
+        keep : (M,) bool array, or element indices
+            The elements to keep (in their order).
+
+        Returns
+        -------
+        mesh : Mesh
+            The kept elements with their region labels; the nodes they use, in
+            their old order, renumbered. ``meta`` is carried over, its per-node
+            data (``NODE_DATA``: VTU point data, NIRFAST node regions and
+            parameters) kept for the kept nodes and NIRFAST's boundary flags
+            (``bndvtx``) set for the new boundary; the cached objects of the old
+            connectivity (keys starting with ``_``) are left behind.
+        node_map : (N,) int array
+            The new index of every old node; -1 for a node dropped.
+        """
+        el = self.elements[keep]
+        used, inv = np.unique(el, return_inverse=True)
+        node_map = np.full(self.n_nodes, -1, dtype=np.int64)
+        node_map[used] = np.arange(len(used))
+        meta = {}
+        for k, v in self.meta.items():
+            if str(k).startswith("_"):
+                continue
+            if k in self.NODE_DATA and isinstance(v, dict):
+                v = {name: np.asarray(a)[used] for name, a in v.items()}
+            elif k in self.NODE_DATA:
+                v = np.asarray(v)[used]
+            meta[k] = v
+        out = Mesh(self.nodes_mm[used], inv.reshape(el.shape), self.element_region[keep],
+                   self.name, meta)
+        if "bndvtx" in meta:
+            meta["bndvtx"] = np.zeros(out.n_nodes, dtype=int)
+            meta["bndvtx"][out.boundary_nodes] = 1
+        return out, node_map
 
     def oriented(self) -> "Mesh":
         """Copy with every element positively oriented (swap two nodes where negative)."""

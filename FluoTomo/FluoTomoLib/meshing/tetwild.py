@@ -426,14 +426,8 @@ def _peel_boundary_slivers(mesh, sliver_deg, max_passes=3):
             break
         keep = ~drop
         removed += int(drop.sum())
-        mesh = _compact(mesh.nodes_mm, mesh.elements[keep], mesh.element_region[keep],
-                        mesh.name, mesh.meta)
+        mesh = mesh.keep_elements(keep)[0]
     return mesh, removed
-
-
-def _compact(nodes, tets, region, name, meta):
-    used, inv = np.unique(tets, return_inverse=True)
-    return Mesh(nodes[used], inv.reshape(-1, 4), region, name=name, meta=dict(meta))
 
 
 # ---------------------------------------------------------------------- main
@@ -570,7 +564,7 @@ def mesh_labelmap_quality(labels_kji, spacing_mm, origin_mm, size_mm, roi=None, 
     if not tissue.any():
         raise FluoInputError("no tissue left after meshing: choose a smaller size",
                              field="size_mm", value=size_mm)
-    mesh = _compact(v, tets[tissue], region[tissue], name, {}).oriented()
+    mesh = Mesh(v, tets, region, name=name).keep_elements(tissue)[0].oriented()
     mesh, peeled = _peel_boundary_slivers(mesh, sliver_deg)
     timing["regions_s"] = time.perf_counter() - t
     lost = sorted(set(ref) - set(mesh.regions.tolist()))

@@ -245,7 +245,7 @@ def _annulus_mean(f, rho, width, n_r=4):
 
 def agreement_from_mm(rows, value_key, mc_key="mc", se_key="mc_se", tol_pct=AGREE_PCT,
                       n_se=AGREE_SE):
-    """Smallest rho from which every row agrees: |value/mc - 1| <= tol + n_se se/mc."""
+    """Smallest rho from which every row agrees: ``|value/mc - 1| <= tol + n_se se/mc``."""
     ok = []
     for r in rows:
         mc, v, se = r[mc_key], r[value_key], r[se_key]

@@ -69,8 +69,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     priors come from (e.g. the user's segmentation of the CBCT in the app); by
     default the phantom's own labels.  The measurement is always simulated on
     the phantom's truth.  ``self_absorption``: the methods that feed the
-    reconstructed ICG's absorption back (HP only: it took HP's mean |yield
-    error| over the five depths from 23 % to 5 %, while SP went from 10.5 %
+    reconstructed ICG's absorption back (HP only: it took HP's mean absolute
+    yield error over the five depths from 23 % to 5 %, while SP went from 10.5 %
     to 13.7 %).  Returns a dict of numbers, profiles and the meshes/fields
     (RAS) for figures and the scene.
     """

@@ -271,7 +271,8 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         1 (fixed, as the reference states, so the damping also regularises)
         for NP and SP; 10^0.25 (NIRFAST's schedule) for HP, whose few region
         unknowns are well determined and need damping only for the first steps
-    log_data : fit ln y (NIRFAST's fluorescence reconstruction, reconstruct_fl*.m):
+    log_data : bool
+        Fit ln y (NIRFAST's fluorescence reconstruction, ``reconstruct_fl*.m``):
         the residual is ln y - ln(J x) and the Jacobian's rows are divided by
         J x, so the problem is re-linearised every iteration.  Needs y > 0.
     normalise : scale the Jacobian's columns by the current yield (NIRFAST's

@@ -84,7 +84,7 @@ def _point_label(row, varying):
 
 
 def plot_error_vs_time(rows, out_dir, title="", name="error_vs_time.png"):
-    """PNG of |peak error| and |centroid error| [%] against the time one
+    """PNG of the absolute peak and centroid errors [%] against the time one
     reconstruction costs [s] (the solver plus its Jacobian, which a fresh
     model pays once), one colour per method, each point labelled with what
     varies in the study. Returns the path, or None when no task finished."""

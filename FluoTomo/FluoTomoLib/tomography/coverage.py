@@ -46,12 +46,9 @@ def _green_half_space(optode_local, inward, points, mua, musp, n):
     unit source buried z0 = 1/mut' below ``optode_local`` along ``inward``, with
     its image above the extrapolated boundary (docs/physics.md section 3.2); one row per
     optode (O, P)."""
-    from FluoTomoLib.optics import robin_A
+    from FluoTomoLib.analytic import robin_parameters
 
-    D = 1.0 / (3.0 * (mua + musp))
-    mu_eff = np.sqrt(mua / D)
-    z0 = 1.0 / (mua + musp)
-    zb = 2.0 * robin_A(n) * D
+    z0, zb, D, mu_eff = robin_parameters(mua, musp, n)
     out = np.empty((len(optode_local), len(points)))
     for o, (p, nv) in enumerate(zip(optode_local, inward)):
         r1 = np.linalg.norm(points - (p + z0 * nv), axis=1)

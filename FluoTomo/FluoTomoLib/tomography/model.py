@@ -612,16 +612,10 @@ def fit_to_surface(mesh, surface, roi=None, max_move=0.75, min_quality=0.2, iter
         < min_quality * vol0)
     dropped = int(cap.sum())
     if dropped:
-        keep_el = ~cap
-        used, inv = np.unique(mesh.elements[keep_el], return_inverse=True)
-        renum = np.full(mesh.n_nodes, -1)
-        renum[used] = np.arange(len(used))
-        meta0 = {k: v for k, v in mesh.meta.items() if not str(k).startswith("_")}
-        mesh = Mesh(mesh.nodes_mm[used], inv.reshape(-1, mesh.elements.shape[1]),
-                    mesh.element_region[keep_el], mesh.name, meta0)
+        mesh, renum = mesh.keep_elements(~cap)
         keep_air = renum[air_nodes] >= 0
         air_nodes, move = renum[air_nodes[keep_air]], move[keep_air]
-        vol0 = vol0[keep_el]
+        vol0 = vol0[~cap]
     scale = np.ones(len(air_nodes))
     node_pos = np.full(mesh.n_nodes, -1)
     node_pos[air_nodes] = np.arange(len(air_nodes))

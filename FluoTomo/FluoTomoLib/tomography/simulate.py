@@ -50,6 +50,45 @@ def _tangent_basis(n):
 MAX_SCAN_PATCHES = 4
 
 
+def check_scan_targets(lm, target, field="scan targets", file=None):
+    """The labels a default scan is to cover (:func:`default_scan`'s ``target``),
+    checked: cheap, so a caller can refuse them before any work.
+
+    Parameters
+    ----------
+    lm : LabelMap
+    target : int, list of int or None
+        A label, or one label per patch (at most ``MAX_SCAN_PATCHES``); None: the
+        tissue's centre.
+    field, file : str
+        What a refusal names (default: ``"scan targets"`` of the label map's file).
+
+    Returns
+    -------
+    list of int, or None
+        The labels; None for no target.
+    """
+    if target is None:
+        return None
+    file = lm.source if file is None else file
+    values = np.atleast_1d(np.asarray(target, dtype=object)).tolist()
+    try:
+        targets = [int(t) for t in values]
+    except (TypeError, ValueError):
+        raise FluoInputError("labels must be integers", file=file, field=field,
+                             value=values) from None
+    if not targets:
+        raise FluoInputError("no target to scan over", file=file, field=field, value=[])
+    if len(targets) > MAX_SCAN_PATCHES:
+        raise FluoInputError(f"at most {MAX_SCAN_PATCHES} targets per default scan (give the "
+                             "positions for more)", file=file, field=field, value=targets)
+    missing = [t for t in targets if t not in lm.labels]
+    if missing:
+        raise FluoInputError("label is not in the label map", file=file, field=field,
+                             value=missing[0] if len(missing) == 1 else missing)
+    return targets
+
+
 def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
                  detectors_per_side=None, detector_pitch_mm=None):
     """Sources and detectors (RAS mm) on square grids in the tangent plane of the
@@ -78,17 +117,7 @@ def default_scan(lm, target=None, sources_per_side=None, source_pitch_mm=None,
     for k in ("source_pitch_mm", "detector_pitch_mm"):
         if not (np.isfinite(cfg[k]) and cfg[k] > 0):
             raise FluoInputError("must be a positive number", field=k, value=cfg[k])
-    targets = [None] if target is None else \
-        [int(t) for t in np.atleast_1d(np.asarray(target, dtype=object))]
-    if not targets:
-        raise FluoInputError("no target to scan over", field="scan targets", value=[])
-    if len(targets) > MAX_SCAN_PATCHES:
-        raise FluoInputError(f"at most {MAX_SCAN_PATCHES} targets per default scan (give the "
-                             "positions for more)", field="scan targets", value=targets)
-    for t in targets:
-        if t is not None and t not in lm.labels:
-            raise FluoInputError("label is not in the label map", file=lm.source,
-                                 field="scan targets", value=t)
+    targets = check_scan_targets(lm, target) or [None]
     surf = lm.surface().skin_only()
     if len(surf.triangles) == 0:
         raise FluoInputError("the label map has no skin: its tissue fills every side of the "

@@ -81,7 +81,7 @@ def _pct(values, q):
 
 
 def summarise(rows, narrow_pct=20.0):
-    """Per method: scenes, median / 90th percentile / worst |yield error| [%]
+    """Per method: scenes, median / 90th percentile / worst absolute yield error [%]
     (all rows and the rows whose interval is narrower than +-``narrow_pct``),
     the share with a narrow interval, the coverage of the intervals and the
     share of misses that carried a warning, the centroid's median error."""

@@ -187,6 +187,39 @@ def test_interpolation_operators_are_exact_on_linear_fields():
         reconstruction_mesh_pair(lab, (1, 1, 1), (0, 0, 0), 2.0, 1.0)
 
 
+def test_keep_elements_renumbers_the_nodes_and_their_data():
+    """``Mesh.keep_elements``, which the fTetWild mesher (air tetrahedra, boundary
+    slivers) and the surface fit (staircase corners) cut with: the kept elements
+    and their regions, their nodes in the old order, the old-to-new node map, and
+    the per-node data of ``meta`` for the kept nodes."""
+    from FluoTomoLib.meshing.mesh import Mesh
+    from FluoTomoLib.meshing.structured import box_mesh
+
+    box = box_mesh(np.linspace(0, 6, 7), np.linspace(0, 4, 5), np.linspace(0, 3, 4))
+    region = np.where(box.nodes_mm[box.elements].mean(axis=1)[:, 0] < 3, 1, 2)
+    f = box.nodes_mm @ np.array([1.0, 10.0, 100.0])
+    mesh = Mesh(box.nodes_mm, box.elements, region, "box",
+                {"point_data": {"f": f}, "node_region": np.arange(box.n_nodes),
+                 "bndvtx": np.isin(np.arange(box.n_nodes), box.boundary_nodes).astype(int),
+                 "size_mm": 1.0, "_locator": object()})
+    keep = mesh.nodes_mm[mesh.elements].mean(axis=1)[:, 0] < 2.5   # a cut through the box
+    cut, node_map = mesh.keep_elements(keep)
+
+    kept = np.flatnonzero(node_map >= 0)
+    assert np.array_equal(node_map[kept], np.arange(cut.n_nodes))     # old order kept
+    assert np.array_equal(cut.elements, node_map[mesh.elements[keep]])
+    assert np.array_equal(cut.nodes_mm, mesh.nodes_mm[kept])
+    assert np.array_equal(cut.element_region, region[keep]) and set(cut.regions) == {1}
+    assert not np.isin(np.arange(mesh.n_nodes)[node_map < 0], mesh.elements[keep]).any()
+    cut.check_topology()                                              # no node left unused
+    assert np.array_equal(cut.meta["point_data"]["f"], f[kept])
+    assert np.array_equal(cut.meta["node_region"], kept)
+    # the cut face is boundary now: its nodes carry NIRFAST's boundary flag
+    assert np.array_equal(np.flatnonzero(cut.meta["bndvtx"]), cut.boundary_nodes)
+    assert cut.meta["size_mm"] == 1.0 and "_locator" not in cut.meta  # caches stay behind
+    assert mesh.n_elements == box.n_elements                          # the mesh is unchanged
+
+
 def test_cli_quality_and_segmentation(tmp_path, fluo):
     import SimpleITK as sitk
 
