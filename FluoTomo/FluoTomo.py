@@ -446,6 +446,116 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         vox = float(np.prod(geo["spacing"]))
         return {k: (name, float((labels == k).sum() * vox)) for k, name in info.items()}
 
+    # ------------------------------------------------------- CBCT in, labels out
+    # A CBCT from the scanner's files (a DICOM folder) or a volume file, and the
+    # headless threshold segmentation (docs/scene.md, "DICOM input").
+
+    @staticmethod
+    def readCbct(path, series=None):
+        """``(array_kji [HU], spacing_mm, origin_mm, direction, source)`` of a CBCT:
+        a DICOM folder (``series``: its SeriesInstanceUID, needed when the folder
+        holds several), a volume file (NRRD, NIfTI) or a scene (``.mrml``: its
+        ``CBCT``); geometry in RAS (``fluoguide.labelmap_io.read_cbct``)."""
+        from fluoguide.labelmap_io import read_cbct
+
+        return read_cbct(path, series=series)
+
+    def importCbct(self, path, series=None, name="CBCT"):
+        """Read a CBCT (as :meth:`readCbct` takes it) into the scalar volume node
+        ``name`` (replaced when there), its origin, spacing and direction kept;
+        attribute ``FluoGuide.Source``: what was read. Returns the node."""
+        from fluoguide import mrml_io
+
+        arr, spacing, origin, direction, source = self.readCbct(path, series)
+        node = mrml_io.add_volume(self.scene, name, arr, spacing, origin, direction=direction)
+        mrml_io.set_json_attribute(node, "FluoGuide.Source", source)
+        logging.info("FluoTomo: CBCT %s from %s", name, source)
+        return node
+
+    def importCbctToScene(self, path, outputFolder, series=None):
+        """A scene folder (``scene.mrml``, ``CBCT.nrrd``) holding the CBCT of
+        ``path`` as the node ``CBCT`` (``fluo scene import``): read and checked
+        first, then written as one step (``fluoguide.atomic``: nothing of it on
+        a refusal; an existing folder's scene is replaced). Returns a summary."""
+        from pathlib import Path
+
+        from fluoguide import atomic, mrml_io
+
+        atomic.check_writable(outputFolder, field="--out", folder=True)
+        arr, spacing, origin, direction, source = self.readCbct(path, series)
+        out = Path(outputFolder)
+        with atomic.staged_folder(out, last=("scene.mrml",)) as stage:
+            scene = mrml_io.new_scene()
+            node = mrml_io.add_volume(scene, "CBCT", arr, spacing, origin, direction=direction)
+            mrml_io.set_json_attribute(node, "FluoGuide.Source", source)
+            mrml_io.save_scene(scene, stage / "scene.mrml")
+        return {"scene": str(out / "scene.mrml"), "source": source,
+                "dimensions_ijk": list(arr.shape[::-1]), "spacing_mm": list(map(float, spacing)),
+                "origin_mm": list(map(float, origin)),
+                "direction": [list(map(float, row)) for row in direction],
+                "voxel_type": str(arr.dtype),
+                "hu_range": [float(arr.min()), float(arr.max())]}
+
+    def segmentCbct(self, thresholds, cbctNode=None, outName="CBCTLabels", outputLabelNode=None,
+                    progress=None, cancel=None):
+        """Label map of the CBCT by HU thresholds, as the app's threshold tool
+        and :meth:`segmentationToLabels` make it: each label's range (both ends
+        included), its largest connected component, its holes filled, later
+        labels over earlier ones (``FluoTomoLib.tomography.threshold_labels``).
+
+        Parameters
+        ----------
+        thresholds : "LABEL:MIN:MAX[,...]" [HU], a .json file path, a dict
+            {label: [min, max]} or (label, min, max) triples
+        cbctNode : the scalar volume (default: the node ``CBCT``)
+        outName : name of the new label map (replaced when there), unless
+            ``outputLabelNode`` is given
+
+        Returns
+        -------
+        (label-map node on the CBCT's grid, report per label: voxels,
+        volume_mm3, components, dropped_voxels, filled_voxels)
+        """
+        from fluoguide import mrml_io
+        from FluoTomoLib.tomography import threshold_labels
+
+        node = cbctNode or mrml_io.get_node(self.scene, "CBCT", "vtkMRMLScalarVolumeNode")
+        geo = mrml_io.volume_geometry(node)
+        labels, report = threshold_labels(mrml_io.volume_array(node), thresholds, geo["spacing"],
+                                          progress=progress, cancel=cancel)
+        if outputLabelNode is not None:
+            out = mrml_io.set_volume_array(outputLabelNode, labels, geo["spacing"], geo["origin"],
+                                           geo["direction"])
+        else:
+            out = mrml_io.add_volume(self.scene, outName, labels, geo["spacing"], geo["origin"],
+                                     direction=geo["direction"], labelmap=True)
+        mrml_io.set_json_attribute(out, "FluoTomo.Thresholds", report)
+        return out, report
+
+    def segmentCbctToFile(self, cbct, thresholds, outputFile, series=None, progress=None,
+                          cancel=None):
+        """``fluo segment``: the label map of a CBCT (as :meth:`readCbct` takes
+        it) by :meth:`segmentCbct`'s rules, written to ``outputFile`` (NRRD,
+        gzip; on the CBCT's grid: same origin, spacing and direction) in one
+        step after every check. Returns the summary (per label: voxels,
+        volume_mm3, components, dropped_voxels, filled_voxels)."""
+        from fluoguide import atomic
+        from fluoguide.errors import FluoInputError
+        from fluoguide.labelmap_io import write_volume_nrrd
+        from FluoTomoLib.tomography import parse_thresholds, threshold_labels
+
+        if not str(outputFile).endswith(".nrrd"):
+            raise FluoInputError("the label map is written as NRRD: name it .nrrd", field="--out",
+                                 value=str(outputFile))
+        atomic.check_writable(outputFile, field="--out")
+        entries = parse_thresholds(thresholds)              # refused before the CBCT is read
+        arr, spacing, origin, direction, source = self.readCbct(cbct, series)
+        labels, report = threshold_labels(arr, entries, spacing, progress=progress, cancel=cancel)
+        write_volume_nrrd(outputFile, labels, spacing, origin, direction)
+        return {"labels_file": str(outputFile), "cbct": source,
+                "dimensions_ijk": list(labels.shape[::-1]), "spacing_mm": list(map(float, spacing)),
+                "labels": report}
+
     def prepareTubeReconstruction(self, methods=("NP", "SP", "HP"), lam=10.0, seed=0,
                                   labelNodeName="CBCTLabels", accuracy="fast"):
         """A job ``job(progress, cancel) -> run`` that simulates the tracked

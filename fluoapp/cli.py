@@ -50,6 +50,7 @@ _PROJECT_ROOT = str(Path(__file__).resolve().parents[1])
 CLI_MODULES = [
     "fluoapp.commands.phantom",
     "fluoapp.commands.scene",
+    "fluoapp.commands.segment",
     "fluoapp.commands.demo",
     "fluoapp.commands.app",
     "fluoapp.commands.fem",

@@ -1,5 +1,6 @@
 """Label-map files: NRRD / NIfTI volumes, 3D Slicer segmentations (``.seg.nrrd``)
-and an MRML scene's ``CBCTLabels``, read into RAS geometry; NRRD written.
+and an MRML scene's ``CBCTLabels``, read into RAS geometry; NRRD written; a
+CBCT from a DICOM folder, a scene or a volume file (:func:`read_cbct`).
 
 A label map is ``(labels_kji, spacing_mm, origin_mm, direction)``: the array
 indexed [k, j, i] as Slicer's ``arrayFromVolume``, voxel size (I, J, K), the
@@ -100,6 +101,65 @@ def read_volume_nrrd(path):
     if arr.ndim != 3:
         raise FluoInputError("volume must be 3D", file=p, value=arr.shape)
     return (arr,) + _geometry(img, p)
+
+
+def read_cbct(path, series=None, node_name="CBCT"):
+    """A CBCT (or CT) volume in RAS, whatever it comes as: the one reader every
+    command, panel and logic method that takes a CBCT calls.
+
+    Parameters
+    ----------
+    path : path
+        A folder of DICOM files (one series, or several and ``series``:
+        :func:`fluoguide.dicom.read_dicom_series`), an MRML scene (``.mrml``:
+        its scalar volume ``node_name``), or a volume file ITK reads (NRRD,
+        NIfTI, MetaImage), its header checked (:mod:`fluoguide.volume_header`).
+    series : str, optional
+        The DICOM ``SeriesInstanceUID`` to read (a folder only).
+    node_name : str
+        The scene's CBCT node (``.mrml`` only).
+
+    Returns
+    -------
+    tuple
+        ``(array_kji, spacing_mm, origin_mm, direction, source)``: the values
+        [HU] indexed [k, j, i], voxel size (I, J, K) [mm], the RAS position of
+        voxel (0, 0, 0) [mm], the IJK-to-RAS direction cosines (columns) and
+        a dict saying what was read (format, file or folder, series).
+    """
+    p = Path(path)
+    if p.is_dir():
+        from fluoguide.dicom import read_dicom_series
+
+        vol = read_dicom_series(p, series=series)
+        return vol.array_kji, vol.spacing_mm, vol.origin_mm, vol.direction, vol.meta()
+    if series is not None:
+        raise FluoInputError("a series is chosen in a DICOM folder only; this is a file",
+                             file=p, field="series", value=str(series))
+    if not p.exists():
+        raise FluoInputError("CBCT not found (give a DICOM folder or a volume file)", file=p)
+    if not p.is_file():
+        raise FluoInputError("not a regular file or folder", file=p)
+    if p.suffix == ".mrml":
+        from fluoguide import mrml_io
+
+        node = mrml_io.get_node(mrml_io.load_scene(p), node_name, "vtkMRMLScalarVolumeNode")
+        geo = mrml_io.volume_geometry(node)
+        return (mrml_io.volume_array(node), geo["spacing"], geo["origin"], geo["direction"],
+                {"format": "MRML", "file": str(p), "node": node_name})
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(132)
+    except OSError as exc:
+        raise FluoInputError(f"cannot read ({exc.strerror or exc})", file=p) from None
+    if head[128:132] == b"DICM":
+        raise FluoInputError("one DICOM file is one slice: give the folder that holds the "
+                             "series", file=p)
+    arr, spacing, origin, direction = read_volume_nrrd(p)
+    if arr.dtype.kind not in "iuf":
+        raise FluoInputError("CBCT voxels must be numbers", file=p, value=str(arr.dtype))
+    return arr, spacing, origin, direction, {"format": p.name.partition(".")[2].upper() or "volume",
+                                             "file": str(p)}
 
 
 def _segments_to_labels(img, arr, path):

@@ -308,10 +308,22 @@ def build_fixtures(folder):
            "--height", "48"], f)
     fx["recording"] = f / "rec"
     _own_scene(f, fx)
+    _dicom_series(f, fx)
     _hostile_files(f, fx)
     _lying_files(f, fx)
     fx["root"] = f
     return fx
+
+
+def _dicom_series(f, fx):
+    """A small CBCT as a DICOM series (oblique, slope 2, intercept -1024: -24..652 HU)."""
+    import dicom_cases as dc
+
+    uid = "1.2.826.0.1.3680043.2.1125.77.1"
+    dc.write_series(f / "dicom", dc.test_volume((8, 12, 14)) + 1000, (0.5, 0.6, 0.8),
+                    (10.0, 20.0, 30.0), dc.rotation(20.0, -25.0, 10.0), slope=2.0,
+                    intercept=-1024.0, uid=uid)
+    fx.update(cbct_dicom=f / "dicom", cbct_series=uid)
 
 
 def _own_scene(f, fx):
@@ -352,6 +364,9 @@ def _own_scene(f, fx):
 BASES = {
     ("phantom",): "phantom cylinder-tube --out {out} --voxel-mm 2 --seed 0 --depth-mm 4.7",
     ("scene", "info"): "scene info {scene}",
+    ("scene", "import"): "scene import --cbct {cbct_dicom} --series {cbct_series} --out {out}",
+    ("segment",): "segment --cbct {cbct_dicom} --thresholds 1:-500:3000,2:300:3000 "
+                  "--out {out}.nrrd",
     ("demo",): "demo --out {out} --quick --only phantoms",
     ("app",): "app --port 0 --workspace {out} --scene {scene}",
     ("analytic",): "analytic --mua 0.01 --musp 1 --n 1.37 --rho 3,10 --yield 0.001 --mua-m 0.007 "
@@ -417,7 +432,8 @@ KINDS = {"--board": "str", "--roi": "str", "--refine": "str", "--rho": "str", "-
          "name": "str", "study": "str", "--sweep": "str", "--scheme": "str", "--hp-basis": "str",
          "--labels": "inpath", "--optics": "inpath", "--acquisition": "indir",
          "--yield": "str", "--engine": "str", "--accuracy": "str", "--data-model": "str",
-         "batch": "inpath", "--methods": "str"}
+         "batch": "inpath", "--methods": "str", "--cbct": "inpath", "--series": "str",
+         "--thresholds": "str"}
 
 HOSTILE = {
     "float": ["nan", "inf", "-inf", "-1", "0", "1e300"],

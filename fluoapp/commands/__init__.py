@@ -11,7 +11,8 @@ Modules
 - ``mesh``: ``fluo mesh LABELMAP --out MESH.vtu``: label map to a tetrahedral mesh with regions.
 - ``nav``: ``fluo nav synth|correct`` and ``fluo bench mapping``: surface-flux mapping of tracked fluorescence frames (docs/surface-mapping.md).
 - ``phantom``: ``fluo phantom NAME --out DIR``: write a digital phantom as an MRML scene.
-- ``scene``: ``fluo scene info SCENE.mrml``: what a scene holds (nodes, attributes, data).
+- ``scene``: ``fluo scene info SCENE.mrml``: what a scene holds (nodes, attributes, data); ``fluo scene import --cbct DIR|FILE --out DIR``: a scene from a CBCT (DICOM series folder or volume file).
+- ``segment``: ``fluo segment --cbct DIR|FILE --thresholds SPEC --out LABELS.nrrd``: a CBCT's label map by HU thresholds.
 - ``study``: ``fluo study A|B|C``: the thesis's 2D simulation studies.
 """
 

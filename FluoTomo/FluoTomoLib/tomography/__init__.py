@@ -13,6 +13,7 @@ Modules
 - ``simulate``: Simulated acquisitions of a label map: the scan, the engines, the noise.
 - ``reconstruct``: Reconstruction of fluorescence yield on a user's label map.
 - ``batch``: Many own scenes at once: a batch file of cases on the run engine.
+- ``segment``: A CBCT turned into a label map by HU thresholds, headless (largest component, holes filled).
 """
 
 from fluoguide.lazy import attach
@@ -35,4 +36,5 @@ __getattr__, __dir__, __all__ = attach(__name__, {
                     "write_reconstruction"],
     "batch": ["load_batch", "reconstruct_case", "batch_tasks", "run_batch",
               "write_case_outputs"],
+    "segment": ["parse_thresholds", "threshold_labels"],
 })
