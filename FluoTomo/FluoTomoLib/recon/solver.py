@@ -727,6 +727,22 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
     M = len(y)
     diag = {"measurements": M, "unknowns": int(A.shape[1])}
     warn = []
+    p, nu, rss, misfit = _determination(method, A, y, resid, ds, log_data, region_labels,
+                                        diag, warn)
+    if method == "HP" and region_labels is not None:
+        _zero_bound_warnings(A, y, x, sigma, log_data, region_labels, x_exp, diag, warn)
+    noise_var_fit = _fit_grade(y, resid, sigma, log_data, nu, misfit, diag, warn)
+    _structure_and_units(A, y, sigma, log_data, p, nu, rss, x_exp, x0_given, x_start, diag,
+                         warn)
+    _damping(ds, resid, rss, lam_final, noise_var_fit, M, stop, sigma, misfit, iterations,
+             max_iter, history, diag, warn)
+    return diag, warn
+
+
+def _determination(method, A, y, resid, ds, log_data, region_labels, diag, warn):
+    """:func:`diagnose`'s effective parameters, misfit and under-determination (into
+    ``diag`` and ``warn``); returns (p, residual dof, rss, relative misfit)."""
+    M = len(y)
     p = ds.effective_parameters() if ds is not None else 0.0
     nu = M - p
     rss = float(resid @ resid)
@@ -774,33 +790,41 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
         warn.append(f"weakly regularised: {p:.0f} effective parameters from {M} "
                     "measurements, so nodal values (peaks, profiles) follow noise and model "
                     "error; read region means with their SD, or raise lambda")
-    if method == "HP" and region_labels is not None:
-        frozen = np.flatnonzero(x <= 0)
-        if len(frozen):
-            # a region without dye is clipped at zero whenever noise pulls its
-            # estimate below: that is a fit, not a failure. Only a region whose
-            # unconstrained estimate lies well below zero (the data ask for a
-            # negative yield) is one the model does not explain
-            checked = _zero_bound_check(A, y, x, sigma, frozen, log_data)
-            for c in checked.values():          # the solver's units -> 1/mm
-                for k in ("unconstrained", "sd"):
-                    if c[k] is not None:
-                        c[k] = float(np.ldexp(c[k], -x_exp))
-            diag["at_zero_bound"] = {int(region_labels[r]): c for r, c in checked.items()}
-            bad = [(int(region_labels[r]), c) for r, c in checked.items()
-                   if not c["consistent_with_zero"]]
-            if bad:
-                what = "; ".join(
-                    f"region {lab}: {c['unconstrained']:.3g} +- {c['sd']:.2g} /mm"
-                    if c["sd"] is not None else f"region {lab}: not testable"
-                    for lab, c in bad)
-                warn.append(f"region(s) {[lab for lab, _ in bad]} reconstructed at zero yield "
-                            "(the non-negativity bound) where the data ask for a negative "
-                            f"one ({what}): the model does not explain "
-                            "these data there (optical properties, geometry, or fluorescence "
-                            "the prior's regions miss)")
+    return p, nu, rss, misfit
 
-    # goodness of fit
+
+def _zero_bound_warnings(A, y, x, sigma, log_data, region_labels, x_exp, diag, warn):
+    """:func:`diagnose`'s HP regions at the non-negativity bound: which the data
+    ask to go negative (the model does not explain them there)."""
+    frozen = np.flatnonzero(x <= 0)
+    if len(frozen):
+        # a region without dye is clipped at zero whenever noise pulls its
+        # estimate below: that is a fit, not a failure. Only a region whose
+        # unconstrained estimate lies well below zero (the data ask for a
+        # negative yield) is one the model does not explain
+        checked = _zero_bound_check(A, y, x, sigma, frozen, log_data)
+        for c in checked.values():          # the solver's units -> 1/mm
+            for k in ("unconstrained", "sd"):
+                if c[k] is not None:
+                    c[k] = float(np.ldexp(c[k], -x_exp))
+        diag["at_zero_bound"] = {int(region_labels[r]): c for r, c in checked.items()}
+        bad = [(int(region_labels[r]), c) for r, c in checked.items()
+               if not c["consistent_with_zero"]]
+        if bad:
+            what = "; ".join(
+                f"region {lab}: {c['unconstrained']:.3g} +- {c['sd']:.2g} /mm"
+                if c["sd"] is not None else f"region {lab}: not testable"
+                for lab, c in bad)
+            warn.append(f"region(s) {[lab for lab, _ in bad]} reconstructed at zero yield "
+                        "(the non-negativity bound) where the data ask for a negative "
+                        f"one ({what}): the model does not explain "
+                        "these data there (optical properties, geometry, or fluorescence "
+                        "the prior's regions miss)")
+
+
+def _fit_grade(y, resid, sigma, log_data, nu, misfit, diag, warn):
+    """:func:`diagnose`'s goodness of fit against the stated noise (or the misfit
+    alone); returns the noise variance in the fit's units (None without noise)."""
     noise_var_fit = None
     if sigma is not None:
         s_fit = sigma / np.abs(y) if log_data else sigma
@@ -827,7 +851,13 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
                     "unexplained; the result does not describe these data (wrong geometry, "
                     "optical properties or units, or mostly noise)")
 
-    # does the result stand out from what noise alone would give?
+    return noise_var_fit
+
+
+def _structure_and_units(A, y, sigma, log_data, p, nu, rss, x_exp, x0_given, x_start, diag,
+                         warn):
+    """:func:`diagnose`'s checks that the result stands out from noise and that the
+    data's scale is a fluorophore's."""
     one = A.sum(axis=1)
     if log_data:
         c = float(np.exp(np.mean(np.log(y) - np.log(one)))) if np.all(one > 0) else 0.0
@@ -865,7 +895,11 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
             warn.append(f"the data are {ratio:.3g} times what the model predicts at the "
                         "starting yield: check their units or the starting yield")
 
-    # convergence and the damping
+
+def _damping(ds, resid, rss, lam_final, noise_var_fit, M, stop, sigma, misfit, iterations,
+             max_iter, history, diag, warn):
+    """:func:`diagnose`'s convergence: a run the damping stalled, one that ran out of
+    iterations, one whose residual rose or diverged."""
     stalled = False
     if ds is not None and rss > 0:
         # the weak reference: 1e4 x less damping, and at most lambda 1e-4
@@ -897,7 +931,6 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
         warn.append(f"diverging ({stop}): the log / normalised model's linearisation fails "
                     "at this damping, or rounding dominates the step; the iterate with the "
                     "lowest residual is returned; raise lambda")
-    return diag, warn
 
 
 def _check_inputs(J, y, method, lam, prior, log_data):
@@ -940,6 +973,15 @@ def _region_matrix(J, K, region_jacobian, prior):
 #: the region system W (B - U_B) is taken as singular beyond this condition number
 RESOLUTION_COND_MAX = 1e6
 
+#: SP reports a region's resolution-corrected value when it lies within this factor
+#: of the soft-prior image's mean over the region (either way). A correctly segmented
+#: region's image keeps a share of its constant set by the damped solver's smoothing
+#: across the region's rim (the scene family: 0.48-1.1, docs/validation.md); a
+#: correction beyond this factor says the region-wise constant model behind it does
+#: not describe the image (a segmentation that is off: an eroded inclusion's
+#: correction was 20-400x), so the image's mean is kept and the result says why
+SP_CORRECTION_MAX = 3.0
+
 
 def _resolution_corrected(resolution, x_scaled, prior, method, weighted, region_weights, n,
                           x_scale):
@@ -963,6 +1005,35 @@ def _resolution_corrected(resolution, x_scaled, prior, method, weighted, region_
             np.linalg.cond(P) > RESOLUTION_COND_MAX:
         return None
     return np.linalg.solve(P, rhs) * x_scale
+
+
+def _sp_value(row, corrected):
+    """SP's region value: the resolution-corrected value where it is within
+    :data:`SP_CORRECTION_MAX` of the image's mean, else the image's mean
+    (``row`` is changed in place; ``image_mean_yield_per_mm`` keeps the mean and
+    ``sp_value`` says which was taken). The soft prior's damped image spreads a
+    small region's yield over its rim into the neighbours, so the image's mean
+    over the label is biased low (the family: a median -20 %, down to -53 % for a
+    correctly segmented inclusion); the corrected value undoes that spreading
+    under the region-wise constant model the prior states (docs/physics.md
+    section 8.3). Its noise SD is the image mean's scaled by the same factor
+    (the correction is near-diagonal); the 95 % interval already reaches from
+    the one to the other and is kept."""
+    mean = row["mean_yield_per_mm"]
+    row["image_mean_yield_per_mm"] = mean
+    if corrected is None or not np.isfinite(corrected):
+        row["sp_value"] = "image mean (no resolution correction)"
+        return
+    ratio = corrected / mean if mean > 0 else float("inf")
+    if not (1.0 / SP_CORRECTION_MAX <= ratio <= SP_CORRECTION_MAX):
+        row["sp_value"] = (f"image mean (the resolution correction, {ratio:.3g}x, is beyond "
+                           f"{SP_CORRECTION_MAX:g}x)")
+        return
+    row["sp_value"] = "resolution corrected"
+    row["mean_yield_per_mm"] = float(corrected)
+    if np.isfinite(row["sd_yield_per_mm"]):
+        row["sd_yield_per_mm"] = float(row["sd_yield_per_mm"] * ratio)
+    row["relative_sd"] = row["sd_yield_per_mm"] / corrected if corrected > 0 else float("inf")
 
 
 def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof=None,
@@ -1054,5 +1125,7 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
         else:
             row.update({"ci95_yield_per_mm": None, "resolution_corrected_per_mm": c,
                         "model_error_bound_per_mm": None})
+        if method == "SP":
+            _sp_value(row, c)
         out[int(lab)] = row
     return out

@@ -488,6 +488,7 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
     # field at the voxel centres: for HP its mean over a small label is lower (the
     # rim is shared with the neighbours), so the summary names both.
     conf = res.region_confidence
+    inclusions = set(lm.inclusion_labels())
     regions = {}
     for lab in tm.region_labels:
         vox = lm.labels_kji == lab
@@ -505,6 +506,18 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
             "volume_mean_per_mm": float(vol[vox].mean()) if vox.any() else None,
             "name": optics.names.get(int(lab)),
         }
+        if "sp_value" in c:
+            regions[str(int(lab))].update({"image_mean_per_mm": c["image_mean_yield_per_mm"],
+                                           "value_from": c["sp_value"]})
+            # said for the inclusions: a background's yield near zero makes any
+            # ratio meaningless there (its value is the image's mean, silently)
+            if c["sp_value"].startswith("image mean (the resolution correction") and \
+                    int(lab) in inclusions:
+                w = (f"SP: label {int(lab)}'s soft-prior image and its region-wise constant "
+                     f"correction disagree ({c['sp_value'][len('image mean ('):-1]}): the "
+                     "segmentation may be off; its yield is the image's mean over the label")
+                if w not in notes:
+                    notes.append(w)
     k, j, i = np.unravel_index(int(np.argmax(vol)), vol.shape)
     peak_local = np.array([i, j, k], float) * lm.spacing_mm
     cen = _half_max_centroid(vol, lm)
@@ -513,7 +526,10 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         "target": target,
         "regions": regions,
         "regions_note": ("yield_per_mm: the region's yield, the volume-weighted mean over its "
-                         "label (HP: the region's value), and sd_per_mm its standard deviation "
+                         "label (HP: the region's value; SP: that mean corrected for the "
+                         "soft prior's smoothing across the region's rim, value_from and "
+                         "image_mean_per_mm say which and what the image holds), and "
+                         "sd_per_mm its standard deviation "
                          "from the noise; ci95_per_mm its 95 % interval (the noise, what the "
                          "damped solver leaves unresolved, the model's error bound: "
                          "interval_parts; docs/reconstruction.md, 'Intervals'); "
