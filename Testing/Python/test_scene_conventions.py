@@ -128,6 +128,7 @@ def test_frame_correction_and_mapping_write_documented_nodes():
     _check("FluoNav", before, after)
 
 
+@pytest.mark.slow      # NP, SP and HP of the own scene: 22 s at load 2.3
 def test_tomography_results_are_documented_and_saved(tmp_path, own_scene):
     """A reconstruction through the logic API (the shared own scene at the fast
     level; it was a full balanced tube case, ~20 GB, to check node names)."""

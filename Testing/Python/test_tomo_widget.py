@@ -53,6 +53,7 @@ def panel(tmp_path):
     return widget, logic, label, sc
 
 
+@pytest.mark.slow      # simulate, mesh and reconstruct through the panel: 23 s beside a family run
 def test_panel_workflow_simulate_mesh_reconstruct(panel, tmp_path):
     """Simulate -> build mesh -> HP into a chosen volume -> SP after a new
     acquisition. The simulation meshes the whole label map (0.8 mm near the

@@ -76,6 +76,7 @@ def test_the_default_scan_covers_every_inclusion(scene):
         assert np.linalg.norm((centre - own)[:2]) < 2.0
 
 
+@pytest.mark.slow      # three FEM simulations: 18 s alone on 2 cores
 def test_the_screen_against_the_fem(scene):
     """One target scanned: the far inclusion is not seen, said in the warnings
     (naming it) before anything is solved; the screen's shares within
