@@ -409,7 +409,7 @@ def register(subparsers):
                    "default: the one recording.json names)")
     p.add_argument("--scene", default=None, help="scene.mrml holding the calibrations "
                    "(FluoCalibration node, CameraToCameraTool, TrackerToReference) instead of "
-                   "--calibration")
+                   "--calibration (default: not used)")
     p.add_argument("--spot-tolerance-mm", type=float, default=None,
                    help="how far the laser spot seen by the camera may lie from the tracked "
                    "beam's surface point [mm] (default 2; docs/recording.md)")
@@ -444,12 +444,13 @@ def register(subparsers):
     p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default="fast",
                    help=_simulate_accuracy_help())
     p.add_argument("--missing-pose", default=None, metavar="N[,N...]",
-                   help="frames whose laser tool the tracker reports missing (a test fault)")
+                   help="frames whose laser tool the tracker reports missing (a test fault; "
+                   "default: none)")
     p.add_argument("--saturated-frames", default=None, metavar="N[,N...]",
-                   help="frames exposed 20 times too long (a test fault)")
+                   help="frames exposed 20 times too long (a test fault; default: none)")
     p.add_argument("--spot-off", default=None, metavar="N[,N...]",
                    help="frames whose reported laser pose is 5 mm from where the light went "
-                   "(a test fault)")
+                   "(a test fault; default: none)")
     p.add_argument("--out", required=True, help="recording folder to write")
     add_json_flag(p)
     p.set_defaults(func=_record_scan)

@@ -449,8 +449,8 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
                                  file=rec["folder"] / "recording.json")
         calibration = rec["calibration"]
     cal = calibration if isinstance(calibration, dict) else read_calibration(calibration)
-    if not (np.isfinite(spot_tolerance_mm) and spot_tolerance_mm > 0):
-        raise FluoInputError("must be a positive distance [mm]", field="spot_tolerance_mm",
+    if not (np.isfinite(spot_tolerance_mm) and 0 < spot_tolerance_mm <= 50):
+        raise FluoInputError("must be a distance within (0, 50] mm", field="spot_tolerance_mm",
                              value=spot_tolerance_mm)
     camera = cal["camera"]
     TtR = cal["tracker_to_reference"]
