@@ -210,14 +210,25 @@ def test_recording_to_acquisition_to_yield_against_the_truth(fluo, scene, tmp_pa
         assert np.linalg.norm(cen - sc["inclusion_centre_ras_mm"]) < 1.0, (method, cen)
 
 
-@pytest.mark.slow      # record-scan, acquire and one reconstruction: about 35 s
-def test_a_recording_with_faults_reports_those_frames_and_reconstructs(fluo, scene, tmp_path):
-    d, sc = scene
+@pytest.fixture(scope="module")
+def faulted(fluo, scene, tmp_path_factory):
+    """A recording of the own scene with a missing pose (frame 2), a saturated
+    frame (5) and a spot off the beam (9). Read-only."""
+    d, _ = scene
+    rec = tmp_path_factory.mktemp("faulted") / "rec"
     r = fluo("tomo", "record-scan", "--labels", d / "labels.nrrd", "--optics",
              d / "optics.json", "--yield", f"7:{TRUE_YIELD}", "--seed", "1",
              "--missing-pose", "2", "--saturated-frames", "5", "--spot-off", "9",
-             "--out", tmp_path / "rec", "--json")
+             "--out", rec, "--json")
     assert r.returncode == 0, r.stderr[-2000:]
+    return rec
+
+
+@pytest.mark.slow      # record-scan, acquire and one reconstruction: about 35 s
+def test_a_recording_with_faults_reports_those_frames_and_reconstructs(fluo, scene, faulted,
+                                                                       tmp_path):
+    d, sc = scene
+    shutil.copytree(faulted, tmp_path / "rec")
     r = fluo("tomo", "acquire", "--recording", tmp_path / "rec", "--labels", d / "labels.nrrd",
              "--optics", d / "optics.json", "--out", tmp_path / "acq", "--json")
     assert r.returncode == 0, r.stderr[-2000:]
@@ -265,3 +276,24 @@ def _as_recorder_folder(src, dst):
         doc.pop(k)
     doc["log"] = "log.jsonl"
     (dst / "recording.json").write_text(json.dumps(doc))
+
+
+@pytest.mark.slow      # the app and one acquire (the recording is the module's)
+def test_the_web_app_loads_a_recording_as_the_acquisition(scene, faulted, tmp_path):
+    from fluoapp.webapp.app import create_app
+
+    d, _ = scene
+    app = create_app(workspace=tmp_path / "ws")
+    own = app.workspace.root / "own"
+    own.mkdir()
+    for f in ("labels.nrrd", "optics.json"):
+        shutil.copy(d / f, own / f)
+    shutil.copytree(faulted, own / "rec")
+    s = app.state
+    s.tomo_own_labels, s.tomo_own_optics, s.tomo_own_acquisition = (
+        "own/labels.nrrd", "own/optics.json", "own/rec")
+    app.ctrl.tomo_load_own()
+    assert s.tomo_own, s.fluo_message
+    info = s.tomo_own_info
+    assert "13 of 16 frames used" in info and "pose missing: frames 2" in info, info
+    assert "saturated: frames 5" in info and "spot far from the beam: frames 9" in info
