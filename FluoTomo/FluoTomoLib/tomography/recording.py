@@ -369,11 +369,14 @@ def read_calibration(path):
     return out
 
 
-def detect_spot(image, min_contrast_adu=200.0, max_area_fraction=0.01):
+def detect_spot(image, min_contrast_adu=200.0, max_area_fraction=0.01, fraction=0.9):
     """(u, v) [px] of the laser spot: in the frame median-filtered over 3 x 3
-    pixels (a hot pixel is not a spot), the blob of pixels above half the
-    brightest level (over the frame's median) that holds the brightest pixel,
-    its intensity-weighted centroid; None when the frame has no distinct spot
+    pixels (a hot pixel is not a spot), the blob of pixels above ``fraction``
+    of the brightest level (over the frame's median) that holds the brightest
+    pixel, its intensity-weighted centroid (the core of the spot, as
+    FluoCalibLib.radiometry.laser_line.spot_centroid takes it: a lower level
+    takes in the fluorescence around the spot, brightest toward the target,
+    and pulls the centroid to it); None when the frame has no distinct spot
     (its brightest pixel less than ``min_contrast_adu`` above the frame's
     median, or a blob larger than ``max_area_fraction`` of the frame: not a
     spot)."""
@@ -385,7 +388,7 @@ def detect_spot(image, min_contrast_adu=200.0, max_area_fraction=0.01):
     hi = float(sm.max())
     if not hi - med >= min_contrast_adu:
         return None
-    mask = sm >= med + 0.5 * (hi - med)
+    mask = sm >= med + fraction * (hi - med)
     lab, n = ndimage.label(mask)
     k = lab[np.unravel_index(int(np.argmax(sm)), sm.shape)]
     if k == 0:

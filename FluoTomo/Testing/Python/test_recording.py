@@ -144,7 +144,8 @@ def test_laser_spot_found_at_its_centre_and_not_in_a_flat_or_washed_out_frame():
                                                                 + (v - 40.6) ** 2) / (2 * 1.5 ** 2))
     frame += 400 * np.exp(-((u - 120) ** 2 + (v - 90) ** 2) / (2 * 15.0 ** 2))   # a glow
     uv = detect_spot(frame)
-    assert uv is not None and np.hypot(uv[0] - 70.3, uv[1] - 40.6) < 0.2
+    # the core above 90 %: within half a pixel (0.16 mm at the tomography camera)
+    assert uv is not None and np.hypot(uv[0] - 70.3, uv[1] - 40.6) < 0.5
     hot = 100 + rng.normal(0, 2, v.shape)
     assert detect_spot(hot) is None                      # no spot
     hot[10, 10] = 16383
@@ -185,7 +186,7 @@ def _reconstruct(fluo, d, acq, out, method):
     return json.loads(r.stdout)
 
 
-@pytest.mark.slow      # record-scan, acquire and two reconstructions: about 60 s
+@pytest.mark.slow      # record-scan, acquire and two reconstructions: about 30 s
 def test_recording_to_acquisition_to_yield_against_the_truth(fluo, scene, tmp_path):
     """The issue's check on the own scene: 0.5 mm tracking and 0.3 mm hand-eye
     error -> HP within 15 %, SP within 25 % of the true yield, the target's
@@ -224,7 +225,7 @@ def faulted(fluo, scene, tmp_path_factory):
     return rec
 
 
-@pytest.mark.slow      # record-scan, acquire and one reconstruction: about 35 s
+@pytest.mark.slow      # acquire (twice) and one reconstruction: about 16 s
 def test_a_recording_with_faults_reports_those_frames_and_reconstructs(fluo, scene, faulted,
                                                                        tmp_path):
     d, sc = scene
@@ -297,3 +298,41 @@ def test_the_web_app_loads_a_recording_as_the_acquisition(scene, faulted, tmp_pa
     info = s.tomo_own_info
     assert "13 of 16 frames used" in info and "pose missing: frames 2" in info, info
     assert "saturated: frames 5" in info and "spot far from the beam: frames 9" in info
+
+
+def test_calibrations_read_from_a_scene_equal_the_json_file(tmp_path):
+    """--scene scene.mrml: the FluoCalibration node's attributes and the
+    CameraToCameraTool and TrackerToReference transforms give what the JSON
+    file gives."""
+    from fluoguide import mrml_io
+    from FluoCalibLib.geometry.camera_model import CameraModel
+    from FluoCalibLib.geometry.scene import store_handeye, store_intrinsics
+    from FluoCalibLib.radiometry.scene import store_calibration
+    from FluoCalibLib.geometry.transforms import make_rigid, rotvec_to_matrix
+    from FluoTomoLib.tomography.recording import read_calibration
+
+    cam = CameraModel.from_dict({"fx": 400.0, "fy": 410.0, "cx": 50.0, "cy": 40.0,
+                                 "dist": [0.01, 0, 0, 0, 0], "width": 100, "height": 80})
+    he = make_rigid(rotvec_to_matrix([0.01, 0.02, -0.03]), [30.0, 5.0, -20.0])
+    reg = make_rigid(rotvec_to_matrix([0.05, -0.04, 0.2]), [40.0, -25.0, -900.0])
+    laser = {"origin_mm": [0.0, 0.0, 10.0], "direction": [0.0, 0.0, 1.0]}
+    rad = {"gain_adu_per_radiance": 2e11, "offset_adu": 100.0, "saturation_adu": 16383.0,
+           "reference_exposure_s": 0.1}
+    scene = mrml_io.new_scene()
+    store_intrinsics(scene, cam)
+    store_handeye(scene, he)
+    mrml_io.set_transform(scene, "TrackerToReference", reg)
+    store_calibration(scene, "FluoCalib.Laser", laser)
+    store_calibration(scene, "FluoCalib.Radiometry", rad)
+    mrml_io.save_scene(scene, tmp_path / "scene" / "scene.mrml")
+    a = read_calibration(tmp_path / "scene" / "scene.mrml")
+    (tmp_path / "c.json").write_text(json.dumps({
+        "CameraIntrinsics": cam.to_dict(), "HandEye": {"camera_to_tool": he.tolist()},
+        "Registration": {"tracker_to_reference": reg.tolist()}, "Laser": laser,
+        "Radiometry": rad}))
+    b = read_calibration(tmp_path / "c.json")
+    assert a["camera"].to_dict() == b["camera"].to_dict()
+    for k in ("camera_to_tool", "tracker_to_reference", "beam_origin_tool_mm", "beam_dir_tool"):
+        assert np.allclose(a[k], b[k], atol=1e-9), k
+    for k in ("gain", "offset_adu", "saturation_adu", "reference_exposure_s"):
+        assert a[k] == b[k], k
