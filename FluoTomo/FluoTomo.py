@@ -803,6 +803,77 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         write_acquisition(outputFolder, acq, simulation=info)
         return acq, info
 
+    def readScanRecording(self, recording):
+        """A recording folder of a tracked laser scan, read and checked
+        (``FluoTomoLib.tomography.recording.read_scan_recording``; docs/recording.md)."""
+        from FluoTomoLib.tomography.recording import read_scan_recording
+
+        return read_scan_recording(recording)
+
+    def readCalibration(self, calibration):
+        """The calibrations an acquisition needs (camera intrinsics, hand-eye,
+        TrackerToReference, laser beam line, radiometric gain) from a FluoCalib
+        calibration JSON file or a scene (.mrml)."""
+        from FluoTomoLib.tomography.recording import read_calibration
+
+        return read_calibration(calibration)
+
+    def acquireRecording(self, labelNode, optics, recording, outputFolder=None, calibration=None,
+                         spotToleranceMm=None, progress=None, cancel=None):
+        """A recorded tracked laser scan turned into an acquisition: per frame the
+        poses at the frame's time, the beam on the label map's surface, the laser
+        spot checked against it, saturation; the usable frames' detector
+        readings as boundary fluence per watt. Written to ``outputFolder`` (with
+        the per-frame report ``frames.json``) when given.
+
+        Parameters
+        ----------
+        labelNode : label-map node, path or LabelMap
+        optics : optics.json path, dict or Optics
+        recording : recording folder (docs/recording.md)
+        calibration : calibration JSON file or scene (.mrml); None: the one
+            recording.json names
+        spotToleranceMm : how far the spot may lie from the beam [mm]
+            (default ``recording.SPOT_TOLERANCE_MM``)
+
+        Returns
+        -------
+        (Acquisition, per-frame report rows, info: frames_used, frames_rejected,
+        warnings, ...)
+        """
+        from FluoTomoLib.tomography.recording import (SPOT_TOLERANCE_MM, acquire_recording,
+                                                      write_recorded_acquisition)
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        optics.check_labels(lm.labels)
+        acq, rows, info = acquire_recording(
+            lm, optics, recording, calibration,
+            SPOT_TOLERANCE_MM if spotToleranceMm is None else float(spotToleranceMm),
+            progress=progress, cancel=cancel)
+        if outputFolder is not None:
+            write_recorded_acquisition(outputFolder, acq, rows, info)
+        return acq, rows, info
+
+    def recordScan(self, labelNode, optics, yieldByLabel, outputFolder, trackingErrorMm=0.5,
+                   handEyeErrorMm=0.3, seed=0, accuracy="fast", progress=None, cancel=None,
+                   **faults):
+        """A recording of a tracked laser raster scan rendered from a label map's
+        truth (docs/recording.md): camera frames from the camera's true pose,
+        tool poses with ``trackingErrorMm`` (3D RMS) of error, the hand-eye
+        calibration ``handEyeErrorMm`` off, written to ``outputFolder`` with
+        the calibrations. ``faults``: ``missing_pose``, ``saturated``,
+        ``spot_off`` (lists of frame numbers), ``tracking_error_deg``.
+        Returns record_scan's dict (folder, frames, truth, seconds)."""
+        from FluoTomoLib.tomography.recording import record_scan
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        yields = {int(k): float(v) for k, v in dict(yieldByLabel).items()}
+        return record_scan(lm, optics, yields, outputFolder, tracking_error_mm=trackingErrorMm,
+                           hand_eye_error_mm=handEyeErrorMm, seed=seed, accuracy=accuracy,
+                           progress=progress, cancel=cancel, **faults)
+
     def reconstructToFolder(self, labelNode, optics, acquisition, outputFolder, method="HP",
                             lam=None, target=None, accuracy="balanced", progress=None,
                             cancel=None, **options):

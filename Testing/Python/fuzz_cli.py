@@ -347,6 +347,11 @@ def _own_scene(f, fx):
            str(d / "optics.json"), "--yield", "7:0.0026", "--accuracy", "fast", "--out",
            str(d / "acq")], f)
     fx.update(own_labels=d / "labels.nrrd", own_optics=d / "optics.json", own_acq=d / "acq")
+    # fluo tomo acquire: a recording rendered from the same scene (docs/recording.md)
+    _fluo(["tomo", "record-scan", "--labels", str(d / "labels.nrrd"), "--optics",
+           str(d / "optics.json"), "--yield", "7:0.0026", "--seed", "1", "--out",
+           str(d / "rec")], f)
+    fx["own_recording"] = d / "rec"
     # fluo tomo batch: one case (HP) on those inputs, and batch files that must be refused
     head = "name,labels,optics,acquisition,methods,truth\n"
     for name, row in (("batch", "own,labels.nrrd,optics.json,acq,HP,0.0026"),
@@ -402,6 +407,10 @@ BASES = {
     ("tomo", "reconstruct"): "tomo reconstruct --labels {own_labels} --optics {own_optics} "
                              "--acquisition {own_acq} --accuracy fast --method HP --out {out}",
     ("tomo", "batch"): "tomo batch {own_batch} --accuracy fast --out {out}",
+    ("tomo", "acquire"): "tomo acquire --recording {own_recording} --labels {own_labels} "
+                         "--optics {own_optics} --out {out}",
+    ("tomo", "record-scan"): "tomo record-scan --labels {own_labels} --optics {own_optics} "
+                             "--yield 7:0.0026 --seed 1 --out {out}",
     ("validate", "mc"): "validate mc --mc-in {mc_halfspace} --mesh-level test --boundary fresnel "
                         "--out {out}",
     ("validate", "mc-fluorescence"): "validate mc-fluorescence --mc-in {mc_fluorescence} "
@@ -433,7 +442,9 @@ KINDS = {"--board": "str", "--roi": "str", "--refine": "str", "--rho": "str", "-
          "--labels": "inpath", "--optics": "inpath", "--acquisition": "indir",
          "--yield": "str", "--engine": "str", "--accuracy": "str", "--data-model": "str",
          "batch": "inpath", "--methods": "str", "--cbct": "inpath", "--series": "str",
-         "--thresholds": "str"}
+         "--thresholds": "str", "--recording": "indir", "--calibration": "inpath",
+         "--scene": "inpath", "--missing-pose": "str", "--saturated-frames": "str",
+         "--spot-off": "str"}
 
 HOSTILE = {
     "float": ["nan", "inf", "-inf", "-1", "0", "1e300"],

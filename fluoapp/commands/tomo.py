@@ -1,4 +1,5 @@
-"""``fluo tomo simulate``, ``fluo tomo reconstruct`` and ``fluo tomo batch``:
+"""``fluo tomo simulate``, ``fluo tomo reconstruct``, ``fluo tomo acquire``,
+``fluo tomo record-scan`` and ``fluo tomo batch``:
 fluorescence tomography of any label map from the shell
 (docs/tomography-own-scene.md; the batch runs on the run engine, docs/scale.md)."""
 
@@ -218,6 +219,67 @@ def _batch(args):
     return out
 
 
+def _frame_list(text, field):
+    """``N[,N...]`` -> frame numbers (the faults of record-scan)."""
+    if not text:
+        return []
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise FluoInputError("expected frame numbers separated by commas", field=field,
+                             value=text) from None
+
+
+def _record_scan(args):
+    from fluoguide import atomic
+
+    t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)
+    yields = _parse_yields(args.yield_spec)
+    faults = {"missing_pose": _frame_list(args.missing_pose, "--missing-pose"),
+              "saturated": _frame_list(args.saturated_frames, "--saturated-frames"),
+              "spot_off": _frame_list(args.spot_off, "--spot-off")}
+    logic, lm, optics = _load(args)
+    for label in yields:
+        if label not in lm.labels:
+            raise FluoInputError("label is not in the label map", file=args.labels,
+                                 field="--yield", value=label)
+    with TqdmProgress("record-scan") as bar:
+        r = logic.recordScan(lm, optics, yields, args.out, trackingErrorMm=args.tracking_error_mm,
+                             handEyeErrorMm=args.hand_eye_error_mm, seed=args.seed,
+                             accuracy=args.accuracy, progress=bar,
+                             tracking_error_deg=args.tracking_error_deg, **faults)
+    return {"output": str(args.out), "frames": r["frames"], "faults": r["truth"]["faults"],
+            "tracking_error_mm": args.tracking_error_mm,
+            "hand_eye_error_mm": args.hand_eye_error_mm, "seed": args.seed,
+            "simulation_mesh_nodes": r["truth"]["mesh_nodes"],
+            "seconds": time.perf_counter() - t0}
+
+
+def _acquire(args):
+    from fluoguide import atomic
+
+    t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)
+    if args.calibration and args.scene:
+        raise FluoInputError("give the calibrations once: --calibration or --scene",
+                             field="--scene", value=args.scene)
+    logic, lm, optics = _load(args)
+    calibration = args.calibration or args.scene
+    with TqdmProgress("acquire") as bar:
+        acq, rows, info = logic.acquireRecording(lm, optics, args.recording, args.out,
+                                                 calibration, args.spot_tolerance_mm,
+                                                 progress=bar)
+    return {"output": str(args.out), "frames": info["frames"],
+            "frames_used": info["frames_used"], "frames_rejected": info["frames_rejected"],
+            "rejected": [{k: r[k] for k in ("frame", "reason", "detail")} for r in rows
+                         if not r["used"]],
+            "sources": len(acq.sources_ras_mm), "detectors": len(acq.detectors_ras_mm),
+            "measurements": acq.n_measurements, "spot_tolerance_mm": info["spot_tolerance_mm"],
+            "time_sync_tolerance_s": info["time_sync_tolerance_s"],
+            "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
+
+
 def register(subparsers):
     tomo = cli_group(subparsers, "tomo", "fluorescence tomography of any label map: simulate "
                      "an acquisition, reconstruct the yield")
@@ -326,6 +388,72 @@ def register(subparsers):
                    "reconstruction.json)")
     add_json_flag(p)
     p.set_defaults(func=_reconstruct)
+
+    p = tomo.add_parser(
+        "acquire", help="turn a recorded tracked laser scan into an acquisition folder",
+        description="Read a recording (docs/recording.md: 16-bit frames, frames.csv, "
+        "poses.csv, recording.json; or FluoNav's recorder folder with a recording.json) and "
+        "the calibrations (camera intrinsics, hand-eye, TrackerToReference, laser beam line, "
+        "radiometric gain); per frame: the tool poses at the frame's time, the tracked beam "
+        "on the label map's surface (the source), the laser spot in the frame checked "
+        "against it, saturation away from the source. Frames that cannot be used are "
+        "listed with their reason in OUT/frames.json and the output, never used; the others "
+        "give OUT/acquisition.json, sources.csv, detectors.csv, data.csv (boundary fluence "
+        "per watt) for fluo tomo reconstruct.")
+    p.add_argument("--recording", required=True, help="recording folder (recording.json)")
+    p.add_argument("--labels", required=True, help="label map (.nrrd, .nii(.gz), .seg.nrrd, "
+                   ".mrml): its tissue surface places the sources and the camera's pixels")
+    p.add_argument("--optics", required=True, help="optics.json (the tissue's refractive "
+                   "index turns exitance into boundary fluence)")
+    p.add_argument("--calibration", default=None, help="calibration JSON file (FluoCalib's; "
+                   "default: the one recording.json names)")
+    p.add_argument("--scene", default=None, help="scene.mrml holding the calibrations "
+                   "(FluoCalibration node, CameraToCameraTool, TrackerToReference) instead of "
+                   "--calibration (default: not used)")
+    p.add_argument("--spot-tolerance-mm", type=float, default=None,
+                   help="how far the laser spot seen by the camera may lie from the tracked "
+                   "beam's surface point [mm] (default 2; docs/recording.md)")
+    p.add_argument("--out", required=True, help="acquisition folder to write")
+    add_json_flag(p)
+    p.set_defaults(func=_acquire)
+
+    p = tomo.add_parser(
+        "record-scan", help="render a recording of a tracked laser scan from a label map's "
+        "truth (to check fluo tomo acquire against)",
+        description="Render what a tracked laser raster scan over the label map's inclusions "
+        "would record (docs/recording.md): the FEM emission light of each laser position on a "
+        "mesh of the whole label map, 16-bit frames from the camera's true pose with the "
+        "laser spot, shot and read noise; the tool poses as a tracker with the chosen error "
+        "reports them, the hand-eye calibration off by the chosen error; the calibrations in "
+        "OUT/calibration.json.")
+    p.add_argument("--labels", required=True, help="label map (.nrrd, .nii(.gz), .seg.nrrd, "
+                   ".mrml)")
+    p.add_argument("--optics", required=True, help="optics.json (every label of the map)")
+    p.add_argument("--yield", dest="yield_spec", required=True, metavar="LABEL:VALUE[,...]",
+                   help="true fluorescence yield eta*mua_f [1/mm] per label, e.g. 7:0.0026")
+    p.add_argument("--tracking-error-mm", type=float, default=0.5,
+                   help="3D RMS position error of each reported tool pose [mm] (default "
+                   "%(default)s)")
+    p.add_argument("--tracking-error-deg", type=float, default=0.1,
+                   help="rotation error of each reported tool pose, per axis about the tool's "
+                   "origin [deg] (default %(default)s)")
+    p.add_argument("--hand-eye-error-mm", type=float, default=0.3,
+                   help="displacement of the written hand-eye calibration from the true one "
+                   "[mm] (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="noise and error seed (default 0)")
+    p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default="fast",
+                   help=_simulate_accuracy_help())
+    p.add_argument("--missing-pose", default=None, metavar="N[,N...]",
+                   help="frames whose laser tool the tracker reports missing (a test fault; "
+                   "default: none)")
+    p.add_argument("--saturated-frames", default=None, metavar="N[,N...]",
+                   help="frames exposed 20 times too long (a test fault; default: none)")
+    p.add_argument("--spot-off", default=None, metavar="N[,N...]",
+                   help="frames whose reported laser pose is 5 mm from where the light went "
+                   "(a test fault; default: none)")
+    p.add_argument("--out", required=True, help="recording folder to write")
+    add_json_flag(p)
+    p.set_defaults(func=_record_scan)
 
     p = tomo.add_parser(
         "batch", help="reconstruct many (label map, optics, acquisition) cases: yield volumes "

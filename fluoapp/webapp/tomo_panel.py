@@ -6,6 +6,8 @@ the tests use); the panel only holds UI state.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from fluoguide import mrml_io
@@ -115,7 +117,17 @@ class TomoPanel:
             optics = self.logic.readOptics(paths["optics"])
             lm = self.logic.labelMap(node)
             optics.check_labels(lm.labels)
-            acq = self.logic.readAcquisition(paths["acquisition"], node, optics)
+            frames_note = ""
+            if (Path(paths["acquisition"]) / "recording.json").is_file():
+                # a recorded laser scan (docs/recording.md): acquired here, every
+                # frame not used named with its reason
+                acq, _, info = self.logic.acquireRecording(node, optics, paths["acquisition"])
+                rejected = "; ".join(f"{reason}: frames {', '.join(map(str, frames))}"
+                                     for reason, frames in info["frames_rejected"].items())
+                frames_note = (f"; recording: {info['frames_used']} of {info['frames']} frames "
+                               "used" + (f" (not used, {rejected})" if rejected else ""))
+            else:
+                acq = self.logic.readAcquisition(paths["acquisition"], node, optics)
         except Exception:
             self.app.scene.RemoveNode(node)
             raise
@@ -132,7 +144,7 @@ class TomoPanel:
         s.tomo_own_info = (f"{node.GetName()}: {' x '.join(map(str, lm.labels_kji.shape[::-1]))} "
                            f"voxels, labels {lm.labels}; {acq.n_measurements} measurements "
                            f"({len(acq.sources_ras_mm)} sources x "
-                           f"{len(acq.detectors_ras_mm)} detectors)")
+                           f"{len(acq.detectors_ras_mm)} detectors){frames_note}")
         self.app.show_volume(node)
         self._show_own_labels(node, lm, optics)
         self.app.notify("Loaded your scene: " + s.tomo_own_info + ". Next: build the mesh.",
@@ -481,7 +493,7 @@ class TomoPanel:
                      density="compact",
                      hide_details=True, classes="mt-1", id="tomo-own-optics")
         v.VTextField(v_model=("tomo_own_acquisition",),
-                     label="Acquisition folder in the workspace",
+                     label="Acquisition or recording folder in the workspace",
                      density="compact", hide_details=True, classes="mt-1",
                      id="tomo-own-acquisition")
         v.VBtn("Load my scene", click=self.app.ctrl.tomo_load_own, block=True, classes="mt-2",

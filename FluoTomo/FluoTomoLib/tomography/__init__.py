@@ -14,6 +14,7 @@ Modules
 - ``reconstruct``: Reconstruction of fluorescence yield on a user's label map.
 - ``batch``: Many own scenes at once: a batch file of cases on the run engine.
 - ``segment``: A CBCT turned into a label map by HU thresholds, headless (largest component, holes filled).
+- ``recording``: A recorded tracked laser scan turned into an acquisition, and a recording rendered from a label map's truth.
 """
 
 from fluoguide.lazy import attach
@@ -37,4 +38,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "batch": ["load_batch", "reconstruct_case", "batch_tasks", "run_batch",
               "write_case_outputs"],
     "segment": ["parse_thresholds", "threshold_labels"],
+    "recording": ["read_scan_recording", "read_calibration", "detect_spot", "pose_at",
+                  "acquire_recording", "write_recorded_acquisition", "record_scan",
+                  "SPOT_TOLERANCE_MM", "TIME_SYNC_TOLERANCE_S"],
 })

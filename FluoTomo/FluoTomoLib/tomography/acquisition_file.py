@@ -436,10 +436,13 @@ def _atomic_folder_write(folder, files):
     return out
 
 
-def write_acquisition(folder, acq, simulation=None):
+def write_acquisition(folder, acq, simulation=None, extra_files=None, extra=None):
     """Write an :class:`Acquisition` as a folder (``acquisition.json``,
     ``sources.csv``, ``detectors.csv``, ``data.csv`` in 1/mm^2), as one
-    transaction: a reader sees the old folder or the new one."""
+    transaction: a reader sees the old folder or the new one.  ``extra_files``
+    ({name: text}) are written in the same transaction (e.g. the per-frame
+    report ``frames.json`` of a recording); ``extra`` ({key: value}) goes into
+    ``acquisition.json`` (keys the reader knows: ``comment``, ``noise_pct``)."""
     from fluoguide.jsonable import dumps
 
     def pts_csv(p):
@@ -454,7 +457,9 @@ def write_acquisition(folder, acq, simulation=None):
            "comment": "boundary fluence per watt of laser power; '-' marks an unused pair"}
     if simulation is not None:
         doc["simulation"] = simulation
+    doc.update(extra or {})
     return _atomic_folder_write(folder, {
+        **(extra_files or {}),
         "sources.csv": pts_csv(acq.sources_ras_mm), "detectors.csv": pts_csv(acq.detectors_ras_mm),
         "data.csv": "\n".join(rows) + "\n", "acquisition.json": dumps(doc)})
 
@@ -547,7 +552,7 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
                                     laser_poses, beam_origin_tool_mm, beam_dir_tool, gain,
                                     offset_adu, laser_power_w, n_tissue=None, detector_factor=2,
                                     exclude_mm=3.0, roi_area_mm2=1.0, source=None,
-                                    boundary=None):
+                                    boundary=None, hits=None):
     """What the software makes of a tracked laser scan seen by a tracked camera.
 
     Sources: each tracked beam cast onto the label map's tissue surface.
@@ -561,7 +566,11 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
     ``optics.robin_A``; None: its default).
 
     Parameters are RAS (poses LaserToolToRAS and CameraToRAS, mm); returns an
-    :class:`Acquisition`.
+    :class:`Acquisition`.  ``camera_to_ras`` is one 4x4 (a camera that stays
+    put) or one per frame (S, 4, 4) (a tracked camera read at each frame's
+    time: each frame is mapped with its own pose); ``hits``: the frames'
+    pixel casts when the caller has them already (one PixelHits, or one per
+    frame), so they are not cast twice.
     """
     from FluoTomoLib.acquisition.camera_frames import cast, detector_counts
     from FluoTomoLib.acquisition.noncontact_optodes import (counts_to_boundary_fluence,
@@ -598,10 +607,22 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
     mask = detector_mask(src, det, exclude_mm)
     from FluoNavLib.mapping.pixel_cast import SurfaceCaster
 
-    caster = SurfaceCaster(pts_ras, tris)
-    hits = cast(caster, camera, camera_to_ras)
-    counts, n_pix = detector_counts(np.asarray(frames, float), np.asarray(saturated, bool), hits,
-                                    det, roi_area_mm2)
+    frames = np.asarray(frames, float)
+    saturated = np.asarray(saturated, bool)
+    poses = np.asarray(camera_to_ras, float)
+    if hits is None:
+        caster = SurfaceCaster(pts_ras, tris)
+        hits = ([cast(caster, camera, P) for P in poses] if poses.ndim == 3
+                else cast(caster, camera, poses))
+    if isinstance(hits, (list, tuple)):          # one cast per frame
+        counts = np.full((len(frames), len(det)), np.nan)
+        n_pix = np.zeros((len(frames), len(det)), dtype=np.int64)
+        for s, h in enumerate(hits):
+            counts[s:s + 1], n_pix[s:s + 1] = detector_counts(frames[s:s + 1],
+                                                              saturated[s:s + 1], h, det,
+                                                              roi_area_mm2)
+    else:
+        counts, n_pix = detector_counts(frames, saturated, hits, det, roi_area_mm2)
     lost = mask & ~np.isfinite(counts)
     if np.any(lost):
         s, dd = np.argwhere(lost)[0]

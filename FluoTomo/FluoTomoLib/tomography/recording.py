@@ -1,0 +1,794 @@
+"""A recorded tracked laser scan turned into an acquisition, and a recording
+rendered from a label map's truth to check that path against.
+
+The recording layout (docs/recording.md; all text files UTF-8)::
+
+    REC/recording.json   {"format": "fluoguide-scan-recording", "version": 1,
+                          "frames": "frames.csv", "poses": "poses.csv",
+                          "laser_tool": "LaserToolToTracker",
+                          "camera_tool": "CameraToolToTracker",
+                          "laser_power_w": 0.01, "exposure_s": 0.1,
+                          "time_sync_tolerance_s": 0.05,
+                          "calibration": "calibration.json"}
+    REC/frames.csv       frame,file,timestamp_s[,exposure_s][,laser_power_w]
+    REC/poses.csv        timestamp_s,tool,status,m00,m01,...,m33   (ToolToTracker, mm)
+    REC/frame_0000.png   16-bit grey images [ADU] (.png, .tif or .npy)
+    REC/calibration.json the calibrations (FluoCalib's calibration JSON file)
+
+or FluoNav's recorder folder (``log.jsonl`` and ``frame_NNNNNN.npy``, the tool
+poses already at each frame's time) with the same ``recording.json`` beside it
+saying ``"log": "log.jsonl"`` instead of ``frames``/``poses``.  Both are read
+by :func:`read_scan_recording` into one form (frames, pose samples per tool),
+so :func:`acquire_recording` has one path.
+
+The calibrations (a FluoCalib calibration JSON file, or a scene's
+``FluoCalibration`` node and transforms, docs/scene.md): ``CameraIntrinsics``,
+``HandEye.camera_to_tool`` (CameraToCameraTool), ``Registration.
+tracker_to_reference`` (TrackerToReference; the ``TrackerToReference``
+transform in a scene), ``Laser`` (``origin_mm``, ``direction`` in laser-tool
+coordinates) and ``Radiometry`` (``gain_adu_per_radiance`` G [ADU per
+W/mm^2/sr] at ``reference_exposure_s``, ``offset_adu``, ``saturation_adu``;
+docs/physics.md section 5.1).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fluoguide.errors import FluoInputError
+
+FORMAT = "fluoguide-scan-recording"
+TIME_SYNC_TOLERANCE_S = 0.05
+#: how far the laser spot seen by the camera may lie from the tracked beam's
+#: surface point [mm]: about three times the two chains' combined error at a
+#: 0.5 mm tracker and a 0.3 mm hand-eye calibration (each spot point carries the
+#: camera tool's, the hand-eye's and the laser tool's error, ~0.7 mm together),
+#: and below the 3 mm pitch of a raster, so a spot of another position or a
+#: tracker glitch is caught
+SPOT_TOLERANCE_MM = 2.0
+#: the beam's surface point must be seen by the camera within this [mm]
+VISIBLE_TOLERANCE_MM = 1.0
+REASONS = ("pose missing", "pose stale", "surface not visible", "spot not found",
+           "spot far from the beam", "saturated")
+_REC_KEYS = {"format", "version", "frames", "poses", "log", "laser_tool", "camera_tool",
+             "laser_power_w", "exposure_s", "time_sync_tolerance_s", "calibration", "comment",
+             "simulation"}
+
+
+def _num(v, file, field, positive=True):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or (
+            positive and v <= 0):
+        raise FluoInputError("must be a positive number" if positive else "must be a number",
+                             file=file, field=field, value=v)
+    return float(v)
+
+
+def _csv_rows(path, field):
+    p = Path(path)
+    if not p.is_file():
+        raise FluoInputError("file not found", file=p, field=field)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FluoInputError(f"cannot read ({getattr(exc, 'strerror', None) or exc})", file=p,
+                             field=field) from None
+    rows = [r for r in csv.reader(io.StringIO(text)) if r and not r[0].lstrip().startswith("#")]
+    if len(rows) < 2:
+        raise FluoInputError("needs a header line and at least one row", file=p, field=field)
+    head = [h.strip() for h in rows[0]]
+    return head, [[v.strip() for v in r] for r in rows[1:]]
+
+
+def _float(text, file, field):
+    try:
+        v = float(text)
+    except ValueError:
+        raise FluoInputError("must be a number", file=file, field=field, value=text) from None
+    if not np.isfinite(v):
+        raise FluoInputError("must be a finite number", file=file, field=field, value=text)
+    return v
+
+
+def read_scan_recording(folder):
+    """Read and check a recording folder (the documented layout or FluoNav's
+    recorder folder with its ``recording.json``).
+
+    Returns a dict: ``frames`` (list of {frame, file, path, time_s, exposure_s,
+    laser_power_w}), ``samples`` ({tool: list of (time_s, 4x4 or None, status)}),
+    ``laser_tool``, ``camera_tool``, ``tolerance_s``, ``calibration`` (path or
+    None), ``doc`` (recording.json).  Refusals name the file, the field and the
+    value (FluoInputError).
+    """
+    from fluoguide.jsonable import read_json
+    from fluoguide.paths import inside
+
+    base = Path(folder)
+    if not base.is_dir():
+        raise FluoInputError("recording folder not found", file=base)
+    jpath = base / "recording.json"
+    if not jpath.is_file():
+        raise FluoInputError("not a scan recording (no recording.json)", file=base)
+    doc = read_json(jpath)
+    if not isinstance(doc, dict):
+        raise FluoInputError("must be a JSON object", file=jpath)
+    if doc.get("format", FORMAT) != FORMAT:
+        raise FluoInputError(f"format must be {FORMAT!r}", file=jpath, field="format",
+                             value=doc.get("format"))
+    if doc.get("version", 1) != 1:
+        raise FluoInputError("unsupported version (this reader knows 1)", file=jpath,
+                             field="version", value=doc.get("version"))
+    extra = set(doc) - _REC_KEYS
+    if extra:
+        raise FluoInputError("unknown key", file=jpath, field=sorted(extra)[0])
+    laser_tool = str(doc.get("laser_tool", "LaserToolToTracker"))
+    camera_tool = str(doc.get("camera_tool", "CameraToolToTracker"))
+    power = _num(doc.get("laser_power_w"), jpath, "laser_power_w")
+    exposure = (_num(doc["exposure_s"], jpath, "exposure_s") if doc.get("exposure_s")
+                is not None else None)
+    tol = _num(doc.get("time_sync_tolerance_s", TIME_SYNC_TOLERANCE_S), jpath,
+               "time_sync_tolerance_s")
+    calib = doc.get("calibration")
+    calib = None if calib is None else inside(base, str(calib), file=jpath, field="calibration",
+                                              given=True)
+    frames, samples = [], {}
+    if "log" in doc:                     # FluoNav's recorder folder
+        from FluoNavLib.devices.recorder import read_recording
+
+        if inside(base, str(doc["log"]), file=jpath, field="log", given=True).name != "log.jsonl":
+            raise FluoInputError("the recorder's log is log.jsonl", file=jpath, field="log",
+                                 value=doc["log"])
+        _, recs = read_recording(base)
+        for r in recs:
+            t = r["timestamp_s"]
+            frames.append({"frame": int(r["frame"]), "file": r["file"], "path": r["path"],
+                           "time_s": t, "exposure_s": r["exposure_s"] or exposure,
+                           "laser_power_w": power})
+            status = r["pose_status"] if r["pose_valid"] else (
+                r["pose_status"] if r["pose_status"] != "OK" else "MISSING")
+            for tool, m in r["poses"].items():
+                st = "OK" if (m is not None and status == "OK") else (
+                    "MISSING" if m is None else status)
+                samples.setdefault(tool, []).append((t, m if st == "OK" else None, st))
+    else:
+        for key in ("frames", "poses"):
+            if key not in doc:
+                raise FluoInputError("missing (or 'log' for a recorder folder)", file=jpath,
+                                     field=key)
+        fpath = inside(base, str(doc["frames"]), file=jpath, field="frames", given=True)
+        head, rows = _csv_rows(fpath, "frames")
+        for col in ("frame", "file", "timestamp_s"):
+            if col not in head:
+                raise FluoInputError("missing column", file=fpath, field=col)
+        last = -np.inf
+        for n, row in enumerate(rows, start=2):
+            if len(row) != len(head):
+                raise FluoInputError(f"{len(row)} values for {len(head)} columns", file=fpath,
+                                     field=f"line {n}")
+            r = dict(zip(head, row))
+            t = _float(r["timestamp_s"], fpath, f"line {n} timestamp_s")
+            if not t > last:
+                raise FluoInputError("timestamps must increase", file=fpath,
+                                     field=f"line {n} timestamp_s", value=r["timestamp_s"])
+            last = t
+            e = (_float(r["exposure_s"], fpath, f"line {n} exposure_s")
+                 if r.get("exposure_s") else exposure)
+            if e is None or not e > 0:
+                raise FluoInputError("needs a positive exposure (column exposure_s or "
+                                     "recording.json exposure_s)", file=fpath,
+                                     field=f"line {n} exposure_s", value=e)
+            pw = (_float(r["laser_power_w"], fpath, f"line {n} laser_power_w")
+                  if r.get("laser_power_w") else power)
+            if not pw > 0:
+                raise FluoInputError("must be positive", file=fpath,
+                                     field=f"line {n} laser_power_w", value=pw)
+            try:
+                frame_no = int(r["frame"])
+            except ValueError:
+                raise FluoInputError("must be an integer", file=fpath, field=f"line {n} frame",
+                                     value=r["frame"]) from None
+            path = inside(base, r["file"], file=fpath, field=f"line {n} file", given=True)
+            if not path.is_file():
+                raise FluoInputError("frame file not found", file=path,
+                                     field=f"{fpath.name} line {n} file")
+            frames.append({"frame": frame_no, "file": r["file"], "path": path, "time_s": t,
+                           "exposure_s": e, "laser_power_w": pw})
+        ppath = inside(base, str(doc["poses"]), file=jpath, field="poses", given=True)
+        head, rows = _csv_rows(ppath, "poses")
+        mcols = [f"m{i}{j}" for i in range(4) for j in range(4)]
+        qcols = ["qw", "qx", "qy", "qz", "tx_mm", "ty_mm", "tz_mm"]
+        for col in ("timestamp_s", "tool"):
+            if col not in head:
+                raise FluoInputError("missing column", file=ppath, field=col)
+        if all(c in head for c in mcols):
+            form = "matrix"
+        elif all(c in head for c in qcols):
+            form = "quaternion"
+        else:
+            raise FluoInputError("needs the columns m00..m33 (4x4, row-major) or qw,qx,qy,qz,"
+                                 "tx_mm,ty_mm,tz_mm", file=ppath, field="header")
+        for n, row in enumerate(rows, start=2):
+            if len(row) != len(head):
+                raise FluoInputError(f"{len(row)} values for {len(head)} columns", file=ppath,
+                                     field=f"line {n}")
+            r = dict(zip(head, row))
+            t = _float(r["timestamp_s"], ppath, f"line {n} timestamp_s")
+            status = (r.get("status") or "OK").upper()
+            m = None
+            if status == "OK":
+                if form == "matrix":
+                    m = np.array([_float(r[c], ppath, f"line {n} {c}") for c in mcols]
+                                 ).reshape(4, 4)
+                    R = m[:3, :3]
+                    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or not np.allclose(
+                            m[3], [0, 0, 0, 1], atol=1e-9):
+                        raise FluoInputError("not a rigid transform (rotation + translation)",
+                                             file=ppath, field=f"line {n} {r['tool']}")
+                else:
+                    from FluoCalibLib.geometry.transforms import quaternion_to_matrix
+
+                    q = np.array([_float(r[c], ppath, f"line {n} {c}") for c in qcols[:4]])
+                    if not abs(np.linalg.norm(q) - 1.0) < 1e-3:
+                        raise FluoInputError("quaternion must have unit length", file=ppath,
+                                             field=f"line {n} qw..qz",
+                                             value=round(float(np.linalg.norm(q)), 6))
+                    m = np.eye(4)
+                    m[:3, :3] = quaternion_to_matrix(q / np.linalg.norm(q))
+                    m[:3, 3] = [_float(r[c], ppath, f"line {n} {c}") for c in qcols[4:]]
+            samples.setdefault(r["tool"], []).append((t, m, status))
+    if not frames:
+        raise FluoInputError("the recording has no frame", file=base)
+    for tool in (laser_tool, camera_tool):
+        if tool not in samples:
+            raise FluoInputError("no pose of this tool in the recording", file=base,
+                                 field=tool)
+    return {"frames": frames, "samples": samples, "laser_tool": laser_tool,
+            "camera_tool": camera_tool, "tolerance_s": tol, "calibration": calib, "doc": doc,
+            "folder": base}
+
+
+def pose_at(samples, t, tolerance_s):
+    """(4x4 or None, status) of one tool at frame time ``t``: the samples of
+    the tool interpolated (FluoNavLib.devices.timesync.PoseBuffer: SLERP and
+    linear), ``"missing"`` where the tracker reported the tool missing then,
+    ``"stale"`` where the nearest samples are farther apart than
+    ``tolerance_s`` or the frame is past the last sample."""
+    from FluoNavLib.devices.timesync import PoseBuffer
+
+    buf = PoseBuffer(max_gap_s=tolerance_s, max_age_s=tolerance_s, capacity=len(samples) + 1)
+    bad = None
+    for ts, m, st in sorted(samples, key=lambda s: s[0]):
+        if abs(ts - t) <= 1e-9 and st not in ("OK", "MISSING"):
+            bad = st
+        buf.add(ts, m)
+    if bad is not None:                       # the recorder said so at this frame
+        return None, "stale" if bad in ("STALE", "EXTRAPOLATION") else "missing"
+    m, status = buf.at(t)
+    if status == "OK":
+        return m, "ok"
+    if status == "STALE" or status == "EXTRAPOLATION":
+        # an isolated sample exactly at t is OK; too far from any sample is stale
+        near = [s for s in samples if abs(s[0] - t) <= tolerance_s and s[1] is not None]
+        if near:
+            return min(near, key=lambda s: abs(s[0] - t))[1].copy(), "ok"
+        return None, "stale"
+    return None, "missing"
+
+
+def read_calibration(path):
+    """The calibrations an acquisition needs, from a FluoCalib calibration JSON
+    file or a scene (``.mrml``: its ``FluoCalibration`` node and transforms).
+
+    Returns a dict: ``camera`` (CameraModel), ``camera_to_tool`` (hand-eye),
+    ``tracker_to_reference``, ``beam_origin_tool_mm``, ``beam_dir_tool``,
+    ``gain``, ``offset_adu``, ``saturation_adu``, ``reference_exposure_s``.
+    """
+    from FluoCalibLib.geometry.camera_model import CameraModel
+
+    p = Path(path)
+    if not p.is_file():
+        raise FluoInputError("calibration not found", file=p)
+    if p.suffix.lower() == ".mrml":
+        from fluoguide import mrml_io
+
+        scene = mrml_io.load_scene(p)
+        node = mrml_io.get_node(scene, "FluoCalibration", required=False)
+        if node is None:
+            raise FluoInputError("the scene has no FluoCalibration node", file=p,
+                                 field="FluoCalibration")
+        doc = {}
+        for key in ("CameraIntrinsics", "Laser", "Radiometry", "HandEye", "Registration"):
+            v = mrml_io.get_json_attribute(node, f"FluoCalib.{key}")
+            if v is not None:
+                doc[key] = v
+        from FluoCalibLib.geometry.scene import handeye_node
+
+        if handeye_node(scene, required=False) is not None:
+            from FluoCalibLib.geometry.scene import load_handeye
+
+            doc.setdefault("HandEye", {})["camera_to_tool"] = load_handeye(scene).tolist()
+        if mrml_io.get_node(scene, "TrackerToReference", required=False) is not None:
+            doc.setdefault("Registration", {})["tracker_to_reference"] = mrml_io.get_transform(
+                scene, "TrackerToReference").tolist()
+    else:
+        from fluoguide.jsonable import read_json
+
+        doc = read_json(p)
+        if not isinstance(doc, dict):
+            raise FluoInputError("must be a JSON object", file=p)
+
+    def need(key, sub=None):
+        v = doc.get(key)
+        if not isinstance(v, dict) or (sub is not None and v.get(sub) is None):
+            raise FluoInputError("missing (see docs/recording.md, Calibrations)", file=p,
+                                 field=key if sub is None else f"{key}.{sub}")
+        return v if sub is None else v[sub]
+
+    def matrix(key, sub):
+        try:
+            m = np.asarray(need(key, sub), float)
+        except (TypeError, ValueError):
+            m = np.zeros(0)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)) or not np.allclose(
+                m[:3, :3].T @ m[:3, :3], np.eye(3), atol=1e-4) or not np.allclose(
+                m[3], [0, 0, 0, 1]):
+            raise FluoInputError("must be a rigid 4x4 transform", file=p, field=f"{key}.{sub}")
+        return m
+
+    try:
+        camera = CameraModel.from_dict(need("CameraIntrinsics"))
+    except FluoInputError as exc:
+        raise FluoInputError(exc.problem, file=p,
+                             field=f"CameraIntrinsics.{exc.field or ''}") from None
+    laser = need("Laser")
+    o = np.asarray(laser.get("origin_mm", [np.nan] * 3), float)
+    d = np.asarray(laser.get("direction", [np.nan] * 3), float)
+    if o.shape != (3,) or d.shape != (3,) or not np.all(np.isfinite(np.r_[o, d])) or not \
+            np.linalg.norm(d) > 0:
+        raise FluoInputError("needs origin_mm and a non-zero direction (3 numbers each)",
+                             file=p, field="Laser")
+    rad = need("Radiometry")
+    out = {"camera": camera, "camera_to_tool": matrix("HandEye", "camera_to_tool"),
+           "tracker_to_reference": matrix("Registration", "tracker_to_reference"),
+           "beam_origin_tool_mm": o, "beam_dir_tool": d / np.linalg.norm(d)}
+    for key, name, default, positive in (("gain", "gain_adu_per_radiance", None, True),
+                                         ("offset_adu", "offset_adu", 0.0, False),
+                                         ("saturation_adu", "saturation_adu", 16383.0, True),
+                                         ("reference_exposure_s", "reference_exposure_s", None,
+                                          True)):
+        v = rad.get(name, default)
+        if v is None:
+            raise FluoInputError("missing (see docs/recording.md, Calibrations)", file=p,
+                                 field=f"Radiometry.{name}")
+        out[key] = _num(v, p, f"Radiometry.{name}", positive)
+    return out
+
+
+def detect_spot(image, min_contrast_adu=200.0, max_area_fraction=0.01, fraction=0.9):
+    """(u, v) [px] of the laser spot: in the frame median-filtered over 3 x 3
+    pixels (a hot pixel is not a spot), the blob of pixels above ``fraction``
+    of the brightest level (over the frame's median) that holds the brightest
+    pixel, its intensity-weighted centroid (the core of the spot, as
+    FluoCalibLib.radiometry.laser_line.spot_centroid takes it: a lower level
+    takes in the fluorescence around the spot, brightest toward the target,
+    and pulls the centroid to it); None when the frame has no distinct spot
+    (its brightest pixel less than ``min_contrast_adu`` above the frame's
+    median, or a blob larger than ``max_area_fraction`` of the frame: not a
+    spot)."""
+    from scipy import ndimage
+
+    img = np.asarray(image, float)
+    sm = ndimage.median_filter(img, 3)             # a hot pixel is not a spot
+    med = float(np.median(sm))
+    hi = float(sm.max())
+    if not hi - med >= min_contrast_adu:
+        return None
+    mask = sm >= med + fraction * (hi - med)
+    lab, n = ndimage.label(mask)
+    k = lab[np.unravel_index(int(np.argmax(sm)), sm.shape)]
+    if k == 0:
+        return None
+    blob = lab == k
+    if blob.sum() > max_area_fraction * blob.size:
+        return None
+    w = sm[blob] - med
+    ys, xs = np.nonzero(blob)
+    return float(np.sum(xs * w) / w.sum()), float(np.sum(ys * w) / w.sum())
+
+
+def _surface_point_at_pixel(hits, uv):
+    """The surface point a (sub-)pixel position sees, from its nearest pixel."""
+    H, W = hits.visible.shape
+    u, v = int(round(uv[0])), int(round(uv[1]))
+    if not (0 <= u < W and 0 <= v < H) or not hits.visible[v, u]:
+        return None
+    return np.asarray(hits.point_mm[v, u], float)
+
+
+def acquire_recording(labelmap, optics, recording, calibration=None,
+                      spot_tolerance_mm=SPOT_TOLERANCE_MM, detector_factor=2, exclude_mm=3.0,
+                      roi_area_mm2=1.0, progress=None, cancel=None):
+    """A recorded tracked laser scan -> (Acquisition, per-frame report, info).
+
+    For each frame: the laser and camera tool poses at the frame's time (the
+    time-sync tolerance of recording.json), the tracked beam cast onto the
+    label map's surface (the source), the camera pose TrackerToReference @
+    CameraToolToTracker @ CameraToCameraTool and every pixel cast onto the
+    surface, the laser spot found in the frame and cast onto the surface,
+    checked against the beam's point (``spot_tolerance_mm``), and the frame's
+    pixels at saturation farther than ``exclude_mm`` from the source (nearer,
+    they are expected and no pair there is used; a frame washed out so that
+    no spot shows is reported saturated, not spotless).  A frame that fails one of
+    these is reported with its reason and not used; the others give the
+    acquisition through ``acquisition_from_tracked_frames`` (counts scaled to
+    the calibration's reference exposure and the first used frame's laser
+    power, docs/physics.md section 8.2).
+
+    ``recording``: a folder (:func:`read_scan_recording`) or its dict;
+    ``calibration``: a calibration JSON file or a scene (.mrml), or None for
+    the one recording.json names.  Report rows: {frame, time_s, used, reason,
+    detail}.
+    """
+    from fluoguide.images import read_image
+    from fluoguide.progress import check_cancel, report
+
+    from FluoNavLib.mapping.pixel_cast import SurfaceCaster
+    from FluoTomoLib.acquisition.camera_frames import cast
+    from FluoTomoLib.acquisition.noncontact_optodes import ray_triangle_intersect
+    from FluoTomoLib.acquisition.tracked_scan import beam_in_world
+    from FluoTomoLib.tomography.acquisition_file import acquisition_from_tracked_frames
+
+    t0 = time.perf_counter()
+    rec = recording if isinstance(recording, dict) else read_scan_recording(recording)
+    if calibration is None:
+        if rec["calibration"] is None:
+            raise FluoInputError("no calibration: give one (a calibration JSON file or a "
+                                 "scene) or name it in recording.json", field="calibration",
+                                 file=rec["folder"] / "recording.json")
+        calibration = rec["calibration"]
+    cal = calibration if isinstance(calibration, dict) else read_calibration(calibration)
+    if not (np.isfinite(spot_tolerance_mm) and 0 < spot_tolerance_mm <= 50):
+        raise FluoInputError("must be a distance within (0, 50] mm", field="spot_tolerance_mm",
+                             value=spot_tolerance_mm)
+    camera = cal["camera"]
+    TtR = cal["tracker_to_reference"]
+    surf = labelmap.surface()
+    pts_ras = labelmap.to_ras(surf.points)
+    tris = surf.triangles if np.linalg.det(labelmap.direction) > 0 else surf.triangles[:, ::-1]
+    caster = SurfaceCaster(pts_ras, tris)
+    rows, keep = [], []
+    images, sat, cams, lasers, hits_used, scale = [], [], [], [], [], []
+    n = len(rec["frames"])
+    for k, fr in enumerate(rec["frames"]):
+        check_cancel(cancel)
+        report(progress, 0.9 * k / n, f"frame {k + 1} of {n}")
+        row = {"frame": fr["frame"], "time_s": fr["time_s"], "used": False, "reason": None,
+               "detail": ""}
+        rows.append(row)
+        L, st_l = pose_at(rec["samples"][rec["laser_tool"]], fr["time_s"], rec["tolerance_s"])
+        C, st_c = pose_at(rec["samples"][rec["camera_tool"]], fr["time_s"], rec["tolerance_s"])
+        if st_l != "ok" or st_c != "ok":
+            bad = [(t, s) for t, s in ((rec["laser_tool"], st_l), (rec["camera_tool"], st_c))
+                   if s != "ok"]
+            row["reason"] = "pose missing" if any(s == "missing" for _, s in bad) else "pose stale"
+            row["detail"] = ", ".join(
+                f"{t} {s}" + (f" (no sample within {rec['tolerance_s']:g} s)" if s == "stale"
+                              else "") for t, s in bad)
+            continue
+        laser_ras = TtR @ L
+        cam_ras = TtR @ C @ cal["camera_to_tool"]
+        o, d = beam_in_world(laser_ras, cal["beam_origin_tool_mm"], cal["beam_dir_tool"])
+        src, _, face = ray_triangle_intersect(o[None], d[None], pts_ras, tris)
+        if face[0] < 0:
+            row["reason"], row["detail"] = "surface not visible", "the tracked beam misses the surface"
+            continue
+        src = src[0]
+        hits = cast(caster, camera, cam_ras)
+        uv_src = camera.project((np.linalg.inv(cam_ras) @ np.append(src, 1.0))[:3][None])[0]
+        seen = None if not np.all(np.isfinite(uv_src)) else _surface_point_at_pixel(hits, uv_src)
+        if seen is None or np.linalg.norm(seen - src) > VISIBLE_TOLERANCE_MM:
+            row["reason"] = "surface not visible"
+            row["detail"] = "the camera does not see the beam's surface point"
+            continue
+        img = read_image(fr["path"], field=f"frame {fr['frame']}")
+        if img.ndim != 2 or img.shape != (camera.height, camera.width):
+            raise FluoInputError("frame is not the camera's size (a grey image of "
+                                 f"{camera.width} x {camera.height} px)", file=fr["path"],
+                                 value=list(img.shape))
+        img = img.astype(float)
+        saturated = img >= cal["saturation_adu"]
+        far = hits.visible & (np.linalg.norm(hits.point_mm - src, axis=-1) > exclude_mm)
+        n_sat = int(np.sum(saturated & far))
+        sat_detail = f"{n_sat} pixels at saturation farther than {exclude_mm:g} mm from the source"
+        uv = detect_spot(img)
+        spot = None if uv is None else _surface_point_at_pixel(hits, uv)
+        if spot is None:         # a frame washed out by saturation has no spot either
+            row["reason"], row["detail"] = (("saturated", sat_detail) if n_sat else
+                                            ("spot not found",
+                                             "no distinct bright spot on the surface"))
+            continue
+        miss = float(np.linalg.norm(spot - src))
+        row["spot_to_beam_mm"] = round(miss, 3)
+        if miss > spot_tolerance_mm:
+            row["reason"] = "spot far from the beam"
+            row["detail"] = f"{miss:.2f} mm > {spot_tolerance_mm:g} mm"
+            continue
+        if n_sat:
+            row["reason"], row["detail"] = "saturated", sat_detail
+            continue
+        row["used"] = True
+        keep.append(k)
+        images.append(img)
+        sat.append(saturated)
+        cams.append(cam_ras)
+        lasers.append(laser_ras)
+        hits_used.append(hits)
+        scale.append((cal["reference_exposure_s"] / fr["exposure_s"]))
+        row["laser_power_w"] = fr["laser_power_w"]
+    used = [r for r in rows if r["used"]]
+    if len(used) < 2:
+        reasons = sorted({r["reason"] for r in rows if not r["used"]})
+        raise FluoInputError(f"only {len(used)} of {n} frames usable ({', '.join(reasons)}): "
+                             "nothing to reconstruct", file=rec["folder"], field="frames")
+    power = used[0]["laser_power_w"]
+    off = cal["offset_adu"]
+    frames = np.array([off + (im - off) * sc * power / r["laser_power_w"]
+                       for im, sc, r in zip(images, scale, used)])
+    report(progress, 0.9, "detector readings")
+    acq = acquisition_from_tracked_frames(
+        labelmap, frames, np.array(sat), camera, np.array(cams), np.array(lasers),
+        cal["beam_origin_tool_mm"], cal["beam_dir_tool"], cal["gain"], off, power,
+        n_tissue=optics.n, boundary=optics.boundary, detector_factor=detector_factor,
+        exclude_mm=exclude_mm, roi_area_mm2=roi_area_mm2, source=str(rec["folder"]),
+        hits=hits_used)
+    for r in rows:
+        r.pop("laser_power_w", None)
+    rejected = {}
+    for r in rows:
+        if not r["used"]:
+            rejected.setdefault(r["reason"], []).append(r["frame"])
+    info = {"frames": n, "frames_used": len(used), "frames_rejected": rejected,
+            "used_frames": [r["frame"] for r in used], "laser_power_w": power,
+            "spot_tolerance_mm": spot_tolerance_mm, "time_sync_tolerance_s": rec["tolerance_s"],
+            "measurements": acq.n_measurements, "seconds": time.perf_counter() - t0,
+            "warnings": ([f"{n - len(used)} of {n} frames not used (frames.json says why)"]
+                         if len(used) < n else [])}
+    acq.meta.update({"recording": {k: v for k, v in info.items() if k != "seconds"}})
+    report(progress, 1.0, "done")
+    return acq, rows, info
+
+
+def write_recorded_acquisition(folder, acq, rows, info):
+    """The acquisition folder with its per-frame report ``frames.json``, as one
+    transaction (fluoguide.atomic)."""
+    from fluoguide.jsonable import dumps
+
+    from FluoTomoLib.tomography.acquisition_file import write_acquisition
+
+    rec = {k: info[k] for k in ("frames", "frames_used", "frames_rejected", "laser_power_w",
+                                "spot_tolerance_mm", "time_sync_tolerance_s")}
+    return write_acquisition(folder, acq, extra_files={"frames.json": dumps(
+        {"frames": rows, "summary": rec})}, extra={
+        "comment": "from a recorded scan: boundary fluence per watt; frames.json lists every "
+                   "frame, used or not and why"})
+
+
+# ------------------------------------------------------------------ rendering a recording
+
+def _perturb(pose, trans_sd_mm, rot_sd_deg, rng):
+    """A tool pose as the tracker reports it: rotated about the tool's own
+    origin and moved (Gaussian, per axis)."""
+    from FluoCalibLib.geometry.transforms import make_rigid, rotvec_to_matrix
+
+    dr = rng.normal(0.0, np.deg2rad(rot_sd_deg), 3)
+    dt = rng.normal(0.0, trans_sd_mm, 3)
+    return pose @ make_rigid(rotvec_to_matrix(dr), np.zeros(3)) + np.pad(
+        dt[:, None], ((0, 1), (3, 0)))
+
+
+def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
+                tracking_error_deg=0.1, hand_eye_error_mm=0.3, seed=0, accuracy="fast",
+                laser_power_w=0.01, exposure_s=0.1, camera_distance_mm=150.0,
+                missing_pose=(), saturated=(), spot_off=(), spot_off_mm=5.0, scan=None,
+                progress=None, cancel=None):
+    """Render a recording (the documented layout) of a tracked laser raster
+    scan over the label map's inclusions, from the truth.
+
+    The scan is ``default_scan``'s source grid; the emission light of each
+    source is the FEM field on a mesh of the whole label map (the true
+    optics, the fluorophore's absorption where it is), rendered into 16-bit
+    frames from the camera's *true* pose, with the laser spot leaking through
+    the emission filter at the true entry point, shot and read noise.  The
+    written tool poses carry the tracking error (``tracking_error_mm``: the
+    3D RMS of each reported tool position, ``tracking_error_deg`` per axis
+    about the tool's origin, drawn anew for each pose), the written hand-eye
+    calibration a ``hand_eye_error_mm`` displacement of the camera (a random
+    direction), TrackerToReference the true registration.  Faults for tests,
+    by frame number: ``missing_pose`` (the laser tool reported missing),
+    ``saturated`` (20 times the exposure), ``spot_off`` (the laser tool's
+    reported pose ``spot_off_mm`` away from where the light went).
+
+    Returns a dict: ``folder``, ``truth`` (true sources, camera pose,
+    yields), ``frames``, ``camera_gain``, ``seconds``.
+    """
+    import cv2
+
+    from fluoguide import atomic
+    from fluoguide.jsonable import dumps
+    from fluoguide.progress import check_cancel, report
+
+    from FluoCalibLib.geometry.transforms import invert_rigid, make_rigid, rotvec_to_matrix
+    from FluoTomoLib.acquisition.camera_frames import (ADC_MAX_ADU, cast, expose,
+                                                       frame_radiance, tomography_camera)
+    from FluoTomoLib.acquisition.tracked_scan import laser_tool_pose_for_target
+    from FluoTomoLib.fem.forward import FluorescenceModel
+    from FluoTomoLib.fem.kernels import prepare_kernels
+    from FluoTomoLib.optics import robin_A
+    from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
+    from FluoTomoLib.tomography.model import membership
+    from FluoTomoLib.tomography.simulate import (MAX_SCAN_PATCHES, check_fem_memory,
+                                                 default_scan, simulation_mesh)
+    from FluoNavLib.mapping.pixel_cast import SurfaceCaster
+
+    t0 = time.perf_counter()
+    for name, v in (("tracking_error_mm", tracking_error_mm),
+                    ("tracking_error_deg", tracking_error_deg),
+                    ("hand_eye_error_mm", hand_eye_error_mm)):
+        if not (np.isfinite(v) and 0 <= v <= 10):
+            raise FluoInputError("must be within 0..10", field=name, value=v)
+    if not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2 ** 32:
+        raise FluoInputError("seed must be an integer within 0..2**32-1", field="seed",
+                             value=seed)
+    optics.check_labels(labelmap.labels)
+    for lab, v in yield_by_label.items():
+        if int(lab) not in labelmap.labels:
+            raise FluoInputError("label is not in the label map", field="yield", value=int(lab))
+    if not any(v > 0 for v in yield_by_label.values()):
+        raise FluoInputError("no label fluoresces: give a yield > 0 to at least one",
+                             field="yield")
+    atomic.check_writable(Path(out), folder=True)
+    rng = np.random.default_rng(seed)
+    lm = labelmap
+    targets = lm.inclusion_labels()[:MAX_SCAN_PATCHES] or lm.default_target()
+    src_ras, _, cfg = default_scan(lm, targets, **(scan or {}))
+    S = len(src_ras)
+    for name, frames_given in (("missing_pose", missing_pose), ("saturated", saturated),
+                               ("spot_off", spot_off)):
+        for f in frames_given:
+            if not 0 <= int(f) < S:
+                raise FluoInputError(f"no such frame (the scan has {S})", field=name, value=f)
+    # --- the truth: FEM emission fields on the whole label map
+    prepare_kernels(progress, 0.0, cancel)
+    report(progress, 0.05, "simulation mesh (whole label map)")
+    settings = accuracy_settings(accuracy)
+    src_l = lm.to_local(src_ras)
+    target = lm.default_target()
+    h, mfp = cap_at_burial(settings["simulate_mm"], optics, lm.labels)
+    decay = 1.0 / max(optics.min_mueff(lm.labels), 1e-6)
+    mesh = simulation_mesh(lm, src_l, target, h, max(settings["simulate_coarse_mm"], h),
+                           max(4.0, 0.5 * decay), mfp, cancel)
+    check_fem_memory(mesh.n_nodes, 0, h)
+    check_cancel(cancel)
+    labs, F = membership(mesh, lm.labels_kji, lm.spacing_mm)
+    y_nodes = F @ np.array([float(yield_by_label.get(int(v), 0.0)) for v in labs])
+    px, pm = optics.nodal(labs, F, yield_nodes=y_nodes)
+    report(progress, 0.3, f"forward model ({mesh.n_nodes} nodes)")
+    fm = FluorescenceModel(mesh, px, pm, src_l, src_l, source_normals=lm.surface().closest(
+        src_l)[1], cut_facets=lm.cut_facets(mesh), lean=True)
+    fields = fm.emission_fields(y_nodes)                # (N, S) per W
+    fm.release()
+    del fm
+    check_cancel(cancel)
+    # --- the camera above the scan, looking down its mean normal, true pose
+    report(progress, 0.7, "camera frames")
+    mesh_ras = lm.mesh_to_ras(mesh)
+    facets = mesh_ras.boundary_facets
+    caster = SurfaceCaster(mesh_ras.nodes_mm, facets)
+    centre = src_ras.mean(axis=0)
+    nrm = lm.vector_to_ras(lm.surface().closest(lm.to_local(centre[None]))[1])[0]
+    nrm /= np.linalg.norm(nrm)
+    from FluoCalibLib.geometry.transforms import look_at
+
+    up = np.cross(nrm, [1.0, 0.0, 0.0])
+    up = up if np.linalg.norm(up) > 0.1 else np.cross(nrm, [0.0, 1.0, 0.0])
+    cam_true = look_at(centre + camera_distance_mm * nrm, centre, up / np.linalg.norm(up))
+    camera = tomography_camera()
+    hits = cast(caster, camera, cam_true)
+    A = float(robin_A(optics.n, optics.boundary))
+    radiance = frame_radiance(hits, facets, mesh_ras.nodes_mm, fields, A, laser_power_w)
+    far = np.linalg.norm(hits.point_mm[None] - src_ras[:, None, None, :], axis=-1) > 3.0
+    peak = float(np.max(np.where(far & hits.visible[None], radiance, 0.0)))
+    if not peak > 0:
+        raise FluoInputError("the camera sees no fluorescence away from the sources",
+                             field="yield")
+    gain = 0.6 * ADC_MAX_ADU / peak          # G at exposure_s [ADU per W/mm^2/sr]
+    # the laser's spot through the emission filter: a 0.4 mm (1 sd) Gaussian
+    # at the true entry point, 50 times saturation at its centre
+    uv = camera.project((invert_rigid(cam_true) @ np.c_[src_ras, np.ones(S)].T).T[:, :3])
+    vv, uu = np.mgrid[0:camera.height, 0:camera.width]
+    px_mm = camera_distance_mm / camera.fx
+    sd_px = 0.4 / px_mm
+    for s in range(S):
+        spot = np.exp(-((uu - uv[s, 0]) ** 2 + (vv - uv[s, 1]) ** 2) / (2 * sd_px ** 2))
+        radiance[s] += 50.0 * ADC_MAX_ADU / gain * spot
+        if s in set(int(f) for f in saturated):
+            radiance[s] *= 20.0
+    offset = 100.0
+    frames, _ = expose(radiance, gain, offset, 2.0, rng)
+    # --- the tracked tools: true poses and what the tracker reports
+    TtR = make_rigid(rotvec_to_matrix(np.deg2rad([3.0, -2.0, 10.0])), [40.0, -25.0, -900.0])
+    RtT = invert_rigid(TtR)
+    hand_eye_true = make_rigid(rotvec_to_matrix(np.deg2rad([1.0, 2.0, -3.0])), [35.0, 5.0, -20.0])
+    cam_tool_true = RtT @ cam_true @ invert_rigid(hand_eye_true)
+    dirn = rng.normal(size=3)
+    hand_eye_written = hand_eye_true.copy()
+    hand_eye_written[:3, 3] += hand_eye_error_mm * dirn / np.linalg.norm(dirn)
+    beam_o, beam_d = np.array([0.0, 0.0, 10.0]), np.array([0.0, 0.0, 1.0])
+    sd_t = tracking_error_mm / np.sqrt(3.0)
+    frame_rows, pose_rows = [], []
+    files = {}
+    dt = 0.2
+    for s in range(S):
+        t = 1.0 + dt * s
+        L_true = RtT @ laser_tool_pose_for_target(src_ras[s], beam_o, beam_d, -nrm)
+        L_rep = _perturb(L_true, sd_t, tracking_error_deg, rng)
+        if s in set(int(f) for f in spot_off):
+            side = np.cross(nrm, up)
+            L_rep[:3, 3] += RtT[:3, :3] @ (spot_off_mm * side / np.linalg.norm(side))
+        # the tracker's samples around the frame (60 Hz), tools held still
+        for ts in (t - 0.008, t + 0.009):
+            C_rep = _perturb(cam_tool_true, sd_t, tracking_error_deg, rng)
+            missing = s in set(int(f) for f in missing_pose)
+            for tool, m, st in (("LaserToolToTracker", L_rep, "MISSING" if missing else "OK"),
+                                ("CameraToolToTracker", C_rep, "OK")):
+                vals = ([f"{v!r}" for v in m.ravel().tolist()] if st == "OK" else [""] * 16)
+                pose_rows.append(",".join([f"{ts:.6f}", tool, st] + vals))
+        name = f"frame_{s:04d}.png"
+        ok, buf = cv2.imencode(".png", np.asarray(frames[s], np.uint16))
+        files[name] = buf.tobytes()
+        frame_rows.append(f"{s},{name},{t:.6f},{exposure_s!r},{laser_power_w!r}")
+    mcols = ",".join(f"m{i}{j}" for i in range(4) for j in range(4))
+    files["frames.csv"] = "frame,file,timestamp_s,exposure_s,laser_power_w\n" + "\n".join(
+        frame_rows) + "\n"
+    files["poses.csv"] = f"timestamp_s,tool,status,{mcols}\n" + "\n".join(pose_rows) + "\n"
+    calib = {"CameraIntrinsics": camera.to_dict(),
+             "HandEye": {"camera_to_tool": hand_eye_written.tolist(),
+                         "simulated_error_mm": float(hand_eye_error_mm)},
+             "Registration": {"tracker_to_reference": TtR.tolist()},
+             "Laser": {"origin_mm": beam_o.tolist(), "direction": beam_d.tolist()},
+             "Radiometry": {"gain_adu_per_radiance": float(gain), "offset_adu": offset,
+                            "saturation_adu": float(ADC_MAX_ADU),
+                            "reference_exposure_s": float(exposure_s)}}
+    files["calibration.json"] = json.dumps(calib, indent=1)
+    truth = {"yield_by_label": {str(int(k)): float(v) for k, v in yield_by_label.items()},
+             "sources_ras_mm": src_ras.round(4).tolist(), "camera_to_ras": cam_true.tolist(),
+             "hand_eye_true": hand_eye_true.tolist(), "tracking_error_mm": tracking_error_mm,
+             "tracking_error_deg": tracking_error_deg, "hand_eye_error_mm": hand_eye_error_mm,
+             "seed": int(seed), "accuracy": settings["level"], "mesh_nodes": mesh.n_nodes,
+             "faults": {"missing_pose": sorted(int(f) for f in missing_pose),
+                        "saturated": sorted(int(f) for f in saturated),
+                        "spot_off": sorted(int(f) for f in spot_off)},
+             "scan": {"patches": cfg["patches"]}}
+    files["recording.json"] = dumps({
+        "format": FORMAT, "version": 1, "frames": "frames.csv", "poses": "poses.csv",
+        "laser_tool": "LaserToolToTracker", "camera_tool": "CameraToolToTracker",
+        "laser_power_w": float(laser_power_w), "exposure_s": float(exposure_s),
+        "time_sync_tolerance_s": TIME_SYNC_TOLERANCE_S, "calibration": "calibration.json",
+        "simulation": truth})
+    try:
+        with atomic.staged_folder(Path(out), last=("recording.json",)) as stage:
+            for name, content in files.items():
+                if isinstance(content, bytes):
+                    (stage / name).write_bytes(content)
+                else:
+                    (stage / name).write_text(content, encoding="utf-8")
+    except OSError as exc:
+        raise atomic.output_error(exc, Path(out)) from None
+    report(progress, 1.0, "done")
+    return {"folder": str(out), "frames": S, "camera_gain": float(gain), "truth": truth,
+            "seconds": time.perf_counter() - t0}
