@@ -140,6 +140,27 @@ def test_a_wider_spacing_and_a_view_are_respected(scene, logic):
     assert p["predicted"]["HP"]["7"]["covered"]
 
 
+def test_progress_and_cancel(scene, logic):
+    """Progress rises to 1 with a message; a cancel during the screen stops it."""
+    from fluoguide.errors import FluoCancelled
+    from fluoguide.progress import CancelToken
+
+    lm, optics = scene
+    seen = []
+    logic.planScan(lm, optics, [7], positions=6, time_budget_s=2,
+                   progress=lambda f, m: seen.append((f, m)))
+    fr = [f for f, _ in seen]
+    assert fr == sorted(fr) and fr[-1] == 1.0 and all(m for _, m in seen)
+    token = CancelToken()
+
+    def cancel_at_screen(f, m):
+        if "sensitivity" in m:
+            token.cancel()
+
+    with pytest.raises(FluoCancelled):
+        logic.planScan(lm, optics, [7], positions=6, progress=cancel_at_screen, cancel=token)
+
+
 def test_the_plan_round_trips_into_simulate(files, fluo, tmp_path):
     out = tmp_path / "plan"
     r = fluo("tomo", "plan", "--labels", str(files / "labels.nrrd"), "--optics",
