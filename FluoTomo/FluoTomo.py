@@ -874,6 +874,52 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
                            hand_eye_error_mm=handEyeErrorMm, seed=seed, accuracy=accuracy,
                            progress=progress, cancel=cancel, **faults)
 
+    def checkPlanInputs(self, labelNode, targets, positions, **options):
+        """The scan planner's input (:meth:`planScan`) checked before any work:
+        targets in the label map, positions, spacing, visibility, assumed yields;
+        refused in one line naming the field. Returns the targets (list of int)."""
+        from FluoTomoLib.tomography import check_plan_inputs
+
+        return check_plan_inputs(self.labelMap(labelNode), targets, positions, **options)
+
+    def planScan(self, labelNode, optics, targets, positions=None, progress=None, cancel=None,
+                 **options):
+        """Plan a scan: the laser entry points on the visible skin that minimise
+        the targets' predicted HP 95 % intervals (docs/tomography-own-scene.md,
+        "Planning the scan"; docs/physics.md section 8.6).
+
+        Parameters
+        ----------
+        labelNode : label-map node, path or LabelMap
+        optics : optics.json path, dict or Optics
+        targets : int or list of int, the labels the scan is for
+        positions : int, laser positions (None: as many as the default scan)
+        options : min_spacing_mm, noise_pct, visible_from, max_angle_deg,
+            camera_ras, yield_by_label, time_budget_s, reach_mm, exclude_mm,
+            detectors_per_side (``tomography.plan.plan_scan``)
+
+        Returns
+        -------
+        dict: sources_ras (N, 3), detectors_ras (D, 3), mask (N, D), approach_ras
+        (N, 3), predicted {"HP": {label: interval}, "SP": None}, ...
+        """
+        from FluoTomoLib.tomography import plan_scan
+
+        lm = self.labelMap(labelNode)
+        optics = self.readOptics(optics)
+        return plan_scan(lm, optics, targets, positions, progress=progress, cancel=cancel,
+                         **options)
+
+    def planScanToFolder(self, labelNode, optics, targets, outputFolder, positions=None,
+                         progress=None, cancel=None, **options):
+        """:meth:`planScan` written to ``outputFolder`` (sources.csv, detectors.csv
+        for ``simulateToFolder``'s sources/detectors, plan.json) as one
+        transaction; returns plan.json's content."""
+        from FluoTomoLib.tomography import write_plan
+
+        plan = self.planScan(labelNode, optics, targets, positions, progress, cancel, **options)
+        return write_plan(outputFolder, plan)
+
     def reconstructToFolder(self, labelNode, optics, acquisition, outputFolder, method="HP",
                             lam=None, target=None, accuracy="balanced", progress=None,
                             cancel=None, **options):

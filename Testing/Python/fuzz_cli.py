@@ -404,6 +404,8 @@ BASES = {
     # a small label map (own scene fixture): simulate meshes it whole at 'fast'
     ("tomo", "simulate"): "tomo simulate --labels {own_labels} --optics {own_optics} "
                           "--yield 7:0.0026 --accuracy fast --seed 1 --out {out}",
+    ("tomo", "plan"): "tomo plan --labels {own_labels} --optics {own_optics} --target 7 "
+                      "--positions 6 --time-budget-s 2 --out {out}",
     ("tomo", "reconstruct"): "tomo reconstruct --labels {own_labels} --optics {own_optics} "
                              "--acquisition {own_acq} --accuracy fast --method HP --out {out}",
     ("tomo", "batch"): "tomo batch {own_batch} --accuracy fast --out {out}",

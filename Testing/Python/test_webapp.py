@@ -315,6 +315,36 @@ def test_own_label_map_from_files_mesh_is_the_one_used_and_reconstructed(app, ow
     assert not s.tomo_own
 
 
+def test_plan_scan_on_the_own_scene_draws_the_points(app, own_scene):
+    """Issue #36 in the app: the planned laser positions on the 3D surface, with each
+    target's predicted interval; bad input is a message, not an exception."""
+    import shutil
+
+    tmp_path = app.workspace.root / "plan"
+    tmp_path.mkdir(exist_ok=True)
+    for f in ("labels.nrrd", "optics.json"):
+        shutil.copy(own_scene.dir / f, tmp_path / f)
+    shutil.copytree(own_scene.acq, tmp_path / "acq", dirs_exist_ok=True)
+    s = app.state
+    s.tomo_own_labels, s.tomo_own_optics = "plan/labels.nrrd", "plan/optics.json"
+    s.tomo_own_acquisition = "plan/acq"
+    app.ctrl.tomo_load_own()
+    assert s.tomo_own, s.fluo_message
+    s.tomo_plan_targets, s.tomo_plan_positions = "5", 8
+    app.ctrl.tomo_plan()
+    assert s.fluo_message_color == "error" and "not in the label map" in s.fluo_message
+    s.tomo_plan_targets = ""
+    app.ctrl.tomo_plan()
+    _wait(app.jobs, 120)
+    app.poll()
+    res = s.tomo_plan_result
+    assert res is not None and res["positions"] == 8, s.fluo_message
+    assert [r["label"] for r in res["targets"]] == ["7"] and res["targets"][0]["covered"]
+    node = mrml_io.get_node(app.scene, "FluoTomoPlannedSources")
+    assert node is not None and node.GetDisplayNode().GetVisibility3D()
+    assert "Planned 8 laser positions" in s.fluo_message
+
+
 def test_ui_paths_stay_in_the_workspace_and_messages_show_no_server_path(app, tmp_path):
     """Issue #21: a scripted client made the server write scene.mrml anywhere, list
     /etc through the image glob's message and read files outside a stack folder."""

@@ -1,4 +1,4 @@
-"""``fluo tomo simulate``, ``fluo tomo reconstruct``, ``fluo tomo acquire``,
+"""``fluo tomo simulate``, ``fluo tomo plan``, ``fluo tomo reconstruct``, ``fluo tomo acquire``,
 ``fluo tomo record-scan`` and ``fluo tomo batch``:
 fluorescence tomography of any label map from the shell
 (docs/tomography-own-scene.md; the batch runs on the run engine, docs/scale.md)."""
@@ -144,6 +144,55 @@ def _simulate(args):
             "scan_patches": None if not info.get("scan") else info["scan"]["patches"],
             "scan_coverage": info["scan_coverage"]["regions"],
             "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
+
+
+def _triple(text, field):
+    """``X,Y,Z`` -> three floats (the Lib checks what they mean)."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 3:
+        raise FluoInputError("expected three numbers X,Y,Z (RAS)", field=field, value=text)
+    return vals
+
+
+def _plan(args):
+    from fluoguide import atomic
+
+    t0 = time.perf_counter()
+    atomic.check_writable(args.out, "--out", folder=True)      # before any work
+    try:
+        targets = [int(v) for v in args.target.split(",") if v.strip()]
+    except ValueError:
+        raise FluoInputError("expected labels separated by commas", field="--target",
+                             value=args.target) from None
+    options = {"min_spacing_mm": args.min_spacing_mm, "noise_pct": args.noise_pct,
+               "max_angle_deg": args.max_angle_deg, "time_budget_s": args.time_budget_s,
+               "exclude_mm": args.exclude_mm, "detectors_per_side": args.detectors_per_side,
+               "visible_from": None if args.visible_from is None else
+               _triple(args.visible_from, "--visible-from"),
+               "camera_ras": None if args.camera_at is None else
+               _triple(args.camera_at, "--camera-at"),
+               "yield_by_label": None if args.yield_spec is None else
+               _parse_yields(args.yield_spec)}
+    names = {"targets": "--target", "positions": "--positions", "min_spacing_mm":
+             "--min-spacing-mm", "noise_pct": "--noise-pct", "max_angle_deg": "--max-angle-deg",
+             "time_budget_s": "--time-budget-s", "exclude_mm": "--exclude-mm",
+             "detectors_per_side": "--detectors-per-side", "visible_from": "--visible-from",
+             "camera_ras": "--camera-at", "yield": "--yield"}
+    from fluoapp.commands import as_flags
+
+    with as_flags(names):
+        logic, lm, optics = _load(args)
+        targets = logic.checkPlanInputs(lm, targets, args.positions, **options)
+        with TqdmProgress("plan") as bar:
+            doc = logic.planScanToFolder(lm, optics, targets, args.out, args.positions,
+                                         progress=bar, **options)
+    return {"output": str(args.out), "sources": len(doc["sources"]),
+            "pairs_measured": doc["pairs_measured"], "predicted": doc["predicted"],
+            "default_scan_predicted": doc["default_scan_predicted"],
+            "warnings": doc["warnings"], "seconds": time.perf_counter() - t0}
 
 
 def _check_reconstruct_options(args, lm):
@@ -335,6 +384,52 @@ def register(subparsers):
                    "(acquisition.json, sources.csv, detectors.csv, data.csv)")
     add_json_flag(p)
     p.set_defaults(func=_simulate)
+
+    p = tomo.add_parser(
+        "plan", help="plan a scan: the laser entry points that narrow the targets' intervals",
+        description="Choose the tracked laser's entry points on the skin the camera can see "
+        "near the targets, to minimise the targets' predicted hard-prior (HP) 95 %% intervals "
+        "under the noise model (a greedy A-optimal design with exchange passes, on the scan "
+        "coverage's half-space sensitivities; docs/physics.md section 8.6). The detectors are "
+        "the default scan's grid over each target. Writes OUT/sources.csv and "
+        "OUT/detectors.csv (for fluo tomo simulate --sources/--detectors) and OUT/plan.json "
+        "(the predicted interval per target, each source's approach direction, the default "
+        "grid's prediction with as many positions; docs/tomography-own-scene.md).")
+    p.add_argument("--labels", required=True, help="label map (.nrrd, .nii(.gz), .seg.nrrd, "
+                   ".mrml)")
+    p.add_argument("--optics", required=True, help="optics.json (every label of the map)")
+    p.add_argument("--target", required=True, metavar="LABEL[,LABEL...]",
+                   help="the labels the scan is for (at most 4)")
+    p.add_argument("--positions", type=int, required=True,
+                   help="laser positions to choose (the default scan lays 16 per target)")
+    p.add_argument("--detectors-per-side", type=int, default=None,
+                   help="detector grid per target, N x N at 1.5 mm pitch (default 7)")
+    p.add_argument("--min-spacing-mm", type=float, default=2.0,
+                   help="no two entry points closer than this [mm] (default %(default)s)")
+    p.add_argument("--noise-pct", type=float, default=1.0, help="relative noise per "
+                   "measurement [%%] of the noise model (default %(default)s)")
+    p.add_argument("--yield", dest="yield_spec", default=None, metavar="LABEL:VALUE[,...]",
+                   help="assumed yields [1/mm] (default: every label but the largest 1, the "
+                   "largest 0.01: only ratios matter)")
+    p.add_argument("--visible-from", default=None, metavar="X,Y,Z",
+                   help="RAS direction towards the camera: entry points whose outward normal "
+                   "is within --max-angle-deg of it (default: the mean outward normal of "
+                   "the skin over the targets)")
+    p.add_argument("--camera-at", default=None, metavar="X,Y,Z",
+                   help="RAS position of the camera instead: within --max-angle-deg of the "
+                   "direction to it and not hidden behind other tissue (default: none, "
+                   "--visible-from's direction)")
+    p.add_argument("--max-angle-deg", type=float, default=60.0,
+                   help="the visibility cone's half-angle [deg] (default %(default)s)")
+    p.add_argument("--exclude-mm", type=float, default=3.0, help="pairs closer than this are "
+                   "not measured, as fluo tomo simulate's (default %(default)s)")
+    p.add_argument("--time-budget-s", type=float, default=60.0,
+                   help="the planner's time [s]: the exchange passes stop when it is spent "
+                   "(default %(default)s)")
+    p.add_argument("--out", required=True, help="plan folder (sources.csv, detectors.csv, "
+                   "plan.json)")
+    add_json_flag(p)
+    p.set_defaults(func=_plan)
 
     p = tomo.add_parser(
         "reconstruct", help="reconstruct the fluorescence yield of a label map",

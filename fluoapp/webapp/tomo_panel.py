@@ -62,6 +62,10 @@ class TomoPanel:
         s.tomo_own = False             # the own-scene route is active
         s.tomo_own_info = ""
         s.tomo_own_result = None
+        # the scan planner on the user's scene (issue #36): targets, positions, its result
+        s.tomo_plan_targets = ""       # labels, comma-separated; empty: every inclusion
+        s.tomo_plan_positions = 16
+        s.tomo_plan_result = None
         self._own = None               # {"label": node id, "optics": Optics, "acquisition": ...}
         self._mesh_node_id = None
         c = app.ctrl
@@ -72,6 +76,7 @@ class TomoPanel:
         c.tomo_build_mesh = g(self.build_mesh)
         c.tomo_reconstruct = g(self.reconstruct)
         c.tomo_load_own = g(self.load_own)
+        c.tomo_plan = g(self.plan_scan)
         s.change("tomo_threshold")(g(self._on_threshold))
         self._yield_node_name = None
 
@@ -205,6 +210,60 @@ class TomoPanel:
         display.SetOpacity2DOutline(1.0)
         self.app.show_in_3d(seg)
         self.app.render_all(reset_3d=True)
+
+    def plan_scan(self):
+        """Plan the laser's entry points on the user's scene (FluoTomoLogic.planScan)
+        and draw them on the 3D surface with each target's predicted interval."""
+        s = self.app.state
+        node = self._own_label_node()
+        lm = self.logic.labelMap(node)          # read on the event loop, not in the job
+        optics = self._own["optics"]
+        text = str(s.tomo_plan_targets or "").strip()
+        try:
+            targets = ([int(v) for v in text.split(",") if v.strip()] if text else
+                       (lm.inclusion_labels()[:4] or [lm.default_target()]))
+        except ValueError:
+            raise FluoInputError("expected labels separated by commas", field="targets",
+                                 value=text) from None
+        try:
+            positions = int(s.tomo_plan_positions)
+        except (TypeError, ValueError):
+            raise FluoInputError("must be an integer", field="positions",
+                                 value=s.tomo_plan_positions) from None
+        targets = self.logic.checkPlanInputs(lm, targets, positions)
+
+        def job(progress=None, cancel=None):
+            return self.logic.planScan(lm, optics, targets, positions, progress=progress,
+                                       cancel=cancel)
+
+        def done(plan):
+            from fluoapp.webapp.scene_display import glyph_points_model
+
+            scene = self.app.scene
+            for name in ("FluoTomoPlannedSources", "FluoTomoPlannedDetectors"):
+                mrml_io.remove_node(scene, name)
+            src = glyph_points_model(scene, "FluoTomoPlannedSources", plan["sources_ras"],
+                                     radius_mm=0.6, color=(0.85, 0.3, 0.9))
+            det = glyph_points_model(scene, "FluoTomoPlannedDetectors", plan["detectors_ras"],
+                                     radius_mm=0.3, color=(0.2, 0.9, 0.3))
+            for m in (src, det):
+                self.app.show_in_3d(m)
+            hp = plan["predicted"]["HP"]
+            dflt = (plan.get("default_scan_predicted") or {}).get("HP", {})
+            rows = [{"label": t, "half_width": hp[t]["half_width_pct"],
+                     "covered": hp[t]["covered"],
+                     "default": (dflt.get(t) or {}).get("half_width_pct")} for t in hp]
+            s.tomo_plan_result = {"positions": len(plan["sources_ras"]), "targets": rows,
+                                  "pairs": int(plan["mask"].sum()),
+                                  "warnings": "; ".join(plan["warnings"]) or "none"}
+            self.app.render_all(reset_3d=False)
+            text = ", ".join(f"label {r['label']} +-{r['half_width']:.3g} %" for r in rows)
+            self.app.notify(f"Planned {len(plan['sources_ras'])} laser positions: predicted HP "
+                            f"95 % interval (noise part) {text}"
+                            + "".join(f"; warning: {w}" for w in plan["warnings"]),
+                            "warning" if plan["warnings"] else "success")
+
+        self.app.start_job("scan plan", job, on_done=done, owner="FluoTomo")
 
     def _own_label_node(self):
         node = self.app.scene.GetNodeByID(self._own["label"]) if self._own else None
@@ -499,6 +558,27 @@ class TomoPanel:
         v.VBtn("Load my scene", click=self.app.ctrl.tomo_load_own, block=True, classes="mt-2",
                disabled=(busy,), id="tomo-own-load")
         html.Div("{{ tomo_own_info }}", classes="text-caption", id="tomo-own-info")
+
+        html.Div("1c. Plan the scan (your scene)", classes="text-subtitle-2 mt-4")
+        with v.VRow(dense=True):
+            with v.VCol(cols=6):
+                v.VTextField(v_model=("tomo_plan_targets",), label="Target labels (empty: "
+                             "every inclusion)", density="compact", hide_details=True,
+                             id="tomo-plan-targets")
+            with v.VCol(cols=6):
+                v.VTextField(v_model_number=("tomo_plan_positions",), type="number",
+                             label="Laser positions", density="compact", hide_details=True,
+                             id="tomo-plan-positions")
+        v.VBtn("Plan the scan", click=self.app.ctrl.tomo_plan, block=True, classes="mt-2",
+               disabled=("!tomo_own || " + busy,), id="tomo-plan")
+        with html.Div(v_if="tomo_plan_result", classes="text-caption mt-1", id="tomo-plan-result"):
+            html.Div("{{ tomo_plan_result.positions }} laser positions (violet in 3D), "
+                     "{{ tomo_plan_result.pairs }} pairs; predicted HP 95 % interval, noise "
+                     "part:")
+            html.Div("label {{ r.label }}: +-{{ r.half_width }} % (default grid "
+                     "+-{{ r.default }} %){{ r.covered ? '' : ', not covered' }}",
+                     v_for="r in tomo_plan_result.targets")
+            html.Div("warnings: {{ tomo_plan_result.warnings }}")
 
         html.Div("2. Segment the CBCT", classes="text-subtitle-2 mt-4")
         with v.VRow(dense=True):

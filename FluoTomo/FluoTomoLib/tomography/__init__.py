@@ -12,6 +12,7 @@ Modules
 - ``model``: The reconstruction mesh and model of a label map, with the tube study's accuracy machinery for any target label.
 - ``simulate``: Simulated acquisitions of a label map: the scan, the engines, the noise.
 - ``reconstruct``: Reconstruction of fluorescence yield on a user's label map.
+- ``plan``: Planning a scan: the laser's entry points that narrow the targets' intervals.
 - ``batch``: Many own scenes at once: a batch file of cases on the run engine.
 - ``segment``: A CBCT turned into a label map by HU thresholds, headless (largest component, holes filled).
 - ``recording``: A recorded tracked laser scan turned into an acquisition, and a recording rendered from a label map's truth.
@@ -35,6 +36,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
                  "simulate_fem", "simulate_acquisition"],
     "reconstruct": ["reconstruct_labelmap", "reconstruct_labelmap_methods", "nodal_to_grid",
                     "write_reconstruction"],
+    "plan": ["plan_scan", "predict_scan", "check_plan_inputs", "write_plan", "plan_document"],
     "batch": ["load_batch", "reconstruct_case", "batch_tasks", "run_batch",
               "write_case_outputs"],
     "segment": ["parse_thresholds", "threshold_labels"],

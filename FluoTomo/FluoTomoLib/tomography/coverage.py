@@ -58,16 +58,55 @@ def _green_half_space(optode_local, inward, points, mua, musp, n):
     return np.clip(out, 0.0, None) / (4.0 * np.pi * D)
 
 
-def _region_points(lm, label):
+def _region_points(lm, label, limit=POINTS_PER_REGION):
     """Voxel centres (local mm) of one label on a stride that keeps at most
-    POINTS_PER_REGION of them, and the volume each stands for [mm^3]."""
+    ``limit`` of them, and the volume each stands for [mm^3]."""
     mask = lm.labels_kji == int(label)
     count = int(mask.sum())
-    stride = max(1, int(np.ceil((count / POINTS_PER_REGION) ** (1.0 / 3.0))))
+    stride = max(1, int(np.ceil((count / limit) ** (1.0 / 3.0))))
     sub = mask[::stride, ::stride, ::stride]
     k, j, i = np.nonzero(sub)
     pts = np.stack([i, j, k], axis=1) * stride * lm.spacing_mm
     return pts, float(np.prod(lm.spacing_mm)) * count / max(len(pts), 1)
+
+
+def region_sensitivity(lm, optics, src_local, inward_src, det_local, inward_det,
+                       points_per_region=POINTS_PER_REGION, cancel=None):
+    """Each region's part of every pair's signal at unit yield: the screen's
+    A_r(s, d) (module docstring; docs/physics.md section 8.2, "Scan coverage").
+
+    Parameters
+    ----------
+    lm : LabelMap
+    optics : Optics (the largest label's properties are used throughout)
+    src_local, det_local : (S, 3), (D, 3) optodes in the label map's local frame [mm]
+    inward_src, inward_det : (S, 3), (D, 3) unit inward surface normals there
+    points_per_region : int, the most quadrature points per region
+    cancel : fluoguide.progress cancel token (checked between regions)
+
+    Returns
+    -------
+    (parts, nearest_mm, body): ``parts`` {label: (S, D) signal per unit yield
+    [1/mm^2 per (1/mm)]}, ``nearest_mm`` {label: distance from the region to the
+    nearest optode [mm]}, ``body`` the largest label
+    """
+    from scipy.spatial import cKDTree
+
+    from fluoguide.progress import check_cancel
+
+    vols = lm.region_volumes()
+    body = max(vols, key=vols.get)
+    (mx, sx), (mm, sm) = optics.excitation[body], optics.emission[body]
+    parts, nearest = {}, {}
+    optodes = cKDTree(np.vstack([src_local, det_local]))
+    for lab in vols:
+        check_cancel(cancel)
+        pts, w = _region_points(lm, lab, points_per_region)
+        gx = _green_half_space(src_local, inward_src, pts, mx, sx, optics.n)
+        gm = _green_half_space(det_local, inward_det, pts, mm, sm, optics.n)
+        parts[lab] = w * (gx @ gm.T)                       # (S, D) signal at unit yield
+        nearest[lab] = float(optodes.query(pts)[0].min())
+    return parts, nearest, body
 
 
 def scan_coverage(lm, optics, sources_ras, detectors_ras, mask=None, noise_pct=1.0):
@@ -95,19 +134,7 @@ def scan_coverage(lm, optics, sources_ras, detectors_ras, mask=None, noise_pct=1
     _, n_src, _ = surf.closest(src)
     _, n_det, _ = surf.closest(det)
     vols = lm.region_volumes()
-    body = max(vols, key=vols.get)
-    (mx, sx), (mm, sm) = optics.excitation[body], optics.emission[body]
-    from scipy.spatial import cKDTree
-
-    parts = {}
-    nearest = {}
-    optodes = cKDTree(np.vstack([src, det]))
-    for lab in vols:
-        pts, w = _region_points(lm, lab)
-        gx = _green_half_space(src, -n_src, pts, mx, sx, optics.n)
-        gm = _green_half_space(det, -n_det, pts, mm, sm, optics.n)
-        parts[lab] = w * (gx @ gm.T)                       # (S, D) signal at unit yield
-        nearest[lab] = float(optodes.query(pts)[0].min())
+    parts, nearest, body = region_sensitivity(lm, optics, src, -n_src, det, -n_det)
     total = sum(parts.values())
     used = mask & (total > 0)
     noise = max(float(noise_pct), 1e-3) / 100.0

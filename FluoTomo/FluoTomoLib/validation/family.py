@@ -248,15 +248,19 @@ def _segmentation_error(labels, masks, spacing, mm, rng):
     return out, f"{what} {mm:g} mm"
 
 
-def simulate(scene, engine="fem", accuracy="fine", photons=None):
-    """The scene's acquisition (the default scan: a patch over each inclusion), simulated
-    on the TRUE label map with the engine's own mesh and the scene's noise.
-    Returns (Acquisition, info)."""
+def simulate(scene, engine="fem", accuracy="fine", photons=None, sources_ras=None,
+             detectors_ras=None, seed=None):
+    """The scene's acquisition (the default scan: a patch over each inclusion, or the
+    ``sources_ras`` and ``detectors_ras`` given, RAS mm, e.g. a planned scan),
+    simulated on the TRUE label map with the engine's own mesh and the scene's noise
+    (its seed, or ``seed``). Returns (Acquisition, info)."""
     from FluoTomoLib.tomography import optics_from_dict, simulate_acquisition
 
     lm = scene.labelmap(recon=False)
     optics = optics_from_dict(scene.optics)
     kw = {} if photons is None else {"photons": photons}
-    return simulate_acquisition(lm, optics, scene.yield_by_label, noise_pct=scene.noise_pct,
-                                seed=scene.seed, engine=engine, accuracy=accuracy,
+    return simulate_acquisition(lm, optics, scene.yield_by_label, sources_ras, detectors_ras,
+                                noise_pct=scene.noise_pct,
+                                seed=scene.seed if seed is None else int(seed),
+                                engine=engine, accuracy=accuracy,
                                 target=scene.target(), **kw)
