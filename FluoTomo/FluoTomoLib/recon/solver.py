@@ -976,10 +976,10 @@ RESOLUTION_COND_MAX = 1e6
 #: SP reports a region's resolution-corrected value when it lies within this factor
 #: of the soft-prior image's mean over the region (either way). A correctly segmented
 #: region's image keeps a share of its constant set by the damped solver's smoothing
-#: across the region's rim (the scene family: 0.48-1.1, docs/validation.md); a
-#: correction beyond this factor says the region-wise constant model behind it does
-#: not describe the image (a segmentation that is off: an eroded inclusion's
-#: correction was 20-400x), so the image's mean is kept and the result says why
+#: across the region's rim; a correction far beyond that share says the region-wise
+#: constant model behind it does not describe the image (a segmentation that is off),
+#: so the image's mean is kept and the result says why (the shares and corrections
+#: measured on the scene family: docs/reconstruction.md, "Intervals")
 SP_CORRECTION_MAX = 3.0
 
 
@@ -1013,12 +1013,11 @@ def _sp_value(row, corrected):
     (``row`` is changed in place; ``image_mean_yield_per_mm`` keeps the mean and
     ``sp_value`` says which was taken). The soft prior's damped image spreads a
     small region's yield over its rim into the neighbours, so the image's mean
-    over the label is biased low (the family: a median -20 %, down to -53 % for a
-    correctly segmented inclusion); the corrected value undoes that spreading
-    under the region-wise constant model the prior states (docs/physics.md
-    section 8.3). Its noise SD is the image mean's scaled by the same factor
-    (the correction is near-diagonal); the 95 % interval already reaches from
-    the one to the other and is kept."""
+    over the label is biased low (docs/validation.md, the scene family); the
+    corrected value undoes that spreading under the region-wise constant model
+    the prior states (docs/physics.md section 8.3). Its noise SD is the image
+    mean's scaled by the same factor (the correction is near-diagonal); the 95 %
+    interval already reaches from the one to the other and is kept."""
     mean = row["mean_yield_per_mm"]
     row["image_mean_yield_per_mm"] = mean
     if corrected is None or not np.isfinite(corrected):
