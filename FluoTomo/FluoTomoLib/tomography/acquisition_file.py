@@ -185,18 +185,24 @@ def _is_number(text):
         return False
 
 
-def _read_csv_rows(path, field, allow_unused=False):
-    """Rows of numbers from a CSV file (commas, semicolons or spaces; ``#``
-    comments and one header line allowed).  ``-`` is an unused value (NaN in
-    the result, with the mask) when ``allow_unused``."""
+def read_text_file(path, field):
+    """(Path, text) of a UTF-8 text file; a missing or unreadable one refused in one
+    line naming it and ``field`` (FluoInputError)."""
     p = Path(path)
     if not p.is_file():
         raise FluoInputError("file not found", file=p, field=field)
     try:
-        text = p.read_text(encoding="utf-8")
+        return p, p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise FluoInputError(f"cannot read ({getattr(exc, 'strerror', None) or exc})", file=p,
                              field=field) from None
+
+
+def _read_csv_rows(path, field, allow_unused=False):
+    """Rows of numbers from a CSV file (commas, semicolons or spaces; ``#``
+    comments and one header line allowed).  ``-`` is an unused value (NaN in
+    the result, with the mask) when ``allow_unused``."""
+    p, text = read_text_file(path, field)
     rows, used = [], []
     header_seen = False
     for n, line in enumerate(text.splitlines(), start=1):

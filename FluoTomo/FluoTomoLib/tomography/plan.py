@@ -219,7 +219,7 @@ def check_plan_inputs(lm, targets, positions, min_spacing_mm=2.0, noise_pct=1.0,
                       exclude_mm=3.0, detectors_per_side=None):
     """The planner's input checked (cheap: before any work); refused in one line
     naming the field. Returns the targets as a list of int."""
-    from FluoTomoLib.tomography.simulate import check_scan_targets
+    from FluoTomoLib.tomography.simulate import check_scan_targets, check_yields
 
     targets = check_scan_targets(lm, targets, field="targets")
     if targets is None:
@@ -242,13 +242,7 @@ def check_plan_inputs(lm, targets, positions, min_spacing_mm=2.0, noise_pct=1.0,
     if camera_ras is not None:
         _direction(camera_ras, "camera_ras")         # three finite numbers
     if yield_by_label is not None:
-        for lab, v in yield_by_label.items():
-            if int(lab) not in lm.labels:
-                raise FluoInputError("label is not in the label map", field="yield",
-                                     value=int(lab))
-            if not (np.isfinite(v) and v >= 0):
-                raise FluoInputError("yield must be a finite number >= 0 [1/mm]",
-                                     field=f"yield {int(lab)}", value=v)
+        check_yields(lm, yield_by_label)
         zero = [t for t in targets if not yield_by_label.get(t, 0) > 0]
         if zero:
             raise FluoInputError("a target needs an assumed yield > 0 (its interval is "

@@ -70,19 +70,22 @@ def _num(v, file, field, positive=True):
 
 
 def _csv_rows(path, field):
-    p = Path(path)
-    if not p.is_file():
-        raise FluoInputError("file not found", file=p, field=field)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FluoInputError(f"cannot read ({getattr(exc, 'strerror', None) or exc})", file=p,
-                             field=field) from None
+    """(header, [(line number, {column: stripped string})]) of a CSV file with ``#``
+    comments; a row with another number of values than the header is refused."""
+    from FluoTomoLib.tomography.acquisition_file import read_text_file
+
+    p, text = read_text_file(path, field)
     rows = [r for r in csv.reader(io.StringIO(text)) if r and not r[0].lstrip().startswith("#")]
     if len(rows) < 2:
         raise FluoInputError("needs a header line and at least one row", file=p, field=field)
     head = [h.strip() for h in rows[0]]
-    return head, [[v.strip() for v in r] for r in rows[1:]]
+    out = []
+    for n, row in enumerate(rows[1:], start=2):
+        if len(row) != len(head):
+            raise FluoInputError(f"{len(row)} values for {len(head)} columns", file=p,
+                                 field=f"line {n}")
+        out.append((n, dict(zip(head, (v.strip() for v in row)))))
+    return head, out
 
 
 def _float(text, file, field):
@@ -166,11 +169,7 @@ def read_scan_recording(folder):
             if col not in head:
                 raise FluoInputError("missing column", file=fpath, field=col)
         last = -np.inf
-        for n, row in enumerate(rows, start=2):
-            if len(row) != len(head):
-                raise FluoInputError(f"{len(row)} values for {len(head)} columns", file=fpath,
-                                     field=f"line {n}")
-            r = dict(zip(head, row))
+        for n, r in rows:
             t = _float(r["timestamp_s"], fpath, f"line {n} timestamp_s")
             if not t > last:
                 raise FluoInputError("timestamps must increase", file=fpath,
@@ -212,11 +211,7 @@ def read_scan_recording(folder):
         else:
             raise FluoInputError("needs the columns m00..m33 (4x4, row-major) or qw,qx,qy,qz,"
                                  "tx_mm,ty_mm,tz_mm", file=ppath, field="header")
-        for n, row in enumerate(rows, start=2):
-            if len(row) != len(head):
-                raise FluoInputError(f"{len(row)} values for {len(head)} columns", file=ppath,
-                                     field=f"line {n}")
-            r = dict(zip(head, row))
+        for n, r in rows:
             t = _float(r["timestamp_s"], ppath, f"line {n} timestamp_s")
             status = (r.get("status") or "OK").upper()
             m = None
@@ -626,13 +621,10 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
     from FluoTomoLib.acquisition.camera_frames import (ADC_MAX_ADU, cast, expose,
                                                        frame_radiance, tomography_camera)
     from FluoTomoLib.acquisition.tracked_scan import laser_tool_pose_for_target
-    from FluoTomoLib.fem.forward import FluorescenceModel
     from FluoTomoLib.fem.kernels import prepare_kernels
     from FluoTomoLib.optics import robin_A
-    from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
-    from FluoTomoLib.tomography.model import membership
-    from FluoTomoLib.tomography.simulate import (MAX_SCAN_PATCHES, check_fem_memory,
-                                                 default_scan, simulation_mesh)
+    from FluoTomoLib.tomography.accuracy import accuracy_settings
+    from FluoTomoLib.tomography.simulate import MAX_SCAN_PATCHES, default_scan, whole_map_model
     from FluoNavLib.mapping.pixel_cast import SurfaceCaster
 
     t0 = time.perf_counter()
@@ -664,22 +656,10 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
                 raise FluoInputError(f"no such frame (the scan has {S})", field=name, value=f)
     # --- the truth: FEM emission fields on the whole label map
     prepare_kernels(progress, 0.0, cancel)
-    report(progress, 0.05, "simulation mesh (whole label map)")
     settings = accuracy_settings(accuracy)
     src_l = lm.to_local(src_ras)
-    target = lm.default_target()
-    h, mfp = cap_at_burial(settings["simulate_mm"], optics, lm.labels)
-    decay = 1.0 / max(optics.min_mueff(lm.labels), 1e-6)
-    mesh = simulation_mesh(lm, src_l, target, h, max(settings["simulate_coarse_mm"], h),
-                           max(4.0, 0.5 * decay), mfp, cancel)
-    check_fem_memory(mesh.n_nodes, 0, h)
-    check_cancel(cancel)
-    labs, F = membership(mesh, lm.labels_kji, lm.spacing_mm)
-    y_nodes = F @ np.array([float(yield_by_label.get(int(v), 0.0)) for v in labs])
-    px, pm = optics.nodal(labs, F, yield_nodes=y_nodes)
-    report(progress, 0.3, f"forward model ({mesh.n_nodes} nodes)")
-    fm = FluorescenceModel(mesh, px, pm, src_l, src_l, source_normals=lm.surface().closest(
-        src_l)[1], cut_facets=lm.cut_facets(mesh), lean=True)
+    fm, mesh, y_nodes, _, _ = whole_map_model(lm, optics, yield_by_label, src_l, src_l,
+                                              settings, lm.default_target(), progress, cancel)
     fields = fm.emission_fields(y_nodes)                # (N, S) per W
     fm.release()
     del fm

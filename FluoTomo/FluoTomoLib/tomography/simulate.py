@@ -291,26 +291,45 @@ def check_fem_memory(n_nodes, jacobian_bytes, size_mm, per_node=FEM_BYTES_PER_NO
                field="size_mm", value=round(float(size_mm), 4))
 
 
-def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pct, seed,
-                 settings, progress=None, cancel=None):
-    """The FEM engine: emission boundary fluence per watt on a mesh of the whole
-    label map, with relative Gaussian noise (:func:`add_noise`)."""
+def check_yields(lm, yield_by_label):
+    """Each label of ``yield_by_label`` in the label map, each yield a finite number
+    >= 0 [1/mm]; refused in one line (FluoInputError, field ``yield``)."""
+    for lab, v in yield_by_label.items():
+        if int(lab) not in lm.labels:
+            raise FluoInputError("label is not in the label map", field="yield",
+                                 value=int(lab))
+        if not (np.isfinite(v) and v >= 0):
+            raise FluoInputError("yield must be a finite number >= 0 [1/mm]",
+                                 field=f"yield {int(lab)}", value=v)
+
+
+def whole_map_model(lm, optics, yield_by_label, src_local, det_local, settings, target,
+                    progress=None, cancel=None):
+    """The true tissue's FEM model on a mesh of the whole label map: the simulation
+    engine's and a rendered recording's (``recording.record_scan``).
+
+    Parameters
+    ----------
+    lm : LabelMap; optics : Optics; yield_by_label : {label: yield [1/mm]}
+    src_local, det_local : (S, 3), (D, 3) sources and detectors in the label map's
+        local frame [mm] (the fine band of the mesh follows them)
+    settings : accuracy_settings' dict (``simulate_mm``, ``simulate_coarse_mm``)
+    target : the label the mesh is refined around
+
+    Returns
+    -------
+    (FluorescenceModel (lean: release() it when its fields are taken), Mesh, nodal
+    yield [1/mm], element size h [mm], the fine band's margin [mm])
+    """
     from FluoTomoLib.fem.forward import FluorescenceModel
-    from FluoTomoLib.fem.kernels import prepare_kernels
+    from FluoTomoLib.tomography.accuracy import cap_at_burial
     from FluoTomoLib.tomography.model import membership
 
-    t0 = time.perf_counter()
-    src = lm.to_local(sources_ras)
-    det = lm.to_local(detectors_ras)
-    target = settings.get("target")
     decay = 1.0 / max(optics.min_mueff(lm.labels), 1e-6)
     margin = max(4.0, 0.5 * decay)
-    prepare_kernels(progress, 0.02, cancel)     # first run: ~11 s, reported as it goes
     report(progress, 0.05, "simulation mesh (whole label map)")
-    from FluoTomoLib.tomography.accuracy import cap_at_burial
-
     h, mfp = cap_at_burial(settings["simulate_mm"], optics, lm.labels)
-    mesh = simulation_mesh(lm, np.vstack([src, det]), target, h,
+    mesh = simulation_mesh(lm, np.vstack([src_local, det_local]), target, h,
                            max(settings["simulate_coarse_mm"], h), margin, mfp, cancel)
     check_fem_memory(mesh.n_nodes, 0, h)
     check_cancel(cancel)
@@ -318,8 +337,25 @@ def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_p
     y_nodes = F @ np.array([float(yield_by_label.get(int(v), 0.0)) for v in labs])
     px, pm = optics.nodal(labs, F, yield_nodes=y_nodes)
     report(progress, 0.3, f"forward model ({mesh.n_nodes} nodes)")
-    fm = FluorescenceModel(mesh, px, pm, src, det, source_normals=lm.surface().closest(src)[1],
+    fm = FluorescenceModel(mesh, px, pm, src_local, det_local,
+                           source_normals=lm.surface().closest(src_local)[1],
                            cut_facets=lm.cut_facets(mesh), lean=True)
+    return fm, mesh, y_nodes, h, margin
+
+
+def simulate_fem(lm, optics, sources_ras, detectors_ras, yield_by_label, noise_pct, seed,
+                 settings, progress=None, cancel=None):
+    """The FEM engine: emission boundary fluence per watt on a mesh of the whole
+    label map, with relative Gaussian noise (:func:`add_noise`)."""
+    from FluoTomoLib.fem.kernels import prepare_kernels
+
+    t0 = time.perf_counter()
+    src = lm.to_local(sources_ras)
+    det = lm.to_local(detectors_ras)
+    prepare_kernels(progress, 0.02, cancel)     # first run: compiled, reported as it goes
+    fm, mesh, y_nodes, h, margin = whole_map_model(lm, optics, yield_by_label, src, det,
+                                                   settings, settings.get("target"),
+                                                   progress, cancel)
     data = fm.emission_data(y_nodes)
     fm.release()
     check_cancel(cancel)
@@ -457,13 +493,7 @@ def simulate_acquisition(lm, optics, yield_by_label, sources_ras=None, detectors
         raise FluoInputError(f"engine must be one of {', '.join(ENGINES)}", field="engine",
                              value=engine)
     optics.check_labels(lm.labels)
-    for lab, v in yield_by_label.items():
-        if int(lab) not in lm.labels:
-            raise FluoInputError("label is not in the label map", field="yield",
-                                 value=int(lab))
-        if not (np.isfinite(v) and v >= 0):
-            raise FluoInputError("yield must be a finite number >= 0 [1/mm]",
-                                 field=f"yield {int(lab)}", value=v)
+    check_yields(lm, yield_by_label)
     if not any(v > 0 for v in yield_by_label.values()):
         raise FluoInputError("no label fluoresces: give a yield > 0 to at least one",
                              field="yield")
