@@ -329,9 +329,8 @@ def _acquire(args):
             "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
 
 
-def register(subparsers):
-    tomo = cli_group(subparsers, "tomo", "fluorescence tomography of any label map: simulate "
-                     "an acquisition, reconstruct the yield")
+def _register_simulate(tomo):
+    """Declare `fluo tomo simulate`: the acquisition simulated on a label map."""
     p = tomo.add_parser(
         "simulate", help="simulate an acquisition of a label map (whole-map FEM mesh)",
         description="Simulate what a tracked laser scan and camera would measure on a label "
@@ -385,6 +384,9 @@ def register(subparsers):
     add_json_flag(p)
     p.set_defaults(func=_simulate)
 
+
+def _register_plan(tomo):
+    """Declare `fluo tomo plan`: the scan planner."""
     p = tomo.add_parser(
         "plan", help="plan a scan: the laser entry points that narrow the targets' intervals",
         description="Choose the tracked laser's entry points on the skin the camera can see "
@@ -431,6 +433,9 @@ def register(subparsers):
     add_json_flag(p)
     p.set_defaults(func=_plan)
 
+
+def _register_reconstruct(tomo):
+    """Declare `fluo tomo reconstruct`: the yield reconstruction."""
     p = tomo.add_parser(
         "reconstruct", help="reconstruct the fluorescence yield of a label map",
         description="NP / SP / HP reconstruction of the yield on a label map from an "
@@ -484,6 +489,9 @@ def register(subparsers):
     add_json_flag(p)
     p.set_defaults(func=_reconstruct)
 
+
+def _register_acquire(tomo):
+    """Declare `fluo tomo acquire`: the recording-to-acquisition conversion."""
     p = tomo.add_parser(
         "acquire", help="turn a recorded tracked laser scan into an acquisition folder",
         description="Read a recording (docs/recording.md: 16-bit frames, frames.csv, "
@@ -512,6 +520,9 @@ def register(subparsers):
     add_json_flag(p)
     p.set_defaults(func=_acquire)
 
+
+def _register_record_scan(tomo):
+    """Declare `fluo tomo record-scan`: the rendered recording of a laser scan."""
     p = tomo.add_parser(
         "record-scan", help="render a recording of a tracked laser scan from a label map's "
         "truth (to check fluo tomo acquire against)",
@@ -550,6 +561,9 @@ def register(subparsers):
     add_json_flag(p)
     p.set_defaults(func=_record_scan)
 
+
+def _register_batch(tomo):
+    """Declare `fluo tomo batch`: the batch reconstruction."""
     p = tomo.add_parser(
         "batch", help="reconstruct many (label map, optics, acquisition) cases: yield volumes "
         "and one table (serially or on Dask)",
@@ -575,3 +589,14 @@ def register(subparsers):
     add_run_options(p)
     add_json_flag(p)
     p.set_defaults(func=_batch)
+
+
+def register(subparsers):
+    tomo = cli_group(subparsers, "tomo", "fluorescence tomography of any label map: simulate "
+                     "an acquisition, reconstruct the yield")
+    _register_simulate(tomo)
+    _register_plan(tomo)
+    _register_reconstruct(tomo)
+    _register_acquire(tomo)
+    _register_record_scan(tomo)
+    _register_batch(tomo)

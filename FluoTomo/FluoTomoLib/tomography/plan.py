@@ -19,6 +19,7 @@ the same points.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -292,8 +293,6 @@ def plan_scan(lm, optics, targets, positions=None, min_spacing_mm=2.0, noise_pct
     (the default grid's HP prediction with as many positions), ``candidates``,
     ``objective``, ``assumptions``, ``warnings``, ``seconds``
     """
-    from FluoTomoLib.analytic import robin_parameters
-    from FluoTomoLib.tomography.coverage import region_sensitivity
     from FluoTomoLib.tomography.simulate import default_scan
 
     t0 = time.perf_counter()
@@ -309,10 +308,122 @@ def plan_scan(lm, optics, targets, positions=None, min_spacing_mm=2.0, noise_pct
         positions = len(d_src)
     positions = int(positions)
     det = lm.to_local(det_ras)
+    cands = _entry_candidates(lm, optics, cfg, positions, max_angle_deg, camera_ras,
+                              visible_from, reach_mm, candidate_pitch_mm, cancel)
+    cand, cand_n, reach = cands.points, cands.normals, cands.reach
+    parts, last = _screen(lm, optics, cand, cand_n, det, cands.surface, progress, cancel)
+    labels = sorted(parts)
+    yields = _assumed_yields(lm, labels, cands.body, yield_by_label)
+    mask_all = _pair_mask(cand, det, float(exclude_mm))
+    h, q, scale = _design_matrices(parts, labels, mask_all, yields, noise_pct / 100.0)
+    design = _Design(cand, h, q, [labels.index(t) for t in targets], yields * scale,
+                     float(min_spacing_mm))
+    chosen, H, Q, last = _choose_greedy(design, positions, reach, progress, cancel, last)
+    chosen, H, Q, best, passes, warnings = _exchange_passes(
+        design, chosen, H, Q, t0, time_budget_s, progress, cancel, last)
+    chosen = np.array(chosen)
+    src = cand[chosen]
+    var = _variances(H, Q)
+    predicted = _predict(var, labels, targets, yields, scale, noise_pct)
+    report(progress, 0.95, "the default grid's prediction, for comparison")
+    default_pred = _default_grid_prediction(lm, optics, d_src, det_ras, cfg, targets, positions,
+                                            yield_by_label, noise_pct, exclude_mm)
+    for t, p in predicted.items():
+        if not p["covered"]:
+            warnings.append(f"target {t} is not covered by the plan: its predicted 95 % "
+                            f"interval is +-{p['half_width_pct']} % of its yield")
+    mask = _pair_mask(src, det, float(exclude_mm))
+    report(progress, 1.0, "planned")
+    return {
+        "sources_ras": lm.to_ras(src), "detectors_ras": det_ras, "mask": mask,
+        "approach_ras": lm.vector_to_ras(-cand_n[chosen]),
+        "targets": targets,
+        "predicted": {"HP": predicted, "SP": None},
+        "default_scan_predicted": None if default_pred is None else {"HP": default_pred},
+        "objective": {"criterion": "sum over targets of the HP estimate's relative variance "
+                      "(A-optimal on the region unknowns, sandwich variance of the "
+                      "unweighted fit; docs/physics.md section 8.6)", "value": best,
+                      "exchange_passes": passes},
+        "candidates": {"count": int(len(cand)), "pitch_mm": cands.pitch, "reach_mm": reach,
+                       "visibility": cands.view, "max_angle_deg": float(max_angle_deg)},
+        "assumptions": _plan_assumptions(noise_pct, exclude_mm, design.spacing, positions,
+                                         cfg, labels, yields),
+        "warnings": warnings, "seconds": time.perf_counter() - t0,
+        "default_scan_positions": int(len(d_src)),
+        "detector_grid": {k: cfg[k] for k in ("detectors_per_side", "detector_pitch_mm")},
+    }
+
+
+@dataclass
+class _Design:
+    """The screen's design: what the greedy choice and the exchange passes share.
+
+    ``cand`` (N, 3) candidate entry points [local mm]; ``h``, ``q`` (N, R, R)
+    each candidate's information and sandwich matrices on the R region unknowns;
+    ``t_idx`` the targets' indices among the regions; ``ys`` the assumed yields,
+    scaled as ``h`` and ``q``; ``spacing`` the least distance between two entry
+    points [mm].
+    """
+
+    cand: np.ndarray
+    h: np.ndarray
+    q: np.ndarray
+    t_idx: list
+    ys: np.ndarray
+    spacing: float
+
+
+@dataclass
+class _Candidates:
+    """The candidate entry points on the visible skin near the targets.
+
+    ``points``, ``normals`` (N, 3) positions [local mm] and outward unit
+    normals; ``pitch`` their grid's spacing [mm]; ``reach`` their largest
+    distance from a target's skin point [mm]; ``view`` the visibility's
+    description; ``body`` the largest label; ``surface`` the label map's
+    surface.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    pitch: float
+    reach: float
+    view: str
+    body: int
+    surface: object
+
+
+def _entry_candidates(lm, optics, cfg, positions, max_angle_deg, camera_ras, visible_from,
+                      reach_mm, candidate_pitch_mm, cancel):
+    """The candidate entry points (:class:`_Candidates`) for the default scan ``cfg``'s
+    patches; FluoInputError when fewer than ``positions``."""
     surf = lm.surface()
     skin_pts = np.array([q["centre_ras_mm"] for q in cfg["patches"]])
     skin_pts = lm.to_local(skin_pts)
     _, skin_n, _ = surf.closest(skin_pts)
+    visible, view, cam_local = _visibility(lm, skin_n, max_angle_deg, camera_ras,
+                                           visible_from)
+    body, reach = _body_and_reach(lm, optics, cfg, reach_mm)
+    cand, cand_n, pitch = _candidates(lm, skin_pts, visible, candidate_pitch_mm, reach,
+                                      cam_local)
+    check_cancel(cancel)
+    if len(cand) < positions:
+        raise FluoInputError(f"only {len(cand)} candidate entry point(s) on the visible skin "
+                             f"within {reach:.3g} mm of the targets (visibility: {view}, "
+                             f"within {max_angle_deg:g} deg): ask for fewer positions or "
+                             "widen the visibility", field="positions", value=positions)
+    return _Candidates(cand, cand_n, pitch, reach, view, body, surf)
+
+
+def _visibility(lm, skin_n, max_angle_deg, camera_ras, visible_from):
+    """The visibility test of candidate entry points.
+
+    Returns
+    -------
+    visible : callable (points (K, 3), outward normals (K, 3)) -> (K,) bool, local mm
+    view : str, the visibility's description for messages and the plan
+    cam_local : (3,) camera position [local mm], or None without ``camera_ras``
+    """
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     cam_local = None
     if camera_ras is not None:
@@ -334,20 +445,38 @@ def plan_scan(lm, optics, targets, positions=None, min_spacing_mm=2.0, noise_pct
 
         def visible(p, n):
             return n @ v >= cos_max
+    return visible, view, cam_local
+
+
+def _body_and_reach(lm, optics, cfg, reach_mm):
+    """The body (the largest label) and the candidates' reach from a target's skin point.
+
+    Returns
+    -------
+    body : int, the largest label
+    reach : float [mm], ``reach_mm`` or the detector grid's half-span plus 1.5
+        diffusion lengths 1/mu_eff of the body, at least 8 mm
+    """
+    from FluoTomoLib.analytic import robin_parameters
+
     body = max(lm.region_volumes(), key=lm.region_volumes().get)
     mx, sx = optics.excitation[body]
     mu_eff = robin_parameters(mx, sx, optics.n)[3]
     span = 0.5 * (cfg["detectors_per_side"] - 1) * cfg["detector_pitch_mm"]
     reach = float(reach_mm) if reach_mm is not None else max(8.0, span + 1.5 / mu_eff)
-    cand, cand_n, pitch = _candidates(lm, skin_pts, visible, candidate_pitch_mm, reach,
-                                      cam_local)
-    check_cancel(cancel)
-    if len(cand) < positions:
-        raise FluoInputError(f"only {len(cand)} candidate entry point(s) on the visible skin "
-                             f"within {reach:.3g} mm of the targets (visibility: {view}, "
-                             f"within {max_angle_deg:g} deg): ask for fewer positions or "
-                             "widen the visibility", field="positions", value=positions)
-    # the screen: every candidate's sensitivity to every region, batch by batch
+    return body, reach
+
+
+def _screen(lm, optics, cand, cand_n, det, surf, progress, cancel):
+    """Every candidate's sensitivity to every region, batch by batch.
+
+    Returns
+    -------
+    parts : {label: (N, D) sensitivity of each candidate-detector pair}
+    last : float, ``time.perf_counter()`` of the last progress report [s]
+    """
+    from FluoTomoLib.tomography.coverage import region_sensitivity
+
     _, det_n, _ = surf.closest(det)
     parts = None
     last = time.perf_counter()
@@ -360,31 +489,41 @@ def plan_scan(lm, optics, targets, positions=None, min_spacing_mm=2.0, noise_pct
             report(progress, 0.05 + 0.55 * min(1.0, (b + BATCH) / len(cand)),
                    f"sensitivity of {min(b + BATCH, len(cand))} of {len(cand)} candidates")
             last = time.perf_counter()
-    labels = sorted(parts)
-    yields = _assumed_yields(lm, labels, body, yield_by_label)
-    mask_all = _pair_mask(cand, det, float(exclude_mm))
-    h, q, scale = _design_matrices(parts, labels, mask_all, yields, noise_pct / 100.0)
-    t_idx = [labels.index(t) for t in targets]
-    ys = yields * scale
-    R = len(labels)
+    return parts, last
+
+
+def _allowed(design, chosen, excluding=None):
+    """(N,) bool: the candidates not chosen and at least ``design.spacing`` [mm] from
+    every chosen one (but ``excluding``, the position being exchanged)."""
+    cand = design.cand
+    ok = np.ones(len(cand), bool)
+    for j in chosen:
+        if j == excluding:
+            continue
+        ok &= np.linalg.norm(cand - cand[j], axis=1) >= design.spacing
+    ok[[j for j in chosen]] = False
+    return ok
+
+
+def _choose_greedy(design, positions, reach, progress, cancel, last):
+    """Choose ``positions`` entry points one at a time, each the best for the objective.
+
+    ``reach`` [mm] is only for the message when the spacing leaves too few;
+    ``last`` the time of the last progress report [s].
+
+    Returns
+    -------
+    chosen : list of candidate indices
+    H, Q : (R, R) the chosen candidates' summed information and sandwich matrices
+    last : float, the time of the last progress report [s]
+    """
+    h, q, t_idx, ys, spacing = design.h, design.q, design.t_idx, design.ys, design.spacing
+    R = h.shape[1]
     chosen = []
     H, Q = np.zeros((R, R)), np.zeros((R, R))
-    free = np.ones(len(cand), bool)
-    warnings = []
-    spacing = float(min_spacing_mm)
-
-    def allowed(excluding=None):
-        ok = np.ones(len(cand), bool)
-        for j in chosen:
-            if j == excluding:
-                continue
-            ok &= np.linalg.norm(cand - cand[j], axis=1) >= spacing
-        ok[[j for j in chosen]] = False
-        return ok
-
     for k in range(positions):
         check_cancel(cancel)
-        free = allowed()
+        free = _allowed(design, chosen)
         if not free.any():
             raise FluoInputError(f"only {k} entry points fit {spacing:g} mm apart on the "
                                  f"visible skin within {reach:.3g} mm of the targets: ask for "
@@ -401,6 +540,23 @@ def plan_scan(lm, optics, targets, positions=None, min_spacing_mm=2.0, noise_pct
             report(progress, 0.6 + 0.2 * (k + 1) / positions,
                    f"chose {k + 1} of {positions} entry points")
             last = time.perf_counter()
+    return chosen, H, Q, last
+
+
+def _exchange_passes(design, chosen, H, Q, t0, time_budget_s, progress, cancel, last):
+    """Exchange each chosen entry point for the best allowed one while that improves
+    the objective, at most 5 passes and until ``time_budget_s`` [s] after ``t0``.
+
+    Returns
+    -------
+    chosen, H, Q : the exchanged choice and its summed matrices
+    best : float, the objective of the choice
+    passes : int, the exchange passes begun
+    warnings : list of str (the time budget ended the passes)
+    """
+    h, q, t_idx, ys = design.h, design.q, design.t_idx, design.ys
+    positions = len(chosen)
+    warnings = []
     best = float(_objective(_variances(H, Q), t_idx, ys))
     passes = 0
     improved = True
@@ -414,7 +570,7 @@ def plan_scan(lm, optics, targets, positions=None, min_spacing_mm=2.0, noise_pct
                                 "passes: the plan may be improved with more time")
                 break
             j = chosen[n_pos]
-            ok = allowed(excluding=j)
+            ok = _allowed(design, chosen, excluding=j)
             Hb, Qb = H - h[j], Q - q[j]
             obj = _objective(_variances(Hb + h, Qb + q), t_idx, ys)
             obj[~ok] = np.inf
@@ -425,53 +581,38 @@ def plan_scan(lm, optics, targets, positions=None, min_spacing_mm=2.0, noise_pct
                 report(progress, 0.8 + 0.15 * min(1.0, passes / 5),
                        f"exchange pass {passes}: position {n_pos + 1} of {positions}")
                 last = time.perf_counter()
-    chosen = np.array(chosen)
-    src = cand[chosen]
-    var = _variances(H, Q)
-    predicted = _predict(var, labels, targets, yields, scale, noise_pct)
-    report(progress, 0.95, "the default grid's prediction, for comparison")
-    # the default grid with as many positions: its patches' sources, pairs within a patch
-    default_pred = None
-    if positions == len(d_src):
-        from FluoTomoLib.tomography.simulate import scan_pairs
+    return chosen, H, Q, best, passes, warnings
 
-        default_pred = predict_scan(lm, optics, d_src, det_ras, targets,
-                                    scan_pairs(cfg, len(d_src), len(det_ras)),
-                                    yield_by_label, noise_pct, exclude_mm)
-    for t, p in predicted.items():
-        if not p["covered"]:
-            warnings.append(f"target {t} is not covered by the plan: its predicted 95 % "
-                            f"interval is +-{p['half_width_pct']} % of its yield")
-    mask = _pair_mask(src, det, float(exclude_mm))
-    report(progress, 1.0, "planned")
+
+def _default_grid_prediction(lm, optics, d_src, det_ras, cfg, targets, positions,
+                             yield_by_label, noise_pct, exclude_mm):
+    """The default grid's HP prediction (:func:`predict_scan`) when it lays as many
+    positions as the plan, else None."""
+    # the default grid with as many positions: its patches' sources, pairs within a patch
+    if positions != len(d_src):
+        return None
+    from FluoTomoLib.tomography.simulate import scan_pairs
+
+    return predict_scan(lm, optics, d_src, det_ras, targets,
+                        scan_pairs(cfg, len(d_src), len(det_ras)),
+                        yield_by_label, noise_pct, exclude_mm)
+
+
+def _plan_assumptions(noise_pct, exclude_mm, spacing, positions, cfg, labels, yields):
+    """The plan's ``assumptions``: the noise model [%], pair exclusion and spacing [mm],
+    the detector grid, the assumed yields [1/mm] and the model's limits."""
     return {
-        "sources_ras": lm.to_ras(src), "detectors_ras": det_ras, "mask": mask,
-        "approach_ras": lm.vector_to_ras(-cand_n[chosen]),
-        "targets": targets,
-        "predicted": {"HP": predicted, "SP": None},
-        "default_scan_predicted": None if default_pred is None else {"HP": default_pred},
-        "objective": {"criterion": "sum over targets of the HP estimate's relative variance "
-                      "(A-optimal on the region unknowns, sandwich variance of the "
-                      "unweighted fit; docs/physics.md section 8.6)", "value": best,
-                      "exchange_passes": passes},
-        "candidates": {"count": int(len(cand)), "pitch_mm": pitch, "reach_mm": reach,
-                       "visibility": view, "max_angle_deg": float(max_angle_deg)},
-        "assumptions": {
-            "noise_pct": float(noise_pct), "exclude_mm": float(exclude_mm),
-            "min_spacing_mm": spacing, "positions": positions,
-            "detectors": "the default scan's grid over each target "
-                         f"({cfg['detectors_per_side']} x {cfg['detectors_per_side']}, "
-                         f"{cfg['detector_pitch_mm']:g} mm pitch)",
-            "pairs": f"every source-detector pair farther apart than {float(exclude_mm):g} mm",
-            "yield_by_label": {str(lab): float(y) for lab, y in zip(labels, yields)},
-            "model": "half-space diffusion in the largest label's optics (scan coverage's "
-                     "screen), HP region unknowns; the interval is the noise part only",
-            "SP": "not predicted: SP's interval depends on the mesh, its regularisation and "
-                  "the resolution's bias, which the screen does not model"},
-        "warnings": warnings, "seconds": time.perf_counter() - t0,
-        "default_scan_positions": int(len(d_src)),
-        "detector_grid": {k: cfg[k] for k in ("detectors_per_side", "detector_pitch_mm")},
-    }
+        "noise_pct": float(noise_pct), "exclude_mm": float(exclude_mm),
+        "min_spacing_mm": spacing, "positions": positions,
+        "detectors": "the default scan's grid over each target "
+                     f"({cfg['detectors_per_side']} x {cfg['detectors_per_side']}, "
+                     f"{cfg['detector_pitch_mm']:g} mm pitch)",
+        "pairs": f"every source-detector pair farther apart than {float(exclude_mm):g} mm",
+        "yield_by_label": {str(lab): float(y) for lab, y in zip(labels, yields)},
+        "model": "half-space diffusion in the largest label's optics (scan coverage's "
+                 "screen), HP region unknowns; the interval is the noise part only",
+        "SP": "not predicted: SP's interval depends on the mesh, its regularisation and "
+              "the resolution's bias, which the screen does not model"}
 
 
 def write_plan(folder, plan):

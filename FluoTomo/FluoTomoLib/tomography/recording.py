@@ -37,6 +37,7 @@ import csv
 import io
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -108,10 +109,45 @@ def read_scan_recording(folder):
     None), ``doc`` (recording.json).  Refusals name the file, the field and the
     value (FluoInputError).
     """
-    from fluoguide.jsonable import read_json
     from fluoguide.paths import inside
 
     base = Path(folder)
+    jpath, doc = _read_recording_json(base)
+    laser_tool = str(doc.get("laser_tool", "LaserToolToTracker"))
+    camera_tool = str(doc.get("camera_tool", "CameraToolToTracker"))
+    power = _num(doc.get("laser_power_w"), jpath, "laser_power_w")
+    exposure = (_num(doc["exposure_s"], jpath, "exposure_s") if doc.get("exposure_s")
+                is not None else None)
+    tol = _num(doc.get("time_sync_tolerance_s", TIME_SYNC_TOLERANCE_S), jpath,
+               "time_sync_tolerance_s")
+    calib = doc.get("calibration")
+    calib = None if calib is None else inside(base, str(calib), file=jpath, field="calibration",
+                                              given=True)
+    if "log" in doc:                     # FluoNav's recorder folder
+        frames, samples = _read_recorder_folder(base, jpath, doc, exposure, power)
+    else:
+        for key in ("frames", "poses"):
+            if key not in doc:
+                raise FluoInputError("missing (or 'log' for a recorder folder)", file=jpath,
+                                     field=key)
+        frames = _read_frames_csv(base, jpath, doc, exposure, power)
+        samples = _read_poses_csv(base, jpath, doc)
+    if not frames:
+        raise FluoInputError("the recording has no frame", file=base)
+    for tool in (laser_tool, camera_tool):
+        if tool not in samples:
+            raise FluoInputError("no pose of this tool in the recording", file=base,
+                                 field=tool)
+    return {"frames": frames, "samples": samples, "laser_tool": laser_tool,
+            "camera_tool": camera_tool, "tolerance_s": tol, "calibration": calib, "doc": doc,
+            "folder": base}
+
+
+def _read_recording_json(base):
+    """(path, dict) of the folder ``base``'s recording.json, its format, version
+    and keys checked."""
+    from fluoguide.jsonable import read_json
+
     if not base.is_dir():
         raise FluoInputError("recording folder not found", file=base)
     jpath = base / "recording.json"
@@ -129,122 +165,133 @@ def read_scan_recording(folder):
     extra = set(doc) - _REC_KEYS
     if extra:
         raise FluoInputError("unknown key", file=jpath, field=sorted(extra)[0])
-    laser_tool = str(doc.get("laser_tool", "LaserToolToTracker"))
-    camera_tool = str(doc.get("camera_tool", "CameraToolToTracker"))
-    power = _num(doc.get("laser_power_w"), jpath, "laser_power_w")
-    exposure = (_num(doc["exposure_s"], jpath, "exposure_s") if doc.get("exposure_s")
-                is not None else None)
-    tol = _num(doc.get("time_sync_tolerance_s", TIME_SYNC_TOLERANCE_S), jpath,
-               "time_sync_tolerance_s")
-    calib = doc.get("calibration")
-    calib = None if calib is None else inside(base, str(calib), file=jpath, field="calibration",
-                                              given=True)
+    return jpath, doc
+
+
+def _read_recorder_folder(base, jpath, doc, exposure, power):
+    """(frames, samples) of FluoNav's recorder folder (its log.jsonl); ``exposure``
+    [s] where a frame names none, ``power`` [W] every frame's laser power."""
+    from fluoguide.paths import inside
+
+    from FluoNavLib.devices.recorder import read_recording
+
+    if inside(base, str(doc["log"]), file=jpath, field="log", given=True).name != "log.jsonl":
+        raise FluoInputError("the recorder's log is log.jsonl", file=jpath, field="log",
+                             value=doc["log"])
     frames, samples = [], {}
-    if "log" in doc:                     # FluoNav's recorder folder
-        from FluoNavLib.devices.recorder import read_recording
+    _, recs = read_recording(base)
+    for r in recs:
+        t = r["timestamp_s"]
+        frames.append({"frame": int(r["frame"]), "file": r["file"], "path": r["path"],
+                       "time_s": t, "exposure_s": r["exposure_s"] or exposure,
+                       "laser_power_w": power})
+        status = r["pose_status"] if r["pose_valid"] else (
+            r["pose_status"] if r["pose_status"] != "OK" else "MISSING")
+        for tool, m in r["poses"].items():
+            st = "OK" if (m is not None and status == "OK") else (
+                "MISSING" if m is None else status)
+            samples.setdefault(tool, []).append((t, m if st == "OK" else None, st))
+    return frames, samples
 
-        if inside(base, str(doc["log"]), file=jpath, field="log", given=True).name != "log.jsonl":
-            raise FluoInputError("the recorder's log is log.jsonl", file=jpath, field="log",
-                                 value=doc["log"])
-        _, recs = read_recording(base)
-        for r in recs:
-            t = r["timestamp_s"]
-            frames.append({"frame": int(r["frame"]), "file": r["file"], "path": r["path"],
-                           "time_s": t, "exposure_s": r["exposure_s"] or exposure,
-                           "laser_power_w": power})
-            status = r["pose_status"] if r["pose_valid"] else (
-                r["pose_status"] if r["pose_status"] != "OK" else "MISSING")
-            for tool, m in r["poses"].items():
-                st = "OK" if (m is not None and status == "OK") else (
-                    "MISSING" if m is None else status)
-                samples.setdefault(tool, []).append((t, m if st == "OK" else None, st))
+
+def _read_frames_csv(base, jpath, doc, exposure, power):
+    """The frames of the documented layout's frames CSV: list of {frame, file, path,
+    time_s, exposure_s [s], laser_power_w [W]}, ``exposure`` and ``power`` where a
+    row names none."""
+    from fluoguide.paths import inside
+
+    frames = []
+    fpath = inside(base, str(doc["frames"]), file=jpath, field="frames", given=True)
+    head, rows = _csv_rows(fpath, "frames")
+    for col in ("frame", "file", "timestamp_s"):
+        if col not in head:
+            raise FluoInputError("missing column", file=fpath, field=col)
+    last = -np.inf
+    for n, r in rows:
+        t = _float(r["timestamp_s"], fpath, f"line {n} timestamp_s")
+        if not t > last:
+            raise FluoInputError("timestamps must increase", file=fpath,
+                                 field=f"line {n} timestamp_s", value=r["timestamp_s"])
+        last = t
+        e = (_float(r["exposure_s"], fpath, f"line {n} exposure_s")
+             if r.get("exposure_s") else exposure)
+        if e is None or not e > 0:
+            raise FluoInputError("needs a positive exposure (column exposure_s or "
+                                 "recording.json exposure_s)", file=fpath,
+                                 field=f"line {n} exposure_s", value=e)
+        pw = (_float(r["laser_power_w"], fpath, f"line {n} laser_power_w")
+              if r.get("laser_power_w") else power)
+        if not pw > 0:
+            raise FluoInputError("must be positive", file=fpath,
+                                 field=f"line {n} laser_power_w", value=pw)
+        try:
+            frame_no = int(r["frame"])
+        except ValueError:
+            raise FluoInputError("must be an integer", file=fpath, field=f"line {n} frame",
+                                 value=r["frame"]) from None
+        path = inside(base, r["file"], file=fpath, field=f"line {n} file", given=True)
+        if not path.is_file():
+            raise FluoInputError("frame file not found", file=path,
+                                 field=f"{fpath.name} line {n} file")
+        frames.append({"frame": frame_no, "file": r["file"], "path": path, "time_s": t,
+                       "exposure_s": e, "laser_power_w": pw})
+    return frames
+
+
+_MATRIX_COLS = [f"m{i}{j}" for i in range(4) for j in range(4)]
+_QUATERNION_COLS = ["qw", "qx", "qy", "qz", "tx_mm", "ty_mm", "tz_mm"]
+
+
+def _read_poses_csv(base, jpath, doc):
+    """The tool poses of the documented layout's poses CSV: {tool: list of
+    (time_s [s], 4x4 [mm] or None, status)}."""
+    from fluoguide.paths import inside
+
+    samples = {}
+    ppath = inside(base, str(doc["poses"]), file=jpath, field="poses", given=True)
+    head, rows = _csv_rows(ppath, "poses")
+    for col in ("timestamp_s", "tool"):
+        if col not in head:
+            raise FluoInputError("missing column", file=ppath, field=col)
+    if all(c in head for c in _MATRIX_COLS):
+        form = "matrix"
+    elif all(c in head for c in _QUATERNION_COLS):
+        form = "quaternion"
     else:
-        for key in ("frames", "poses"):
-            if key not in doc:
-                raise FluoInputError("missing (or 'log' for a recorder folder)", file=jpath,
-                                     field=key)
-        fpath = inside(base, str(doc["frames"]), file=jpath, field="frames", given=True)
-        head, rows = _csv_rows(fpath, "frames")
-        for col in ("frame", "file", "timestamp_s"):
-            if col not in head:
-                raise FluoInputError("missing column", file=fpath, field=col)
-        last = -np.inf
-        for n, r in rows:
-            t = _float(r["timestamp_s"], fpath, f"line {n} timestamp_s")
-            if not t > last:
-                raise FluoInputError("timestamps must increase", file=fpath,
-                                     field=f"line {n} timestamp_s", value=r["timestamp_s"])
-            last = t
-            e = (_float(r["exposure_s"], fpath, f"line {n} exposure_s")
-                 if r.get("exposure_s") else exposure)
-            if e is None or not e > 0:
-                raise FluoInputError("needs a positive exposure (column exposure_s or "
-                                     "recording.json exposure_s)", file=fpath,
-                                     field=f"line {n} exposure_s", value=e)
-            pw = (_float(r["laser_power_w"], fpath, f"line {n} laser_power_w")
-                  if r.get("laser_power_w") else power)
-            if not pw > 0:
-                raise FluoInputError("must be positive", file=fpath,
-                                     field=f"line {n} laser_power_w", value=pw)
-            try:
-                frame_no = int(r["frame"])
-            except ValueError:
-                raise FluoInputError("must be an integer", file=fpath, field=f"line {n} frame",
-                                     value=r["frame"]) from None
-            path = inside(base, r["file"], file=fpath, field=f"line {n} file", given=True)
-            if not path.is_file():
-                raise FluoInputError("frame file not found", file=path,
-                                     field=f"{fpath.name} line {n} file")
-            frames.append({"frame": frame_no, "file": r["file"], "path": path, "time_s": t,
-                           "exposure_s": e, "laser_power_w": pw})
-        ppath = inside(base, str(doc["poses"]), file=jpath, field="poses", given=True)
-        head, rows = _csv_rows(ppath, "poses")
-        mcols = [f"m{i}{j}" for i in range(4) for j in range(4)]
-        qcols = ["qw", "qx", "qy", "qz", "tx_mm", "ty_mm", "tz_mm"]
-        for col in ("timestamp_s", "tool"):
-            if col not in head:
-                raise FluoInputError("missing column", file=ppath, field=col)
-        if all(c in head for c in mcols):
-            form = "matrix"
-        elif all(c in head for c in qcols):
-            form = "quaternion"
-        else:
-            raise FluoInputError("needs the columns m00..m33 (4x4, row-major) or qw,qx,qy,qz,"
-                                 "tx_mm,ty_mm,tz_mm", file=ppath, field="header")
-        for n, r in rows:
-            t = _float(r["timestamp_s"], ppath, f"line {n} timestamp_s")
-            status = (r.get("status") or "OK").upper()
-            m = None
-            if status == "OK":
-                if form == "matrix":
-                    m = np.array([_float(r[c], ppath, f"line {n} {c}") for c in mcols]
-                                 ).reshape(4, 4)
-                    R = m[:3, :3]
-                    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or not np.allclose(
-                            m[3], [0, 0, 0, 1], atol=1e-9):
-                        raise FluoInputError("not a rigid transform (rotation + translation)",
-                                             file=ppath, field=f"line {n} {r['tool']}")
-                else:
-                    from FluoCalibLib.geometry.transforms import quaternion_to_matrix
+        raise FluoInputError("needs the columns m00..m33 (4x4, row-major) or qw,qx,qy,qz,"
+                             "tx_mm,ty_mm,tz_mm", file=ppath, field="header")
+    for n, r in rows:
+        t = _float(r["timestamp_s"], ppath, f"line {n} timestamp_s")
+        status = (r.get("status") or "OK").upper()
+        m = _pose_of_row(r, n, ppath, form) if status == "OK" else None
+        samples.setdefault(r["tool"], []).append((t, m, status))
+    return samples
 
-                    q = np.array([_float(r[c], ppath, f"line {n} {c}") for c in qcols[:4]])
-                    if not abs(np.linalg.norm(q) - 1.0) < 1e-3:
-                        raise FluoInputError("quaternion must have unit length", file=ppath,
-                                             field=f"line {n} qw..qz",
-                                             value=round(float(np.linalg.norm(q)), 6))
-                    m = np.eye(4)
-                    m[:3, :3] = quaternion_to_matrix(q / np.linalg.norm(q))
-                    m[:3, 3] = [_float(r[c], ppath, f"line {n} {c}") for c in qcols[4:]]
-            samples.setdefault(r["tool"], []).append((t, m, status))
-    if not frames:
-        raise FluoInputError("the recording has no frame", file=base)
-    for tool in (laser_tool, camera_tool):
-        if tool not in samples:
-            raise FluoInputError("no pose of this tool in the recording", file=base,
-                                 field=tool)
-    return {"frames": frames, "samples": samples, "laser_tool": laser_tool,
-            "camera_tool": camera_tool, "tolerance_s": tol, "calibration": calib, "doc": doc,
-            "folder": base}
+
+def _pose_of_row(r, n, ppath, form):
+    """The 4x4 rigid pose [mm] of poses CSV row ``r`` (line ``n``), from its matrix
+    or quaternion columns (``form``)."""
+    if form == "matrix":
+        m = np.array([_float(r[c], ppath, f"line {n} {c}") for c in _MATRIX_COLS]
+                     ).reshape(4, 4)
+        R = m[:3, :3]
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or not np.allclose(
+                m[3], [0, 0, 0, 1], atol=1e-9):
+            raise FluoInputError("not a rigid transform (rotation + translation)",
+                                 file=ppath, field=f"line {n} {r['tool']}")
+        return m
+    from FluoCalibLib.geometry.transforms import quaternion_to_matrix
+
+    qcols = _QUATERNION_COLS
+    q = np.array([_float(r[c], ppath, f"line {n} {c}") for c in qcols[:4]])
+    if not abs(np.linalg.norm(q) - 1.0) < 1e-3:
+        raise FluoInputError("quaternion must have unit length", file=ppath,
+                             field=f"line {n} qw..qz",
+                             value=round(float(np.linalg.norm(q)), 6))
+    m = np.eye(4)
+    m[:3, :3] = quaternion_to_matrix(q / np.linalg.norm(q))
+    m[:3, 3] = [_float(r[c], ppath, f"line {n} {c}") for c in qcols[4:]]
+    return m
 
 
 def pose_at(samples, t, tolerance_s):
@@ -429,29 +476,18 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
     the one recording.json names.  Report rows: {frame, time_s, used, reason,
     detail}.
     """
-    from fluoguide.images import read_image
     from fluoguide.progress import check_cancel, report
 
     from FluoNavLib.mapping.pixel_cast import SurfaceCaster
-    from FluoTomoLib.acquisition.camera_frames import cast
-    from FluoTomoLib.acquisition.noncontact_optodes import ray_triangle_intersect
-    from FluoTomoLib.acquisition.tracked_scan import beam_in_world
     from FluoTomoLib.tomography.acquisition_file import acquisition_from_tracked_frames
 
     t0 = time.perf_counter()
     rec = recording if isinstance(recording, dict) else read_scan_recording(recording)
-    if calibration is None:
-        if rec["calibration"] is None:
-            raise FluoInputError("no calibration: give one (a calibration JSON file or a "
-                                 "scene) or name it in recording.json", field="calibration",
-                                 file=rec["folder"] / "recording.json")
-        calibration = rec["calibration"]
-    cal = calibration if isinstance(calibration, dict) else read_calibration(calibration)
+    cal = _recording_calibration(rec, calibration)
     if not (np.isfinite(spot_tolerance_mm) and 0 < spot_tolerance_mm <= 50):
         raise FluoInputError("must be a distance within (0, 50] mm", field="spot_tolerance_mm",
                              value=spot_tolerance_mm)
     camera = cal["camera"]
-    TtR = cal["tracker_to_reference"]
     surf = labelmap.surface()
     pts_ras = labelmap.to_ras(surf.points)
     tris = surf.triangles if np.linalg.det(labelmap.direction) > 0 else surf.triangles[:, ::-1]
@@ -465,64 +501,17 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
         row = {"frame": fr["frame"], "time_s": fr["time_s"], "used": False, "reason": None,
                "detail": ""}
         rows.append(row)
-        L, st_l = pose_at(rec["samples"][rec["laser_tool"]], fr["time_s"], rec["tolerance_s"])
-        C, st_c = pose_at(rec["samples"][rec["camera_tool"]], fr["time_s"], rec["tolerance_s"])
-        if st_l != "ok" or st_c != "ok":
-            bad = [(t, s) for t, s in ((rec["laser_tool"], st_l), (rec["camera_tool"], st_c))
-                   if s != "ok"]
-            row["reason"] = "pose missing" if any(s == "missing" for _, s in bad) else "pose stale"
-            row["detail"] = ", ".join(
-                f"{t} {s}" + (f" (no sample within {rec['tolerance_s']:g} s)" if s == "stale"
-                              else "") for t, s in bad)
-            continue
-        laser_ras = TtR @ L
-        cam_ras = TtR @ C @ cal["camera_to_tool"]
-        o, d = beam_in_world(laser_ras, cal["beam_origin_tool_mm"], cal["beam_dir_tool"])
-        src, _, face = ray_triangle_intersect(o[None], d[None], pts_ras, tris)
-        if face[0] < 0:
-            row["reason"], row["detail"] = "surface not visible", "the tracked beam misses the surface"
-            continue
-        src = src[0]
-        hits = cast(caster, camera, cam_ras)
-        uv_src = camera.project((np.linalg.inv(cam_ras) @ np.append(src, 1.0))[:3][None])[0]
-        seen = None if not np.all(np.isfinite(uv_src)) else _surface_point_at_pixel(hits, uv_src)
-        if seen is None or np.linalg.norm(seen - src) > VISIBLE_TOLERANCE_MM:
-            row["reason"] = "surface not visible"
-            row["detail"] = "the camera does not see the beam's surface point"
-            continue
-        img = read_image(fr["path"], field=f"frame {fr['frame']}")
-        if img.ndim != 2 or img.shape != (camera.height, camera.width):
-            raise FluoInputError("frame is not the camera's size (a grey image of "
-                                 f"{camera.width} x {camera.height} px)", file=fr["path"],
-                                 value=list(img.shape))
-        img = img.astype(float)
-        saturated = img >= cal["saturation_adu"]
-        far = hits.visible & (np.linalg.norm(hits.point_mm - src, axis=-1) > exclude_mm)
-        n_sat = int(np.sum(saturated & far))
-        sat_detail = f"{n_sat} pixels at saturation farther than {exclude_mm:g} mm from the source"
-        uv = detect_spot(img)
-        spot = None if uv is None else _surface_point_at_pixel(hits, uv)
-        if spot is None:         # a frame washed out by saturation has no spot either
-            row["reason"], row["detail"] = (("saturated", sat_detail) if n_sat else
-                                            ("spot not found",
-                                             "no distinct bright spot on the surface"))
-            continue
-        miss = float(np.linalg.norm(spot - src))
-        row["spot_to_beam_mm"] = round(miss, 3)
-        if miss > spot_tolerance_mm:
-            row["reason"] = "spot far from the beam"
-            row["detail"] = f"{miss:.2f} mm > {spot_tolerance_mm:g} mm"
-            continue
-        if n_sat:
-            row["reason"], row["detail"] = "saturated", sat_detail
+        kept = _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm,
+                              exclude_mm)
+        if kept is None:
             continue
         row["used"] = True
         keep.append(k)
-        images.append(img)
-        sat.append(saturated)
-        cams.append(cam_ras)
-        lasers.append(laser_ras)
-        hits_used.append(hits)
+        images.append(kept["image"])
+        sat.append(kept["saturated"])
+        cams.append(kept["camera_ras"])
+        lasers.append(kept["laser_ras"])
+        hits_used.append(kept["hits"])
         scale.append((cal["reference_exposure_s"] / fr["exposure_s"]))
         row["laser_power_w"] = fr["laser_power_w"]
     used = [r for r in rows if r["used"]]
@@ -541,21 +530,119 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
         n_tissue=optics.n, boundary=optics.boundary, detector_factor=detector_factor,
         exclude_mm=exclude_mm, roi_area_mm2=roi_area_mm2, source=str(rec["folder"]),
         hits=hits_used)
+    info = _recording_info(rows, used, n, power, spot_tolerance_mm, rec, acq, t0)
+    acq.meta.update({"recording": {k: v for k, v in info.items() if k != "seconds"}})
+    report(progress, 1.0, "done")
+    return acq, rows, info
+
+
+def _recording_calibration(rec, calibration):
+    """The calibrations (:func:`read_calibration`) of ``calibration`` (a file, a
+    scene or its dict), or of the one the recording ``rec`` names."""
+    if calibration is None:
+        if rec["calibration"] is None:
+            raise FluoInputError("no calibration: give one (a calibration JSON file or a "
+                                 "scene) or name it in recording.json", field="calibration",
+                                 file=rec["folder"] / "recording.json")
+        calibration = rec["calibration"]
+    return calibration if isinstance(calibration, dict) else read_calibration(calibration)
+
+
+def _pose_failure(rec, st_l, st_c):
+    """(reason, detail) of a frame whose laser or camera tool pose status is not
+    ``"ok"``."""
+    bad = [(t, s) for t, s in ((rec["laser_tool"], st_l), (rec["camera_tool"], st_c))
+           if s != "ok"]
+    reason = "pose missing" if any(s == "missing" for _, s in bad) else "pose stale"
+    detail = ", ".join(
+        f"{t} {s}" + (f" (no sample within {rec['tolerance_s']:g} s)" if s == "stale"
+                      else "") for t, s in bad)
+    return reason, detail
+
+
+def _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm, exclude_mm):
+    """Check one frame: its tool poses, the tracked beam's surface point (the
+    source, RAS mm) seen by the camera, the laser spot within
+    ``spot_tolerance_mm`` [mm] of it, no saturation farther than ``exclude_mm``
+    [mm] from it.
+
+    A frame that fails gets its ``row``'s reason and detail and gives None; a
+    used one gives {image (ADU, float), saturated, camera_ras, laser_ras, hits}.
+    ``row`` also gets ``spot_to_beam_mm`` once the spot is found.
+    """
+    from fluoguide.images import read_image
+
+    from FluoTomoLib.acquisition.camera_frames import cast
+    from FluoTomoLib.acquisition.noncontact_optodes import ray_triangle_intersect
+    from FluoTomoLib.acquisition.tracked_scan import beam_in_world
+
+    camera, TtR = cal["camera"], cal["tracker_to_reference"]
+    L, st_l = pose_at(rec["samples"][rec["laser_tool"]], fr["time_s"], rec["tolerance_s"])
+    C, st_c = pose_at(rec["samples"][rec["camera_tool"]], fr["time_s"], rec["tolerance_s"])
+    if st_l != "ok" or st_c != "ok":
+        row["reason"], row["detail"] = _pose_failure(rec, st_l, st_c)
+        return None
+    laser_ras = TtR @ L
+    cam_ras = TtR @ C @ cal["camera_to_tool"]
+    o, d = beam_in_world(laser_ras, cal["beam_origin_tool_mm"], cal["beam_dir_tool"])
+    src, _, face = ray_triangle_intersect(o[None], d[None], pts_ras, tris)
+    if face[0] < 0:
+        row["reason"], row["detail"] = "surface not visible", "the tracked beam misses the surface"
+        return None
+    src = src[0]
+    hits = cast(caster, camera, cam_ras)
+    uv_src = camera.project((np.linalg.inv(cam_ras) @ np.append(src, 1.0))[:3][None])[0]
+    seen = None if not np.all(np.isfinite(uv_src)) else _surface_point_at_pixel(hits, uv_src)
+    if seen is None or np.linalg.norm(seen - src) > VISIBLE_TOLERANCE_MM:
+        row["reason"] = "surface not visible"
+        row["detail"] = "the camera does not see the beam's surface point"
+        return None
+    img = read_image(fr["path"], field=f"frame {fr['frame']}")
+    if img.ndim != 2 or img.shape != (camera.height, camera.width):
+        raise FluoInputError("frame is not the camera's size (a grey image of "
+                             f"{camera.width} x {camera.height} px)", file=fr["path"],
+                             value=list(img.shape))
+    img = img.astype(float)
+    saturated = img >= cal["saturation_adu"]
+    far = hits.visible & (np.linalg.norm(hits.point_mm - src, axis=-1) > exclude_mm)
+    n_sat = int(np.sum(saturated & far))
+    sat_detail = f"{n_sat} pixels at saturation farther than {exclude_mm:g} mm from the source"
+    uv = detect_spot(img)
+    spot = None if uv is None else _surface_point_at_pixel(hits, uv)
+    if spot is None:         # a frame washed out by saturation has no spot either
+        row["reason"], row["detail"] = (("saturated", sat_detail) if n_sat else
+                                        ("spot not found",
+                                         "no distinct bright spot on the surface"))
+        return None
+    miss = float(np.linalg.norm(spot - src))
+    row["spot_to_beam_mm"] = round(miss, 3)
+    if miss > spot_tolerance_mm:
+        row["reason"] = "spot far from the beam"
+        row["detail"] = f"{miss:.2f} mm > {spot_tolerance_mm:g} mm"
+        return None
+    if n_sat:
+        row["reason"], row["detail"] = "saturated", sat_detail
+        return None
+    return {"image": img, "saturated": saturated, "camera_ras": cam_ras,
+            "laser_ras": laser_ras, "hits": hits}
+
+
+def _recording_info(rows, used, n, power, spot_tolerance_mm, rec, acq, t0):
+    """The acquisition's summary of the recording: frames used and rejected (by
+    reason), the laser power [W], the tolerances [mm, s], the time [s] since
+    ``t0``.  Drops the rows' working ``laser_power_w``."""
     for r in rows:
         r.pop("laser_power_w", None)
     rejected = {}
     for r in rows:
         if not r["used"]:
             rejected.setdefault(r["reason"], []).append(r["frame"])
-    info = {"frames": n, "frames_used": len(used), "frames_rejected": rejected,
+    return {"frames": n, "frames_used": len(used), "frames_rejected": rejected,
             "used_frames": [r["frame"] for r in used], "laser_power_w": power,
             "spot_tolerance_mm": spot_tolerance_mm, "time_sync_tolerance_s": rec["tolerance_s"],
             "measurements": acq.n_measurements, "seconds": time.perf_counter() - t0,
             "warnings": ([f"{n - len(used)} of {n} frames not used (frames.json says why)"]
                          if len(used) < n else [])}
-    acq.meta.update({"recording": {k: v for k, v in info.items() if k != "seconds"}})
-    report(progress, 1.0, "done")
-    return acq, rows, info
 
 
 def write_recorded_acquisition(folder, acq, rows, info):
@@ -611,39 +698,16 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
     Returns a dict: ``folder``, ``truth`` (true sources, camera pose,
     yields), ``frames``, ``camera_gain``, ``seconds``.
     """
-    import cv2
-
-    from fluoguide import atomic
     from fluoguide.jsonable import dumps
     from fluoguide.progress import check_cancel, report
 
-    from FluoCalibLib.geometry.transforms import invert_rigid, make_rigid, rotvec_to_matrix
-    from FluoTomoLib.acquisition.camera_frames import (ADC_MAX_ADU, cast, expose,
-                                                       frame_radiance, tomography_camera)
-    from FluoTomoLib.acquisition.tracked_scan import laser_tool_pose_for_target
     from FluoTomoLib.fem.kernels import prepare_kernels
-    from FluoTomoLib.optics import robin_A
     from FluoTomoLib.tomography.accuracy import accuracy_settings
     from FluoTomoLib.tomography.simulate import MAX_SCAN_PATCHES, default_scan, whole_map_model
-    from FluoNavLib.mapping.pixel_cast import SurfaceCaster
 
     t0 = time.perf_counter()
-    for name, v in (("tracking_error_mm", tracking_error_mm),
-                    ("tracking_error_deg", tracking_error_deg),
-                    ("hand_eye_error_mm", hand_eye_error_mm)):
-        if not (np.isfinite(v) and 0 <= v <= 10):
-            raise FluoInputError("must be within 0..10", field=name, value=v)
-    if not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2 ** 32:
-        raise FluoInputError("seed must be an integer within 0..2**32-1", field="seed",
-                             value=seed)
-    optics.check_labels(labelmap.labels)
-    for lab, v in yield_by_label.items():
-        if int(lab) not in labelmap.labels:
-            raise FluoInputError("label is not in the label map", field="yield", value=int(lab))
-    if not any(v > 0 for v in yield_by_label.values()):
-        raise FluoInputError("no label fluoresces: give a yield > 0 to at least one",
-                             field="yield")
-    atomic.check_writable(Path(out), folder=True)
+    _check_record_inputs(labelmap, optics, yield_by_label, out, tracking_error_mm,
+                         tracking_error_deg, hand_eye_error_mm, seed)
     rng = np.random.default_rng(seed)
     lm = labelmap
     targets = lm.inclusion_labels()[:MAX_SCAN_PATCHES] or lm.default_target()
@@ -666,17 +730,108 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
     check_cancel(cancel)
     # --- the camera above the scan, looking down its mean normal, true pose
     report(progress, 0.7, "camera frames")
-    mesh_ras = lm.mesh_to_ras(mesh)
-    facets = mesh_ras.boundary_facets
-    caster = SurfaceCaster(mesh_ras.nodes_mm, facets)
+    nrm, up, cam_true = _true_camera_pose(lm, src_ras, camera_distance_mm)
+    camera, frames, gain, offset = _render_frames(lm, mesh, fields, optics, src_ras, cam_true,
+                                                  camera_distance_mm, laser_power_w,
+                                                  saturated, rng)
+    # --- the tracked tools: true poses and what the tracker reports
+    rig = _tracking_rig(cam_true, hand_eye_error_mm, rng)
+    files = _frame_and_pose_files(frames, src_ras, rig, nrm, up, tracking_error_mm,
+                                  tracking_error_deg, exposure_s, laser_power_w,
+                                  missing_pose, spot_off, spot_off_mm, rng)
+    files["calibration.json"] = json.dumps(
+        _rendered_calibration(camera, rig, hand_eye_error_mm, gain, offset, exposure_s),
+        indent=1)
+    truth = {"yield_by_label": {str(int(k)): float(v) for k, v in yield_by_label.items()},
+             "sources_ras_mm": src_ras.round(4).tolist(), "camera_to_ras": cam_true.tolist(),
+             "hand_eye_true": rig.hand_eye_true.tolist(), "tracking_error_mm": tracking_error_mm,
+             "tracking_error_deg": tracking_error_deg, "hand_eye_error_mm": hand_eye_error_mm,
+             "seed": int(seed), "accuracy": settings["level"], "mesh_nodes": mesh.n_nodes,
+             "faults": {"missing_pose": sorted(int(f) for f in missing_pose),
+                        "saturated": sorted(int(f) for f in saturated),
+                        "spot_off": sorted(int(f) for f in spot_off)},
+             "scan": {"patches": cfg["patches"]}}
+    files["recording.json"] = dumps({
+        "format": FORMAT, "version": 1, "frames": "frames.csv", "poses": "poses.csv",
+        "laser_tool": "LaserToolToTracker", "camera_tool": "CameraToolToTracker",
+        "laser_power_w": float(laser_power_w), "exposure_s": float(exposure_s),
+        "time_sync_tolerance_s": TIME_SYNC_TOLERANCE_S, "calibration": "calibration.json",
+        "simulation": truth})
+    _write_recording_folder(out, files)
+    report(progress, 1.0, "done")
+    return {"folder": str(out), "frames": S, "camera_gain": float(gain), "truth": truth,
+            "seconds": time.perf_counter() - t0}
+
+
+def _check_record_inputs(labelmap, optics, yield_by_label, out, tracking_error_mm,
+                         tracking_error_deg, hand_eye_error_mm, seed):
+    """Refuse (FluoInputError) errors [mm, deg] outside 0..10, a bad seed, yields of
+    labels not in the map or none > 0 [1/mm], an output folder not writable."""
+    from fluoguide import atomic
+
+    for name, v in (("tracking_error_mm", tracking_error_mm),
+                    ("tracking_error_deg", tracking_error_deg),
+                    ("hand_eye_error_mm", hand_eye_error_mm)):
+        if not (np.isfinite(v) and 0 <= v <= 10):
+            raise FluoInputError("must be within 0..10", field=name, value=v)
+    if not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2 ** 32:
+        raise FluoInputError("seed must be an integer within 0..2**32-1", field="seed",
+                             value=seed)
+    optics.check_labels(labelmap.labels)
+    for lab, v in yield_by_label.items():
+        if int(lab) not in labelmap.labels:
+            raise FluoInputError("label is not in the label map", field="yield", value=int(lab))
+    if not any(v > 0 for v in yield_by_label.values()):
+        raise FluoInputError("no label fluoresces: give a yield > 0 to at least one",
+                             field="yield")
+    atomic.check_writable(Path(out), folder=True)
+
+
+def _true_camera_pose(lm, src_ras, camera_distance_mm):
+    """The camera's true pose, ``camera_distance_mm`` [mm] above the sources' centre
+    along the skin's outward normal there, looking down it.
+
+    Returns
+    -------
+    nrm : (3,) the outward unit normal (RAS)
+    up : (3,) the camera's up direction (RAS, not normalised)
+    cam_true : 4x4 camera-to-RAS pose [mm]
+    """
+    from FluoCalibLib.geometry.transforms import look_at
+
     centre = src_ras.mean(axis=0)
     nrm = lm.vector_to_ras(lm.surface().closest(lm.to_local(centre[None]))[1])[0]
     nrm /= np.linalg.norm(nrm)
-    from FluoCalibLib.geometry.transforms import look_at
-
     up = np.cross(nrm, [1.0, 0.0, 0.0])
     up = up if np.linalg.norm(up) > 0.1 else np.cross(nrm, [0.0, 1.0, 0.0])
     cam_true = look_at(centre + camera_distance_mm * nrm, centre, up / np.linalg.norm(up))
+    return nrm, up, cam_true
+
+
+def _render_frames(lm, mesh, fields, optics, src_ras, cam_true, camera_distance_mm,
+                   laser_power_w, saturated, rng):
+    """The camera's 16-bit frames of each source's emission ``fields`` (per W) at
+    ``laser_power_w`` [W], with the laser spot, shot and read noise; the frames
+    in ``saturated`` exposed 20 times too long.
+
+    Returns
+    -------
+    camera : the tomography camera
+    frames : (S, H, W) counts [ADU]
+    gain : float [ADU per W/mm^2/sr], 0.6 of full scale at the brightest pixel
+        away from the sources
+    offset : float, the frames' dark offset [ADU]
+    """
+    from FluoCalibLib.geometry.transforms import invert_rigid
+    from FluoTomoLib.acquisition.camera_frames import (ADC_MAX_ADU, cast, expose,
+                                                       frame_radiance, tomography_camera)
+    from FluoTomoLib.optics import robin_A
+    from FluoNavLib.mapping.pixel_cast import SurfaceCaster
+
+    S = len(src_ras)
+    mesh_ras = lm.mesh_to_ras(mesh)
+    facets = mesh_ras.boundary_facets
+    caster = SurfaceCaster(mesh_ras.nodes_mm, facets)
     camera = tomography_camera()
     hits = cast(caster, camera, cam_true)
     A = float(robin_A(optics.n, optics.boundary))
@@ -700,7 +855,30 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
             radiance[s] *= 20.0
     offset = 100.0
     frames, _ = expose(radiance, gain, offset, 2.0, rng)
-    # --- the tracked tools: true poses and what the tracker reports
+    return camera, frames, gain, offset
+
+
+@dataclass
+class _Rig:
+    """The rendered tracking set-up (4x4 rigid transforms [mm]): TrackerToReference
+    ``TtR`` and its inverse ``RtT``, the true and the written hand-eye
+    calibrations, the camera tool's true pose in the tracker, the laser beam's
+    origin [mm] and direction in the laser tool."""
+
+    TtR: np.ndarray
+    RtT: np.ndarray
+    hand_eye_true: np.ndarray
+    hand_eye_written: np.ndarray
+    cam_tool_true: np.ndarray
+    beam_o: np.ndarray
+    beam_d: np.ndarray
+
+
+def _tracking_rig(cam_true, hand_eye_error_mm, rng):
+    """The tracking set-up (:class:`_Rig`) of a camera at ``cam_true``, the written
+    hand-eye calibration ``hand_eye_error_mm`` [mm] off in a random direction."""
+    from FluoCalibLib.geometry.transforms import invert_rigid, make_rigid, rotvec_to_matrix
+
     TtR = make_rigid(rotvec_to_matrix(np.deg2rad([3.0, -2.0, 10.0])), [40.0, -25.0, -900.0])
     RtT = invert_rigid(TtR)
     hand_eye_true = make_rigid(rotvec_to_matrix(np.deg2rad([1.0, 2.0, -3.0])), [35.0, 5.0, -20.0])
@@ -709,20 +887,35 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
     hand_eye_written = hand_eye_true.copy()
     hand_eye_written[:3, 3] += hand_eye_error_mm * dirn / np.linalg.norm(dirn)
     beam_o, beam_d = np.array([0.0, 0.0, 10.0]), np.array([0.0, 0.0, 1.0])
+    return _Rig(TtR, RtT, hand_eye_true, hand_eye_written, cam_tool_true, beam_o, beam_d)
+
+
+def _frame_and_pose_files(frames, src_ras, rig, nrm, up, tracking_error_mm,
+                          tracking_error_deg, exposure_s, laser_power_w, missing_pose,
+                          spot_off, spot_off_mm, rng):
+    """The recording's frame PNGs, ``frames.csv`` and ``poses.csv`` ({name: content}):
+    one frame every 0.2 s, the tools' reported poses (errors ``tracking_error_mm``
+    3D RMS [mm], ``tracking_error_deg`` per axis [deg]) just before and after it,
+    with the faults ``missing_pose`` and ``spot_off`` (``spot_off_mm`` [mm])."""
+    import cv2
+
+    from FluoTomoLib.acquisition.tracked_scan import laser_tool_pose_for_target
+
+    RtT = rig.RtT
     sd_t = tracking_error_mm / np.sqrt(3.0)
     frame_rows, pose_rows = [], []
     files = {}
     dt = 0.2
-    for s in range(S):
+    for s in range(len(src_ras)):
         t = 1.0 + dt * s
-        L_true = RtT @ laser_tool_pose_for_target(src_ras[s], beam_o, beam_d, -nrm)
+        L_true = RtT @ laser_tool_pose_for_target(src_ras[s], rig.beam_o, rig.beam_d, -nrm)
         L_rep = _perturb(L_true, sd_t, tracking_error_deg, rng)
         if s in set(int(f) for f in spot_off):
             side = np.cross(nrm, up)
             L_rep[:3, 3] += RtT[:3, :3] @ (spot_off_mm * side / np.linalg.norm(side))
         # the tracker's samples around the frame (60 Hz), tools held still
         for ts in (t - 0.008, t + 0.009):
-            C_rep = _perturb(cam_tool_true, sd_t, tracking_error_deg, rng)
+            C_rep = _perturb(rig.cam_tool_true, sd_t, tracking_error_deg, rng)
             missing = s in set(int(f) for f in missing_pose)
             for tool, m, st in (("LaserToolToTracker", L_rep, "MISSING" if missing else "OK"),
                                 ("CameraToolToTracker", C_rep, "OK")):
@@ -736,30 +929,30 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
     files["frames.csv"] = "frame,file,timestamp_s,exposure_s,laser_power_w\n" + "\n".join(
         frame_rows) + "\n"
     files["poses.csv"] = f"timestamp_s,tool,status,{mcols}\n" + "\n".join(pose_rows) + "\n"
-    calib = {"CameraIntrinsics": camera.to_dict(),
-             "HandEye": {"camera_to_tool": hand_eye_written.tolist(),
-                         "simulated_error_mm": float(hand_eye_error_mm)},
-             "Registration": {"tracker_to_reference": TtR.tolist()},
-             "Laser": {"origin_mm": beam_o.tolist(), "direction": beam_d.tolist()},
-             "Radiometry": {"gain_adu_per_radiance": float(gain), "offset_adu": offset,
-                            "saturation_adu": float(ADC_MAX_ADU),
-                            "reference_exposure_s": float(exposure_s)}}
-    files["calibration.json"] = json.dumps(calib, indent=1)
-    truth = {"yield_by_label": {str(int(k)): float(v) for k, v in yield_by_label.items()},
-             "sources_ras_mm": src_ras.round(4).tolist(), "camera_to_ras": cam_true.tolist(),
-             "hand_eye_true": hand_eye_true.tolist(), "tracking_error_mm": tracking_error_mm,
-             "tracking_error_deg": tracking_error_deg, "hand_eye_error_mm": hand_eye_error_mm,
-             "seed": int(seed), "accuracy": settings["level"], "mesh_nodes": mesh.n_nodes,
-             "faults": {"missing_pose": sorted(int(f) for f in missing_pose),
-                        "saturated": sorted(int(f) for f in saturated),
-                        "spot_off": sorted(int(f) for f in spot_off)},
-             "scan": {"patches": cfg["patches"]}}
-    files["recording.json"] = dumps({
-        "format": FORMAT, "version": 1, "frames": "frames.csv", "poses": "poses.csv",
-        "laser_tool": "LaserToolToTracker", "camera_tool": "CameraToolToTracker",
-        "laser_power_w": float(laser_power_w), "exposure_s": float(exposure_s),
-        "time_sync_tolerance_s": TIME_SYNC_TOLERANCE_S, "calibration": "calibration.json",
-        "simulation": truth})
+    return files
+
+
+def _rendered_calibration(camera, rig, hand_eye_error_mm, gain, offset, exposure_s):
+    """The recording's calibration.json document: the camera, the written hand-eye
+    calibration, TrackerToReference, the laser beam, the radiometry (``gain``
+    [ADU per W/mm^2/sr], ``offset`` [ADU] at ``exposure_s`` [s])."""
+    from FluoTomoLib.acquisition.camera_frames import ADC_MAX_ADU
+
+    return {"CameraIntrinsics": camera.to_dict(),
+            "HandEye": {"camera_to_tool": rig.hand_eye_written.tolist(),
+                        "simulated_error_mm": float(hand_eye_error_mm)},
+            "Registration": {"tracker_to_reference": rig.TtR.tolist()},
+            "Laser": {"origin_mm": rig.beam_o.tolist(), "direction": rig.beam_d.tolist()},
+            "Radiometry": {"gain_adu_per_radiance": float(gain), "offset_adu": offset,
+                           "saturation_adu": float(ADC_MAX_ADU),
+                           "reference_exposure_s": float(exposure_s)}}
+
+
+def _write_recording_folder(out, files):
+    """Write ``files`` ({name: bytes or str}) into the folder ``out`` as one
+    transaction (fluoguide.atomic), recording.json last."""
+    from fluoguide import atomic
+
     try:
         with atomic.staged_folder(Path(out), last=("recording.json",)) as stage:
             for name, content in files.items():
@@ -769,6 +962,3 @@ def record_scan(labelmap, optics, yield_by_label, out, tracking_error_mm=0.5,
                     (stage / name).write_text(content, encoding="utf-8")
     except OSError as exc:
         raise atomic.output_error(exc, Path(out)) from None
-    report(progress, 1.0, "done")
-    return {"folder": str(out), "frames": S, "camera_gain": float(gain), "truth": truth,
-            "seconds": time.perf_counter() - t0}
