@@ -1010,8 +1010,9 @@ def _resolution_corrected(resolution, x_scaled, prior, method, weighted, region_
 def _sp_value(row, corrected):
     """SP's region value: the resolution-corrected value where it is within
     :data:`SP_CORRECTION_MAX` of the image's mean, else the image's mean
-    (``row`` is changed in place; ``image_mean_yield_per_mm`` keeps the mean and
-    ``sp_value`` says which was taken). The soft prior's damped image spreads a
+    (``row`` is changed in place; ``image_mean_yield_per_mm`` keeps the mean,
+    ``sp_value`` says in words which was taken and ``sp_correction_refused`` holds
+    the ratio corrected / mean of a refused correction, else None). The soft prior's damped image spreads a
     small region's yield over its rim into the neighbours, so the image's mean
     over the label is biased low (docs/validation.md, the scene family); the
     corrected value undoes that spreading under the region-wise constant model
@@ -1020,11 +1021,13 @@ def _sp_value(row, corrected):
     interval already reaches from the one to the other and is kept."""
     mean = row["mean_yield_per_mm"]
     row["image_mean_yield_per_mm"] = mean
+    row["sp_correction_refused"] = None
     if corrected is None or not np.isfinite(corrected):
         row["sp_value"] = "image mean (no resolution correction)"
         return
     ratio = corrected / mean if mean > 0 else float("inf")
     if not (1.0 / SP_CORRECTION_MAX <= ratio <= SP_CORRECTION_MAX):
+        row["sp_correction_refused"] = float(ratio)
         row["sp_value"] = (f"image mean (the resolution correction, {ratio:.3g}x, is beyond "
                            f"{SP_CORRECTION_MAX:g}x)")
         return

@@ -27,6 +27,7 @@ import numpy as np
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel, report, scaled
 
+from FluoTomoLib.recon.solver import SP_CORRECTION_MAX
 from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 
 #: Jacobian-sized arrays the solver holds at once (J and R^-1 J^T for NP / SP)
@@ -511,11 +512,12 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
                                            "value_from": c["sp_value"]})
             # said for the inclusions: a background's yield near zero makes any
             # ratio meaningless there (its value is the image's mean, silently)
-            if c["sp_value"].startswith("image mean (the resolution correction") and \
-                    int(lab) in inclusions:
+            ratio = c["sp_correction_refused"]
+            if ratio is not None and int(lab) in inclusions:
                 w = (f"SP: label {int(lab)}'s soft-prior image and its region-wise constant "
-                     f"correction disagree ({c['sp_value'][len('image mean ('):-1]}): the "
-                     "segmentation may be off; its yield is the image's mean over the label")
+                     f"correction disagree (the resolution correction, {ratio:.3g}x, is beyond "
+                     f"{SP_CORRECTION_MAX:g}x): the segmentation may be off; its yield is the "
+                     "image's mean over the label")
                 if w not in notes:
                     notes.append(w)
     k, j, i = np.unravel_index(int(np.argmax(vol)), vol.shape)
