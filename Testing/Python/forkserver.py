@@ -59,7 +59,12 @@ PRELOAD = (
     "fluoapp.cli", "fluoapp.format", "fluoguide.mrml_io", "fluoguide.labelmap_io",
     "fluoguide.phantoms", "FluoTomoLib.tomography", "FluoTomoLib.fem", "FluoTomoLib.meshing",
     "FluoTomoLib.recon", "FluoTomoLib.studies", "FluoNavLib", "FluoCalibLib",
+    "numba", "tqdm", "multiprocessing", "asyncio", "uuid", "ssl",
 )
+# The Slicer module files whose logic every handler calls (``module_logic``):
+# imported as the handlers import them (their import pulls in slicer-core's
+# extension modules, a second a child paid before it read its first option).
+MODULE_FILES = ("FluoTomo", "FluoCalib", "FluoNav")
 
 
 # ----------------------------------------------------------------- the server
@@ -164,6 +169,11 @@ def serve(in_fd, out_fd, preload=PRELOAD):
     for name in preload:
         with contextlib.suppress(ImportError):
             importlib.import_module(name)
+    from fluoguide.slicer_compat import import_module_file
+
+    for name in MODULE_FILES:
+        with contextlib.suppress(ImportError):
+            import_module_file(name)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -82,9 +82,14 @@ ENV = dict(os.environ, PYTHONPATH=PYTHONPATH, OMP_NUM_THREADS="1", MKL_NUM_THREA
 
 
 # ----------------------------------------------------------------- fixtures
-def _fluo(args, cwd):
-    r = subprocess.run([sys.executable, "-m", "fluoapp", *args], cwd=cwd, env=ENV,
-                       capture_output=True, text=True, timeout=600)
+def _fluo(args, cwd, server=None):
+    """A fixture's ``fluo ARGS``: forked from ``server`` when given (the fixtures are
+    inputs, not what is tested: no start-up to pay), else a real process."""
+    if server is not None:
+        r = server.run(args, cwd=cwd, timeout=600)
+    else:
+        r = subprocess.run([sys.executable, "-m", "fluoapp", *args], cwd=cwd, env=ENV,
+                           capture_output=True, text=True, timeout=600)
     if r.returncode != 0:
         raise RuntimeError(f"fixture {args} failed: {r.stderr[-2000:]}")
     return r
@@ -258,26 +263,48 @@ def _lying_files(f, fx):
     fx["rec_dupkey"] = d
 
 
-def build_fixtures(folder):
-    """Small valid inputs for every base invocation, and hostile files (about a minute)."""
+def build_fixtures(folder, server=None, jobs=1):
+    """Small valid inputs for every base invocation, and hostile files.
+
+    With a :class:`forkserver.Forkserver` the ``fluo`` commands that make the
+    inputs are forked from it, ``jobs`` independent ones at a time.
+    """
     import numpy as np
 
     f = Path(folder)
     f.mkdir(parents=True, exist_ok=True)
     fx = {}
-    _fluo(["phantom", "cylinder-tube", "--out", str(f / "phantom"), "--voxel-mm", "2"], f)
+
+    def fluo(args):
+        return _fluo(args, f, server)
+
+    def tube():
+        fluo(["phantom", "cylinder-tube", "--out", str(f / "phantom"), "--voxel-mm", "2"])
+        fluo(["mesh", str(f / "phantom" / "CBCTLabels.nrrd"), "--out", str(f / "mesh.vtu"),
+              "--size", "3", "--fast"])
+
+    # the commands whose outputs are inputs (independent of one another but for
+    # the tube's mesh), then the files made from them
+    steps = [tube,
+             lambda: fluo(["calib", "synth-boards", "--out", str(f / "boards"), "--views", "4",
+                           "--width", "320", "--height", "240"]),
+             lambda: fluo(["calib", "synth-light", "--out", str(f / "light")]),
+             lambda: fluo(["nav", "synth", "--out", str(f / "nav"), "--views", "1", "--binning",
+                           "8", "--triangles", "5000"]),
+             lambda: fluo(["record", "--out", str(f / "rec"), "--seconds", "0.6", "--fps", "5",
+                           "--width", "64", "--height", "48"]),
+             lambda: _own_scene(f, fx, server)]
+    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        for fut in [pool.submit(step) for step in steps]:
+            fut.result()
     fx["scene"] = f / "phantom" / "scene.mrml"
     fx["labels"] = f / "phantom" / "CBCTLabels.nrrd"
-    _fluo(["mesh", str(fx["labels"]), "--out", str(f / "mesh.vtu"), "--size", "3", "--fast"], f)
     fx["mesh"] = f / "mesh.vtu"
     np.savetxt(f / "sources.csv", [[0.0, 0.0, 0.0]], delimiter=",")
     np.savetxt(f / "detectors.csv", [[5.0, 0.0, 0.0], [10.0, 0.0, 0.0]], delimiter=",")
     fx["sources"], fx["detectors"] = f / "sources.csv", f / "detectors.csv"
-    _fluo(["calib", "synth-boards", "--out", str(f / "boards"), "--views", "4", "--width", "320",
-           "--height", "240"], f)
     fx["images"] = str(f / "boards" / "*.png")
     fx["board_truth"] = f / "boards" / "truth.json"
-    _fluo(["calib", "synth-light", "--out", str(f / "light")], f)
     fx["stack"] = f / "light" / "stack"
     fx["illumination"] = f / "light" / "illumination"
     fx["laser"] = f / "light" / "laser"
@@ -301,13 +328,8 @@ def build_fixtures(folder):
     mc_data = ROOT / "FluoTomo" / "FluoTomoLib" / "montecarlo" / "data"
     fx["mc_halfspace"] = mc_data / "halfspace_n137.json"
     fx["mc_fluorescence"] = mc_data / "fluorescence_inclusion.json"
-    _fluo(["nav", "synth", "--out", str(f / "nav"), "--views", "1", "--binning", "8",
-           "--triangles", "5000"], f)
     fx["nav_scene"] = f / "nav" / "scene.mrml"
-    _fluo(["record", "--out", str(f / "rec"), "--seconds", "0.6", "--fps", "5", "--width", "64",
-           "--height", "48"], f)
     fx["recording"] = f / "rec"
-    _own_scene(f, fx)
     _dicom_series(f, fx)
     _hostile_files(f, fx)
     _lying_files(f, fx)
@@ -326,7 +348,7 @@ def _dicom_series(f, fx):
     fx.update(cbct_dicom=f / "dicom", cbct_series=uid)
 
 
-def _own_scene(f, fx):
+def _own_scene(f, fx, server=None):
     """fluo tomo's inputs: a small label map unlike the tube (labels 3 and 7, an
     inclusion under a curved top, direction diag(-1, -1, 1)), its optics.json and
     an acquisition simulated from it (the default scan, 'fast')."""
@@ -345,12 +367,12 @@ def _own_scene(f, fx):
     (d / "optics.json").write_text(json.dumps(optics))
     _fluo(["tomo", "simulate", "--labels", str(d / "labels.nrrd"), "--optics",
            str(d / "optics.json"), "--yield", "7:0.0026", "--accuracy", "fast", "--out",
-           str(d / "acq")], f)
+           str(d / "acq")], f, server)
     fx.update(own_labels=d / "labels.nrrd", own_optics=d / "optics.json", own_acq=d / "acq")
     # fluo tomo acquire: a recording rendered from the same scene (docs/recording.md)
     _fluo(["tomo", "record-scan", "--labels", str(d / "labels.nrrd"), "--optics",
            str(d / "optics.json"), "--yield", "7:0.0026", "--seed", "1", "--out",
-           str(d / "rec")], f)
+           str(d / "rec")], f, server)
     fx["own_recording"] = d / "rec"
     # fluo tomo batch: one case (HP) on those inputs, and batch files that must be refused
     head = "name,labels,optics,acquisition,methods,truth\n"
@@ -638,6 +660,18 @@ def _snapshot(folder):
     return {p.relative_to(folder) for p in Path(folder).rglob("*")}
 
 
+def _tree(folder):
+    """Every path below ``folder`` (relative, as text): the same set as
+    :func:`_snapshot`, listed by ``os.walk`` (the shared fixtures hold 3,000
+    files and are listed twice a case)."""
+    out = set()
+    for top, dirs, files in os.walk(folder):
+        rel = os.path.relpath(top, folder)
+        for name in dirs + files:
+            out.add(name if rel == "." else os.path.join(rel, name))
+    return out
+
+
 def _debris(paths):
     return [str(x) for x in paths if ".tmp-" in x.name or ".stage-" in x.name
             or x.name.startswith(".fluo-stage") or x.name.endswith(".tmp")]
@@ -730,7 +764,7 @@ def run_case(case, fx, work, server=None):
     subst.update(missing=str(cwd / "does-not-exist"), a_file=str(cwd / "a_file"),
                  a_dir=str(cwd / "a_dir"), out=str(cwd / "out"))
     argv = [a.format(**subst) for a in case.argv]
-    before_fx = _snapshot(fx["root"])
+    before_fx = _tree(fx["root"])
     before = _snapshot(cwd)
     serve = SERVES.get(case.command)
     if server is None or case.option == "(base)":
@@ -795,7 +829,7 @@ def run_case(case, fx, work, server=None):
         new = sorted(str(x) for x in after - before if x.parts[0].startswith("out"))
         if new:
             problems.append(f"failed but wrote {new[:3]}")
-    if _snapshot(fx["root"]) != before_fx:
+    if _tree(fx["root"]) != before_fx:
         problems.append("changed the shared fixtures")
     r["ok"] = not problems
     r["why"] = "; ".join(problems)
@@ -810,7 +844,6 @@ def run(only=None, jobs=2, work=None, progress=None):
     """Build the fixtures, run every case (``jobs`` at a time); returns the cases."""
     work = Path(work or tempfile.mkdtemp(prefix="fluo-fuzz-"))
     work.mkdir(parents=True, exist_ok=True)
-    fx = build_fixtures(work / "fixtures")
     cases = make_cases(only)
     todo = [c for c in cases if c.argv is not None]
 
@@ -838,8 +871,11 @@ def run(only=None, jobs=2, work=None, progress=None):
         return c
 
     # one process imports the stack; each hostile case is a child forked from it
-    with Forkserver(env=ENV) as server, ThreadPoolExecutor(max_workers=jobs) as pool:
-        list(pool.map(one, todo))
+    # (and so is each command that makes the fixtures)
+    with Forkserver(env=ENV) as server:
+        fx = build_fixtures(work / "fixtures", server, jobs)
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            list(pool.map(one, todo))
     return cases
 
 

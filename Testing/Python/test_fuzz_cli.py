@@ -2,9 +2,10 @@
 
 ``test_every_subcommand_is_fuzzed`` is fast: a subcommand added to the parser
 without a base invocation in ``fuzz_cli.BASES`` fails it at once. The run
-itself is slow (about 900 cases: the hostile ones forked from one process that
-imported the stack, each command's valid base as a real process; about 7
-minutes on two cores beside the rest of the suite).
+itself is slow (over a thousand cases: the hostile ones, and the commands that
+make the fixtures, forked from one process that imported the stack and the
+module files, each command's valid base as a real process; measured times are
+in docs/reliability.md).
 """
 
 import json
