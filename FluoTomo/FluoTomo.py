@@ -1313,14 +1313,18 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     def validateTubeMonteCarlo(outputFolder, depths=None, mcIn=None, simulate=False,
                                photons=None, methods=("NP", "SP", "HP"), accuracy="fast",
                                executor=None, threads=1, resume=False, progress=None,
-                               figureName="validate_mc_tomography.png"):
+                               figureName="validate_mc_tomography.png", simulateFem=False,
+                               grading="bisection"):
         """The cylinder-tube phantom reconstructed from Monte Carlo data and from
         diffusion-FEM data of the same optodes (docs/validation.md).
 
         ``depths`` [mm]: the tube's (default: the stored sets'); ``mcIn``: a
         folder of ``depth_<d>mm`` acquisitions (default: the stored ones);
         ``simulate``: run the Monte Carlo here (``photons`` per run) into
-        ``outputFolder``/mc. Returns the rows (yield and centroid errors per
+        ``outputFolder``/mc; ``simulateFem``: compute the diffusion-FEM data here
+        (whole phantom) into ``outputFolder``/mc/depth_<d>mm/fem instead of
+        reading the stored ones; ``grading``: the reconstruction mesh's
+        (:meth:`reconstruct`'s; default the graded one, the demo's). Returns the rows (yield and centroid errors per
         depth, method and data) and writes the figure ``figureName`` to
         ``outputFolder`` (``figure``: its path)."""
         from pathlib import Path
@@ -1331,7 +1335,8 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         res = tube_mc.validate_tube_mc(
             depths, mc_root=mcIn, simulate=simulate, photons=photons or tube_mc.PHOTONS,
             out_dir=outputFolder, methods=list(methods), accuracy=accuracy, executor=executor,
-            threads=threads, resume=resume, progress=progress)
+            threads=threads, resume=resume, progress=progress, simulate_fem=simulateFem,
+            grading=grading)
         Path(outputFolder).mkdir(parents=True, exist_ok=True)
         res["figure"] = tube_mc.figure(res, Path(outputFolder) / figureName)
         return res

@@ -17,6 +17,11 @@ read while it goes.
     python -m benchmarks family -- --seeds 101-112 --segmentation-error-mm 1 \
         --segmentation-mm 1 --json seg1.jsonl      # the error stated to the reconstruction
     python -m benchmarks family -- --seeds 1-8 --scan plan,default --json plan.jsonl
+    python -m benchmarks family -- --seeds 1-12 --grading none,bisection --json graded.jsonl
+
+``--grading none,bisection`` simulates each scene once and reconstructs it on the
+uniform grid and on the mesh graded by bisection (each row carries its ``grading``,
+``mesh_nodes`` and seconds); the table is then one per mesh.
 
 ``--scan plan`` (issue #36) plans the laser positions on the label map handed over
 (``tomography.plan.plan_scan``: every inclusion a target, as many positions as the
@@ -61,6 +66,9 @@ def main(argv=None):
     ap.add_argument("--methods", default="HP,SP")
     ap.add_argument("--json", default=None, help="append the rows here (JSON lines)")
     ap.add_argument("--scan", default="default", help="default, plan, or plan,default")
+    ap.add_argument("--grading", default="none",
+                    help="reconstruction meshes, e.g. none,bisection: each scene simulated "
+                         "once and reconstructed on each (none: the uniform grid)")
     ap.add_argument("--plan-time-s", type=float, default=30.0,
                     help="the planner's time budget per scene [s]")
     args = ap.parse_args(argv)
@@ -68,6 +76,9 @@ def main(argv=None):
     if not scans or any(v not in ("default", "plan") for v in scans):
         ap.error("--scan: default, plan or plan,default")
 
+    gradings = [v.strip() for v in args.grading.split(",") if v.strip()]
+    if not gradings or any(v not in ("none", "bisection", "grid") for v in gradings):
+        ap.error("--grading: none, grid, bisection or a list of them")
     rows = []
     t_all = time.perf_counter()
     for seed in _seeds(args.seeds):
@@ -75,15 +86,23 @@ def main(argv=None):
         print(f"scene {seed}: {scene.description} (segmentation {scene.segmentation})",
               flush=True)
         if scans == ["default"]:
-            mine = grade_scene(scene, methods=args.methods.split(","), accuracy=args.accuracy,
-                               segmentation_mm=args.segmentation_mm)
+            from FluoTomoLib.validation.family import simulate
+
+            acq = simulate(scene)[0] if len(gradings) > 1 else None
+            mine = []
+            for g in gradings:
+                mine += grade_scene(scene, methods=args.methods.split(","),
+                                    accuracy=args.accuracy, acquisition=acq,
+                                    segmentation_mm=args.segmentation_mm,
+                                    grading=False if g == "none" else g)
         else:
             mine = []
             for scan in scans:
                 mine += _graded_scan(scene, scan, args)
         for r in mine:
             ci = r["ci_half_width_pct"]
-            print(f"  {r['method']} label {r['label']}: error {r['error_pct']:+.1f} %, 95 % "
+            print(f"  {r['grading']} ({r['mesh_nodes']} nodes, {r['seconds_reconstruction']:.0f} s) "
+                  f"{r['method']} label {r['label']}: error {r['error_pct']:+.1f} %, 95 % "
                   f"interval +-{ci if ci is None else round(ci, 1)} %, holds the truth: "
                   f"{r['covered']}, warned: {r['warned']}", flush=True)
         rows.extend(mine)
@@ -96,6 +115,18 @@ def main(argv=None):
                                 [r for r in rows if r["scan"] == scan]) for scan in scans}
         print(f"{len({r['seed'] for r in rows})} scenes, accuracy {args.accuracy}, "
               f"{time.perf_counter() - t_all:.0f} s")
+        print(json.dumps(table, indent=1))
+        return 0
+    if len(gradings) > 1:
+        import numpy as np
+
+        table = {}
+        for g in gradings:
+            mine = [r for r in rows if r["grading"] == g]
+            table[g] = summarise(mine)
+            table[g]["median_nodes"] = float(np.median([r["mesh_nodes"] for r in mine]))
+            table[g]["median_seconds"] = float(np.median([r["seconds_reconstruction"]
+                                                          for r in mine]))
         print(json.dumps(table, indent=1))
         return 0
     table = summarise(rows)

@@ -20,6 +20,10 @@ from contextlib import contextmanager
 
 from fluoguide.errors import FluoInputError
 
+#: the words of --grading (``fluo tomo reconstruct``, ``fluo validate mc-tomography``)
+#: -> reconstruct_labelmap's ``grading``
+GRADINGS = {"none": False, "grid": True, "bisection": "bisection"}
+
 
 def module_logic(module, scene=None):
     """``<module>Logic`` of a module file (``FluoCalib``, ``FluoNav``, ``FluoTomo``)

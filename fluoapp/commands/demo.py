@@ -50,8 +50,8 @@ def register(sub):
         description="Phantoms -> calibrations -> tracked acquisition -> surface-flux mapping -> "
         "meshing -> reconstructions, writing DIR/report.html, DIR/metrics.json and the MRML scene. "
         "The tomography cases (one per tube depth, and the oral cavity) are tasks of the run "
-        "engine: --workers/--scheduler send them to Dask workers (about 10 GB each in quick "
-        "mode), their records are in DIR/runs, and --resume reuses the ones a killed demo "
+        "engine: --workers/--scheduler send them to Dask workers (docs/scale.md gives their "
+        "memory), their records are in DIR/runs, and --resume reuses the ones a killed demo "
         "finished.")
     p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--quick", action="store_true",

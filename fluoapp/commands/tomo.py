@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from fluoapp.cli import add_json_flag, cli_group
-from fluoapp.commands import module_logic
+from fluoapp.commands import GRADINGS, module_logic
 from fluoapp.runopts import add_run_options, check_run_options, executor_for
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
@@ -236,7 +236,7 @@ def _reconstruct(args):
             accuracy=args.accuracy, progress=bar, size_mm=args.element_mm, roi_ras=roi,
             truncation_pct=args.truncation_pct, data_model=args.data_model,
             self_absorption=("HP", "SP") if args.self_absorption else (),
-            grading=args.grading, noise_pct=args.noise_pct,
+            grading=GRADINGS[args.grading], noise_pct=args.noise_pct,
             segmentation_mm=args.segmentation_mm)
     summary["seconds"] = time.perf_counter() - t0
     return summary
@@ -477,10 +477,12 @@ def _register_reconstruct(tomo):
                    "segmentation's accuracy): the regions are solved again with their "
                    "boundaries moved by it and the 95 %% intervals reach the values found "
                    "(default: half the largest voxel; 0: exact)")
-    p.add_argument("--grading", action="store_true",
-                   help="optode-aware grading: cells twice as large away from the optodes and "
-                   "the target (about half the nodes, default off: it moved the data of the "
-                   "issue's scene by up to 11 %%)")
+    p.add_argument("--grading", choices=["none", "grid", "bisection"], default="none",
+                   help="the reconstruction mesh: none (default), a uniform grid refined in "
+                   "bands through the optodes and the target; grid, its cells twice as large "
+                   "away from them; bisection, refined only near the optodes and the "
+                   "regions' boundaries and growing away from them "
+                   "(docs/physics.md section 8.1; on the scene family: docs/validation.md)")
     p.add_argument("--no-self-absorption", dest="self_absorption", action="store_false",
                    help="do not feed the fluorophore's absorption back (default: fed back for "
                    "HP and SP when optics.json names a fluorophore)")

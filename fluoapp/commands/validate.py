@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from fluoapp.cli import add_json_flag, cli_group
-from fluoapp.commands import module_logic
+from fluoapp.commands import GRADINGS, module_logic
 from fluoapp.runopts import add_run_options, check_run_options, executor_for
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import TqdmProgress
@@ -211,7 +211,8 @@ def _mc_tomography(args):
         res = logic.validateTubeMonteCarlo(
             out, depths, mcIn=args.mc_in, simulate=args.simulate, photons=args.photons,
             methods=methods, accuracy=args.accuracy, executor=ex, threads=threads,
-            resume=args.resume, progress=bar)
+            resume=args.resume, progress=bar, simulateFem=args.simulate_fem,
+            grading=GRADINGS[args.grading])
     _write_csv(out / "validate_mc_tomography.csv", res["rows"], list(res["rows"][0].keys()))
     res["table"] = str(out / "validate_mc_tomography.csv")
     res["seconds"] = time.perf_counter() - t0
@@ -322,6 +323,10 @@ def register(sub):
                    help="run the Monte Carlo here (minutes per depth: docs/validation.md "
                    "gives the measured time; its runs go where --workers/--scheduler say, recorded in OUT/mc_runs) and "
                    "write the acquisitions to OUT/mc (default: read the stored ones)")
+    p.add_argument("--simulate-fem", action="store_true",
+                   help="compute the diffusion-FEM data here (the whole phantom at the fine "
+                   "level) and write them to OUT/mc/depth_<d>mm/fem (default: read the stored "
+                   "ones beside the Monte Carlo sets; --simulate computes them too)")
     p.add_argument("--photons", type=int, default=None,
                    help="--simulate: photons per run, 2 runs per optode (default 100000)")
     p.add_argument("--mc-in", default=None, metavar="DIR",
@@ -329,6 +334,9 @@ def register(sub):
     p.add_argument("--methods", default="NP,SP,HP", help="methods (default NP,SP,HP)")
     p.add_argument("--accuracy", choices=["fast", "balanced", "fine"], default="fast",
                    help="the reconstruction's accuracy level (default fast)")
+    p.add_argument("--grading", choices=list(GRADINGS), default="bisection",
+                   help="the reconstruction mesh, as fluo tomo reconstruct's --grading "
+                   "(default bisection, the demo's)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     add_run_options(p)
     add_json_flag(p)

@@ -227,6 +227,11 @@ def _run_cases(ctx, name, tasks):
     return run["cases"]
 
 
+#: the tube cases' and the Monte Carlo stage's reconstruction mesh
+#: (reconstruct_labelmap's ``grading``)
+TUBE_GRADING = "bisection"
+
+
 def stage_tomography(ctx):
     """Tracked non-contact acquisition and NP/SP/HP reconstruction at each tube depth."""
 
@@ -237,11 +242,14 @@ def stage_tomography(ctx):
     # "fast" accuracy level, same tube resolution.  One run-engine task per
     # depth: each builds its phantom (the one stage_phantoms wrote, from the
     # same depth and seed) and returns plain arrays, so the depths can go to
-    # Dask workers side by side (about 10 GB each in quick mode).
+    # Dask workers side by side.  The reconstruction mesh is graded by bisection
+    # (fine at the optodes and the tube only): a laptop's memory and minutes,
+    # the tube's errors as on the uniform grid (docs/validation.md).
     depths = sorted(ctx.state["tube_phantoms"])
     tasks = module_logic("FluoTomo").tomographyCaseTasks(
         depths, seed=ctx.seed,
-        tubeOptions={"accuracy": "fast" if ctx.quick else "balanced", **ctx.case_options})
+        tubeOptions={"accuracy": "fast" if ctx.quick else "balanced", "grading": TUBE_GRADING,
+                     **ctx.case_options})
     runs = dict(zip(depths, _run_cases(ctx, "tomography", tasks)))
     methods = ["NP", "SP", "HP"]
     ctx.metrics["yield_error_pct"] = {m: [runs[d]["results"][m]["peak_error_pct"] for d in depths]
@@ -312,11 +320,12 @@ def stage_tomography_mc(ctx):
     """The cylinder-tube reconstructed from Monte Carlo data (stored MCX acquisitions,
     photon transport written outside the project) next to diffusion-FEM data of the
     same optodes: the honest accuracy figure (docs/validation.md)."""
-    # Quick: the middle stored depth; full: all of them.  Nothing here runs Monte
-    # Carlo: the acquisitions are stored with the command that regenerates them.
+    # Quick: the middle stored depth; full: all of them.  Nothing here simulates:
+    # the Monte Carlo and the diffusion-FEM acquisitions are stored, each with the
+    # command that regenerates it (test_tube_mc checks the FEM's against a rerun).
     res = module_logic("FluoTomo").validateTubeMonteCarlo(
         ctx.out, depths=[4.7] if ctx.quick else None, figureName="tomography_mc.png",
-        progress=ctx.progress)
+        progress=ctx.progress, grading=TUBE_GRADING)
     depths = [g["depth_mm"] for g in res["depths"]]
     ctx.figure("tomography_mc", Path(res["figure"]).name,
                "Tube yield and centroid errors from Monte Carlo data (solid) and from "
@@ -335,14 +344,16 @@ def stage_tomography_mc(ctx):
         res["depths"][0]["mc"]["photons_per_run"], res["depths"][0]["mc"]["runs"]]
     summary["Monte Carlo photon noise % (median per depth)"] = [
         round(g["mc"]["photon_noise_pct"]["median"], 2) for g in res["depths"]]
+    summary["diffusion FEM data (per depth)"] = [g["fem_data"] for g in res["depths"]]
     summary["reconstruction warnings"] = res["warnings"]
     ctx.metrics["tomography_mc"] = summary
     ctx.note("tomography_mc", "Both data sets carry the same 1 % Gaussian noise; the Monte "
              "Carlo data also carry their photon noise. The reconstruction (fluo tomo "
-             "reconstruct's path, accuracy fast, a 0.8 mm label map) is the same for both, so "
-             "the difference between the rows is what the diffusion model's own error does "
-             "to NP/SP/HP. Regenerate the stored data: " + str(res["depths"][0]["mc"].get(
-                 "regenerate")))
+             "reconstruct's path, accuracy fast, a mesh graded by bisection, a 0.8 mm label "
+             "map) is the same for both, so the difference between the rows is what the "
+             "diffusion model's own error does to NP/SP/HP. Regenerate the stored Monte Carlo data: "
+             + str(res["depths"][0]["mc"].get("regenerate"))
+             + "; the diffusion-FEM data: " + str(res["depths"][0]["fem_regenerate"]))
 
 
 def stage_camera_calibration(ctx):

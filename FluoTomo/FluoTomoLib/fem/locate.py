@@ -77,13 +77,34 @@ class PointLocator:
             elem[hit] = cand[hit, c]
             bary[hit] = lam[inside]
             todo[hit] = False
-        # rare: thin/large elements whose centroid is far away
-        for i in np.flatnonzero(todo):
-            for e in self.tree.query_ball_point(pts[i], self.max_radius + 1e-9):
-                lam = barycentric(self.mesh, np.array([e]), pts[i:i + 1])[0]
-                if np.all(lam >= -tol):
-                    elem[i], bary[i] = e, lam
+        # a graded mesh's large elements: their centroids lie beyond the nearest
+        # k small ones; more candidates, still one batch
+        idx = np.flatnonzero(todo)
+        wide = int(min(16 * self.k, self.mesh.n_elements))
+        if len(idx) and wide > self.k:
+            _, more = self.tree.query(pts[idx], k=wide)
+            more = more.reshape(len(idx), -1)[:, self.k:]
+            for c in range(more.shape[1]):
+                if len(idx) == 0:
                     break
+                lam = barycentric(self.mesh, more[:, c], pts[idx])
+                inside = np.all(lam >= -tol, axis=1)
+                elem[idx[inside]] = more[inside, c]
+                bary[idx[inside]] = lam[inside]
+                idx, more = idx[~inside], more[~inside]
+        # rare: thin/large elements whose centroid is farther still, or points
+        # outside the mesh: every element within reach, one batch per point
+        for i in idx:
+            cand = np.asarray(self.tree.query_ball_point(pts[i], self.max_radius + 1e-9),
+                              dtype=np.int64)
+            if len(cand) == 0:
+                continue
+            lam = barycentric(self.mesh, cand, np.repeat(pts[i:i + 1], len(cand), axis=0))
+            inside = np.flatnonzero(np.all(lam >= -tol, axis=1))
+            if len(inside):
+                # the lowest id among those holding the point, as the scan gives
+                j = inside[np.argmin(cand[inside])]
+                elem[i], bary[i] = cand[j], lam[j]
         return elem, bary
 
     def interpolation_matrix(self, points, outside="error", what="point"):

@@ -33,7 +33,7 @@ SECTIONS = {"cylinder-tube": ((-8.0, 8.0), (0.0, -10.0)),
 #: keyword options of the case functions a task may set (a smaller case for a
 #: test; the demo uses the defaults)
 TUBE_OPTIONS = {"fine_mm", "coarse_mm", "n_sources", "source_spacing_mm", "simulate_coarse_mm",
-                "lam", "accuracy"}
+                "lam", "accuracy", "grading"}
 ORAL_OPTIONS = {"fine_mm", "coarse_mm", "n_sources", "source_spacing_mm", "lam"}
 
 

@@ -52,7 +52,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
                              camera_binning=4, camera_distance_mm=150.0,
                              camera_read_noise_adu=2.0, tracking=TrackingError(), seed=0,
                              progress=None, cancel=None, recon_labels=None, accuracy="balanced",
-                             simulate_coarse_mm=1.5, self_absorption=("HP",)):
+                             simulate_coarse_mm=1.5, self_absorption=("HP",), grading=False):
     """Run one tube depth through acquisition simulation and NP/SP/HP reconstruction.
 
     ``fine_mm`` is the element size of the simulation mesh near the raster and
@@ -149,7 +149,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     report(progress, 0.35, "reconstruction")
     solved = reconstruct_labelmap_methods(
         lm, optics_from_phantom(optics), acq, methods, lam, target=2, accuracy=accuracy,
-        size_mm=coarse_mm, roi_ras=roi_ras, self_absorption=self_absorption,
+        size_mm=coarse_mm, roi_ras=roi_ras, self_absorption=self_absorption, grading=grading,
         progress=scaled(progress, 0.35, 0.98, "reconstruction"), cancel=cancel)
     first = solved[tuple(solved)[0]]
     coarse = lm.mesh_to_ras(first["mesh"])

@@ -39,6 +39,8 @@ RUNS = 2
 DEPTHS_MM = (2.7, 4.7, 6.7)
 NOISE_PCT = 1.0            # relative Gaussian noise added to both data sets (same seed)
 STORE = Path(__file__).resolve().parents[1] / "montecarlo" / "data" / "tube"
+#: each depth's diffusion-FEM acquisition of the same optodes, beside its Monte Carlo one
+FEM_FOLDER = "fem"
 
 
 def depth_folder(depth_mm, root=None):
@@ -115,13 +117,15 @@ def _errors(result, truth_yield, depth_mm):
 
 
 def grade_depth(depth_mm, mc_acquisition, fem_acquisition=None, methods=("NP", "SP", "HP"),
-                accuracy="fast", noise_pct=NOISE_PCT, seed=0, progress=None, cancel=None):
+                accuracy="fast", noise_pct=NOISE_PCT, seed=0, progress=None, cancel=None,
+                grading="bisection"):
     """Reconstruct one depth from Monte Carlo data and from diffusion-FEM data of the
     same optodes (simulated here on the whole phantom unless given), on the 0.8 mm
     label map, and return the errors side by side.
 
     Both data sets get the same relative Gaussian noise (``noise_pct``, same seed)
-    on top of what they carry (the Monte Carlo's photon noise).
+    on top of what they carry (the Monte Carlo's photon noise).  ``grading``: the
+    reconstruction mesh's (reconstruct_labelmap's).
     """
     from FluoTomoLib.tomography import reconstruct_labelmap_methods
     from FluoTomoLib.tomography.simulate import add_noise
@@ -142,7 +146,7 @@ def grade_depth(depth_mm, mc_acquisition, fem_acquisition=None, methods=("NP", "
                                  0.0),
                         acq.mask, acq.units, dict(acq.meta))
         solved = reconstruct_labelmap_methods(
-            lm, optics, acq, methods, target=2, accuracy=accuracy,
+            lm, optics, acq, methods, target=2, accuracy=accuracy, grading=grading,
             progress=scaled(progress, 0.3 + 0.35 * k, 0.65 + 0.35 * k, f"{name} data"),
             cancel=cancel)
         rows[name] = {m: _errors(r, truth_yield, depth_mm) for m, r in solved.items()}
@@ -155,6 +159,42 @@ def regenerate_command(depth_mm, photons=PHOTONS):
     """The command that makes a depth's Monte Carlo acquisition (as stored)."""
     return (f"fluo validate mc-tomography --simulate --depths {float(depth_mm):g} --photons "
             f"{int(photons)} --out DIR (writes DIR/mc/{depth_folder(depth_mm, '.').name})")
+
+
+def regenerate_fem_command(depth_mm):
+    """The command that makes a depth's diffusion-FEM acquisition (as stored)."""
+    return (f"fluo validate mc-tomography --simulate-fem --depths {float(depth_mm):g} --out DIR "
+            f"(writes DIR/mc/{depth_folder(depth_mm, '.').name}/{FEM_FOLDER})")
+
+
+def read_stored_fem(depth_mm, root=None):
+    """The stored diffusion-FEM acquisition of a depth (:func:`simulate_tube` with
+    ``engine="fem"``: no noise, the whole phantom at the ``fine`` level), checked
+    to be that depth's and the optode line's; None when the folder holds none."""
+    from FluoTomoLib.tomography import read_acquisition
+
+    folder = depth_folder(depth_mm, root) / FEM_FOLDER
+    if not (folder / "acquisition.json").is_file():
+        return None
+    acq = read_acquisition(folder)
+    sim = acq.meta.get("simulation") or {}
+    if sim.get("engine") != "fem" or sim.get("tube_depth_mm") is None or \
+            abs(float(sim["tube_depth_mm"]) - float(depth_mm)) > 1e-6:
+        raise FluoInputError(f"is not this depth's diffusion-FEM acquisition (regenerate: "
+                             f"{regenerate_fem_command(depth_mm)})",
+                             file=str(folder / "acquisition.json"),
+                             field="simulation.tube_depth_mm", value=sim.get("tube_depth_mm"))
+    _check_line(acq, folder)
+    return acq
+
+
+def _check_line(acq, folder):
+    src, det = optode_line()
+    if acq.sources_ras_mm.shape != src.shape or acq.detectors_ras_mm.shape != det.shape or \
+            not (np.allclose(acq.sources_ras_mm, src, atol=1e-3)
+                 and np.allclose(acq.detectors_ras_mm, det, atol=1e-3)):
+        raise FluoInputError("holds other sources or detectors than the tube's optode line",
+                             file=str(folder), field="sources/detectors")
 
 
 def read_stored(depth_mm, root=None):
@@ -176,24 +216,26 @@ def read_stored(depth_mm, root=None):
                              f"{made_for} mm; regenerate: {regenerate_command(depth_mm)})",
                              file=str(folder / "acquisition.json"),
                              field="simulation.tube_depth_mm", value=made_for)
-    src, det = optode_line()
-    if acq.sources_ras_mm.shape != src.shape or acq.detectors_ras_mm.shape != det.shape or \
-            not (np.allclose(acq.sources_ras_mm, src, atol=1e-3)
-                 and np.allclose(acq.detectors_ras_mm, det, atol=1e-3)):
-        raise FluoInputError("holds other sources or detectors than the tube's optode line",
-                             file=str(folder), field="sources/detectors")
+    _check_line(acq, folder)
     return acq
 
 
 def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=PHOTONS,
                      out_dir=None, methods=("NP", "SP", "HP"), accuracy="fast", executor=None,
-                     threads=1, resume=False, progress=None, cancel=None):
+                     threads=1, resume=False, progress=None, cancel=None, simulate_fem=False,
+                     grading="bisection"):
     """NP / SP / HP of the cylinder-tube from Monte Carlo data next to diffusion data.
 
     ``simulate``: run the Monte Carlo here (its runs on ``executor``, recorded in
     ``out_dir/mc_runs/`` and resumable), writing the acquisitions to
     ``out_dir/mc/``; otherwise read the stored ones (``mc_root``, default
-    :data:`STORE`).  Returns the rows (depth x data x method) and per-depth details.
+    :data:`STORE`).  The diffusion-FEM data are the stored ones beside them
+    (``depth_<d>mm/fem``, :func:`read_stored_fem`) unless ``simulate`` or
+    ``simulate_fem`` (computed here on the whole phantom and written to
+    ``out_dir/mc/depth_<d>mm/fem``) or none is stored (computed here).  Returns
+    the rows (depth x data x method) and per-depth details (``fem_data``: where
+    the diffusion data came from).  ``grading``: the reconstruction mesh's
+    (reconstruct_labelmap's).
     """
     from FluoTomoLib.tomography import write_acquisition
 
@@ -201,14 +243,16 @@ def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=
     if not depths or any(not (2.0 <= d <= 16.0) for d in depths):
         raise FluoInputError("tube depths must be within 2..16 mm", field="depths_mm",
                              value=depths_mm)
-    if simulate and out_dir is None:
+    if (simulate or simulate_fem) and out_dir is None:
         raise FluoInputError("simulating needs an output folder", field="out_dir")
-    acqs, mc_info = {}, {}
+    acqs, mc_info, fem = {}, {}, {}
     n = len(depths)
     for d in depths:          # inputs first: a missing set fails before work
         if not simulate:
             acqs[d] = read_stored(d, mc_root)
             mc_info[d] = acqs[d].meta.get("simulation", {})
+        if not (simulate or simulate_fem):
+            fem[d] = read_stored_fem(d, mc_root)
     rows, details = [], []
     for i, d in enumerate(depths):
         check_cancel(cancel)
@@ -227,8 +271,24 @@ def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=
             write_acquisition(depth_folder(d, Path(out_dir) / "mc"), acq, simulation=info)
             acqs[d], mc_info[d] = acq, info
             lo = lo + 0.5 * (hi - lo)
-        g = grade_depth(d, acqs[d], methods=methods, accuracy=accuracy,
-                        progress=scaled(progress, lo, hi, f"depth {d:g} mm"), cancel=cancel)
+        fem_from = "stored: " + str(depth_folder(d, mc_root) / FEM_FOLDER)
+        if fem.get(d) is None:
+            fem_from = "computed here (whole phantom, fine)"
+            fem[d], info = simulate_tube(d, "fem", progress=scaled(
+                progress, lo, lo + 0.3 * (hi - lo), f"diffusion FEM data, depth {d:g} mm"),
+                cancel=cancel)
+            if simulate or simulate_fem:
+                info.update(regenerate=regenerate_fem_command(d), tube_depth_mm=d,
+                            engine="fem")
+                target = depth_folder(d, Path(out_dir) / "mc") / FEM_FOLDER
+                write_acquisition(target, fem[d], simulation=info)
+                fem_from = "computed here, written to " + str(target)
+            lo = lo + 0.3 * (hi - lo)
+        g = grade_depth(d, acqs[d], fem[d], methods=methods, accuracy=accuracy,
+                        progress=scaled(progress, lo, hi, f"depth {d:g} mm"), cancel=cancel,
+                        grading=grading)
+        g["fem_data"] = fem_from
+        g["fem_regenerate"] = regenerate_fem_command(d)
         info = mc_info[d]
         g["mc"] = {k: info.get(k) for k in ("photons_per_run", "runs", "photon_noise_pct",
                                             "mc_engine", "device", "seconds", "regenerate")}
@@ -251,7 +311,7 @@ def validate_tube_mc(depths_mm=DEPTHS_MM, mc_root=None, simulate=False, photons=
             "layout": {"sources": SOURCES, "detectors": SOURCES + 1, "pitch_mm": PITCH_MM,
                        "exclude_mm": EXCLUDE_MM, "mc_voxel_mm": MC_VOXEL_MM,
                        "reconstruction_voxel_mm": RECON_VOXEL_MM},
-            "noise_pct": NOISE_PCT, "accuracy": accuracy}
+            "noise_pct": NOISE_PCT, "accuracy": accuracy, "grading": grading or "none"}
 
 
 def figure(result, path):

@@ -44,7 +44,7 @@ def dual_cells(nodes_mm, edges_mm):
 
 
 def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, labels=None,
-                          samples_per_axis=6, background=1, edges_mm=None):
+                          samples_per_axis=6, background=1, edges_mm=None, cell_mm=None):
     """Share of each node's cell (a box h_mm wide centred on the node, or its
     dual cell on the grid ``edges_mm``) covered by each tissue region of the
     label map.
@@ -55,6 +55,8 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
     labels_kji, spacing_mm, origin_mm : the label map (0 = outside)
     h_mm : mesh spacing [mm], the cell width (the largest one with ``edges_mm``)
     edges_mm : per axis the grid lines of a rectilinear (graded) mesh, or None
+    cell_mm : (N,) each node's own cell width [mm] (a mesh graded by bisection,
+        ``tomography.model.node_spacing``), or None
     labels : region labels to return columns for (default: every non-zero label)
     samples_per_axis : midpoint quadrature points per axis (per node samples^3)
     background : label given to nodes whose support sees no tissue at all
@@ -85,6 +87,9 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
     # only nodes whose support reaches another label need quadrature
     from scipy import ndimage
 
+    if cell_mm is not None:
+        cell_mm = np.asarray(cell_mm, float)
+        h_mm = max(float(h_mm), float(np.max(cell_mm)))
     reach = [int(np.ceil(0.5 * h_mm / s)) + 1 for s in spacing[::-1]]
     lo_ = ndimage.minimum_filter(lab, size=[2 * r + 1 for r in reach])
     hi_ = ndimage.maximum_filter(lab, size=[2 * r + 1 for r in reach])
@@ -97,7 +102,9 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
     t = (np.arange(samples_per_axis) + 0.5) / samples_per_axis
     g = np.stack(np.meshgrid(t, t, t, indexing="ij"), axis=-1).reshape(-1, 3)
     w = np.full(len(g), 1.0 / len(g))
-    if edges_mm is None:
+    if cell_mm is not None:
+        cell_lo, cell_hi = nodes - 0.5 * cell_mm[:, None], nodes + 0.5 * cell_mm[:, None]
+    elif edges_mm is None:
         cell_lo, cell_hi = nodes - 0.5 * h_mm, nodes + 0.5 * h_mm
     else:
         cell_lo, cell_hi = dual_cells(nodes, edges_mm)

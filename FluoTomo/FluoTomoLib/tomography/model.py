@@ -148,6 +148,182 @@ def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refin
     return mesh
 
 
+#: the graded mesh's burial band: elements of the band's size within this many
+#: burial depths of an optode
+BURIAL_REACH = 1.0
+#: growth of the graded (bisection) mesh's element size with the distance from
+#: the optodes and the target [mm per mm]
+GRADING_RATE = 0.25
+
+
+def graded_reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, optodes, coarse_mm,
+                               target=None, refine_factor=0.5, origin_mm=(0.0, 0.0, 0.0),
+                               anchor=None, surface=None, burial_mm=None, see_mm=None,
+                               rate=None, name="reconstruction", progress=None,
+                               cancel=None):
+    """Reconstruction mesh graded by bisection (meshing.bisection): elements of
+    ``size_mm`` at the optodes, ``refine_factor * size_mm`` within two
+    ``size_mm`` of the boundaries of the target and of every other region but
+    the largest (the target anchors the grid), ``burial_mm / BURIAL_CELLS`` within
+    BURIAL_REACH ``burial_mm`` of the optodes, growing by ``rate`` per mm of
+    distance from them (None: GRADING_RATE) up to ``coarse_mm``
+    (docs/physics.md section 8.1).
+
+    Parameters are :func:`reconstruction_mesh`'s (same frame: the label map's,
+    axis-aligned); ``optodes`` (P, 3) is required.  ``see_mm``: how far from
+    the optodes the data see the regions' boundaries [mm] (farther, their
+    refinement grows at ``rate`` too; None: everywhere).
+
+    Returns
+    -------
+    Mesh (meta: ``size_mm``, ``coarse_mm``, ``roi``, ``method`` "bisection",
+    ``target``, region volumes and fidelity warnings; no ``edges_mm``: the
+    partial volumes use each node's own spacing, :func:`node_spacing`).
+    """
+    import warnings
+
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    from fluoguide.progress import check_cancel, report, scaled
+    from FluoTomoLib.meshing.bisection import bisection_mesh
+    from FluoTomoLib.meshing.mesh import Mesh
+    from FluoTomoLib.meshing.voxel import (MeshFidelityWarning, _record_fidelity,
+                                           labelmap_region_volumes)
+
+    labels = np.asarray(labels_kji)
+    spacing = np.asarray(spacing_mm, float)
+    origin = np.asarray(origin_mm, float)
+    rate = GRADING_RATE if rate is None else float(rate)
+    h = float(size_mm)
+    coarse = max(float(coarse_mm), h)
+    if roi is None:
+        k, j, i = np.nonzero(labels > 0)
+        ijk = np.stack([i, j, k], axis=1)
+        lo = origin + (ijk.min(axis=0) - 0.5) * spacing
+        hi = origin + (ijk.max(axis=0) + 0.5) * spacing
+        roi = np.array([lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]])
+    roi = np.asarray(roi, float)
+    opt = cKDTree(np.asarray(optodes, float))
+    h_band = h
+    if burial_mm is not None:
+        while h_band > float(burial_mm) / BURIAL_CELLS + 1e-9:
+            h_band *= 0.5
+    shape_ijk = np.array(labels.shape[::-1])
+    t_dist = None
+    if target is not None and not np.any(labels == int(target)):
+        raise FluoInputError("target label is not in the label map", field="target",
+                             value=int(target))
+    present, counts = np.unique(labels[labels > 0], return_counts=True)
+    if len(present) > 1:
+        # the boundaries of every region but the largest (the target's and the
+        # other inclusions'): distance to them [mm], from either side
+        inside = (labels > 0) & (labels != present[np.argmax(counts)])
+        sampling = spacing[::-1]
+        t_dist = np.where(inside, ndimage.distance_transform_edt(inside, sampling=sampling),
+                          ndimage.distance_transform_edt(~inside, sampling=sampling))
+    if anchor is None and target is not None:
+        k, j, i = np.nonzero(labels == int(target))
+        anchor = origin + np.array([i.mean(), j.mean(), k.mean()]) * spacing
+    h_target = h if refine_factor is None else min(h, float(refine_factor) * h)
+
+    def size_at(p):
+        d, _ = opt.query(p)
+        want = np.minimum(coarse, h + rate * np.maximum(d - h, 0.0))
+        if burial_mm is not None and h_band < h:
+            want = np.where(d <= BURIAL_REACH * float(burial_mm) + h_band,
+                            np.minimum(want, h_band), want)
+        if t_dist is not None:
+            ijk = np.clip(np.round((p - origin) / spacing).astype(int), 0, shape_ijk - 1)
+            dt = t_dist[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+            far = 0.0 if see_mm is None else rate * np.maximum(d - float(see_mm), 0.0)
+            want = np.minimum(want, h_target + rate * np.maximum(dt - 2.0 * h, 0.0) + far)
+        return want
+
+    report(progress, 0.0, "graded mesh: bisecting")
+    nodes, elements = bisection_mesh(roi, coarse, size_at, anchor_mm=anchor,
+                                     min_mm=min(h_band, h_target) * 0.9,
+                                     progress=scaled(progress, 0.0, 0.6, "graded mesh"),
+                                     cancel=cancel)
+    check_cancel(cancel)
+    report(progress, 0.6, f"graded mesh: regions of {len(elements)} elements")
+    region = _element_labels(labels, spacing, origin, nodes, elements, roi)
+    tissue = region > 0
+    if not tissue.any():
+        raise FluoInputError("no tissue inside the roi at this element size", field="roi",
+                             value=roi.tolist())
+    used, inverse = np.unique(elements[tissue], return_inverse=True)
+    mesh = Mesh(nodes[used], inverse.reshape(-1, 4), region[tissue], name=name).oriented()
+    mesh.meta.update({"method": "bisection", "size_mm": h, "coarse_mm": coarse,
+                      "roi": roi.tolist(), "grading_rate": float(rate),
+                      "target": None if target is None else int(target)})
+    with warnings.catch_warnings():       # kept in mesh.meta["warnings"]
+        warnings.simplefilter("ignore", MeshFidelityWarning)
+        _record_fidelity(mesh, labelmap_region_volumes(labels, spacing, roi, origin))
+    if surface is not None:
+        check_cancel(cancel)
+        report(progress, 0.7, f"tissue-air nodes onto the surface ({mesh.n_nodes} nodes)")
+        mesh = fit_to_surface(mesh, surface, roi)
+    report(progress, 1.0, f"{mesh.n_nodes} nodes")
+    return mesh
+
+
+def _element_labels(labels, spacing, origin, nodes, elements, roi):
+    """Each element's region: the label whose trilinear indicator is largest at
+    its centre (air, 0, included); then each region other than air and the
+    largest, smallest first, takes the elements where its indicator is highest
+    until they hold its label-map volume inside ``roi`` (sampled at the centres
+    alone, a thin target's elements lose its rim)."""
+    from scipy import ndimage
+
+    from FluoTomoLib.meshing.voxel import labelmap_region_volumes
+
+    centres = nodes[elements].mean(axis=1)
+    p = nodes[elements]
+    vol = np.abs(np.einsum("ij,ij->i", p[:, 1] - p[:, 0],
+                           np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))) / 6.0
+    kji = ((centres - origin) / spacing)[:, ::-1].T
+    best = np.full(len(centres), -1.0)
+    out = np.zeros(len(centres), np.int64)
+    ind = {}
+    for v in np.unique(labels):
+        ind[int(v)] = ndimage.map_coordinates((labels == v).astype(np.float32), kji, order=1,
+                                              mode="nearest")
+        better = ind[int(v)] > best
+        out[better], best[better] = int(v), ind[int(v)][better]
+    want = labelmap_region_volumes(labels, spacing, roi, origin)
+    tissue = [v for v in want if v != 0]
+    if len(tissue) < 2:
+        return out
+    background = max(tissue, key=want.get)
+    fixed = np.zeros(len(out), bool)
+    for v in sorted((v for v in tissue if v != background), key=want.get):
+        cand = np.flatnonzero(~fixed & (ind[v] > 0))
+        cand = cand[np.argsort(-ind[v][cand], kind="stable")]
+        take = cand[np.cumsum(vol[cand]) - 0.5 * vol[cand] <= want[v]]
+        lost = ~fixed & (out == v)
+        lost[take] = False
+        out[lost] = background            # beyond the region's volume: the surroundings
+        out[take] = v
+        fixed[take] = True
+    return out
+
+
+def node_spacing(mesh):
+    """Each node's spacing [mm]: the volume-weighted mean size of the elements
+    around it (an element's size: the edge of the cube it is a sixth of; on a
+    uniform Kuhn grid of h cubes, h at every node), so a node where the mesh
+    grades gets a cell between its small and large neighbours'."""
+    vol = mesh.measures
+    size = np.cbrt(6.0 * vol)
+    num = np.zeros(mesh.n_nodes)
+    den = np.zeros(mesh.n_nodes)
+    for c in range(mesh.elements.shape[1]):
+        np.add.at(num, mesh.elements[:, c], vol * size)
+        np.add.at(den, mesh.elements[:, c], vol)
+    return num / np.maximum(den, 1e-300)
+
+
 #: cells across the sources' burial depth near the surface (see surface_band)
 BURIAL_CELLS = 2.0
 #: largest ratio of the coarse cells to the finest band's: a rectilinear band
@@ -208,9 +384,10 @@ def membership(mesh, labels_kji, spacing_mm, origin_mm=(0.0, 0.0, 0.0), region_l
     vols = {v: int(np.count_nonzero(labels == v)) for v in present}
     background = max(vols, key=vols.get)
     h = float(mesh.meta.get("size_mm", np.median(mesh.measures) ** (1 / 3)))
+    cell = node_spacing(mesh) if mesh.meta.get("method") == "bisection" else None
     return node_region_fractions(mesh.nodes_mm, labels, spacing_mm, origin_mm, h,
                                  labels=region_labels or present, background=background,
-                                 edges_mm=mesh.meta.get("edges_mm"))
+                                 edges_mm=mesh.meta.get("edges_mm"), cell_mm=cell)
 
 
 def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
@@ -567,7 +744,8 @@ def fit_to_surface(mesh, surface, roi=None, max_move=0.75, min_quality=0.2, iter
     1.5 mm meshes of one label map (the flat-top case: within 1.5 %).  Each
     node of a facet that faces air (not a face of the region of interest) goes
     to the closest point of ``surface`` (LabelMap.surface(), same frame), at
-    most ``max_move`` element sizes; where an element would be flattened below
+    most ``max_move`` element sizes (a graded mesh's: the node's own,
+    :func:`node_spacing`); where an element would be flattened below
     ``min_quality`` of its volume, its nodes' moves are halved, up to
     ``iterations`` times.  Returns a new Mesh (same connectivity and regions;
     ``meta["surface_fit_mm"]``: the largest and median moves).
@@ -595,8 +773,12 @@ def fit_to_surface(mesh, surface, roi=None, max_move=0.75, min_quality=0.2, iter
         return mesh
     q, _, dist = surface.closest(mesh.nodes_mm[air_nodes])
     move = q - mesh.nodes_mm[air_nodes]
-    far = dist > max_move * h
-    move[far] *= (max_move * h / dist[far])[:, None]
+    if mesh.meta.get("method") == "bisection":
+        # graded: each node's staircase is as coarse as the elements around it
+        h = node_spacing(mesh)[air_nodes]
+    limit = max_move * np.broadcast_to(h, dist.shape)
+    far = dist > limit
+    move[far] *= (limit[far] / dist[far])[:, None]
     vol0 = mesh.measures
     # a tetrahedron with every corner on the staircase (a step's convex corner)
     # is flattened by any fit of its corners onto a smooth surface: it is cut

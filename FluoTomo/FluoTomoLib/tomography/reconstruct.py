@@ -78,6 +78,11 @@ def _half_max_centroid(vol, lm):
     return (w[:, None] * ijk).sum(axis=0) / w.sum()
 
 
+#: the graded mesh refines the target's boundary within this many decay lengths
+#: (1 / mu_eff) of the optodes (farther, its data are exp(-3) of the nearest's)
+SEE_DECAY_LENGTHS = 3.0
+
+
 def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=None,
                          accuracy="balanced", size_mm=None, refine_factor=None, roi_ras=None,
                          truncation_pct=None, data_model="linear", self_absorption=("HP", "SP"),
@@ -107,9 +112,13 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
         :func:`FluoTomoLib.tomography.model.reconstruction_mesh`), e.g. the one
         the app showed; None builds it
     max_offset_mm : optodes farther from the tissue surface are refused
-    grading : optode-aware grading: ``recon_coarse_mm`` cells away from the box of
-        the optodes and the target (about half the nodes; the data moved by up
-        to 11 % on the issue's scene, docs)
+    grading : False: a uniform grid (refined in bands through the target and
+        under the optodes); True: optode-aware grading of that grid,
+        ``recon_coarse_mm`` cells away from the box of the optodes and the target
+        (about half the nodes; the data moved by up to 11 % on the issue's
+        scene, docs); "bisection": refined by bisection near the optodes and the
+        regions' boundaries only, growing to ``recon_coarse_mm`` away from them
+        (:func:`FluoTomoLib.tomography.model.graded_reconstruction_mesh`)
     noise_pct : the data's relative noise, one SD per measurement [%]; None: the
         acquisition's own statement (``Acquisition.noise_pct``), else unknown.
         The fit is tested against it and the intervals widen when the model
@@ -143,8 +152,12 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     from FluoTomoLib.fem.kernels import prepare_kernels
     from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
     from FluoTomoLib.tomography.coverage import scan_coverage
+
+    if grading not in (False, True, None, "grid", "bisection"):
+        raise FluoInputError("grading must be none, grid or bisection", field="grading",
+                             value=grading)
     from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
-                                              reconstruction_mesh)
+                                              graded_reconstruction_mesh, reconstruction_mesh)
     from FluoTomoLib.tomography.roi import choose_roi, label_map_cut, roi_from_ras
 
     t_all = time.perf_counter()
@@ -231,16 +244,24 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
             timings["roi"] = time.perf_counter() - t0
             report(progress, 0.15, "reconstruction mesh")
             t0 = time.perf_counter()
-            mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, roi, target,
-                                       settings["refine_factor"], surface=lm.surface(),
-                                       optodes=np.vstack([src, det]),
-                                       coarse_mm=settings["recon_coarse_mm"] if grading
-                                       else None,
-                                       optode_normals=lm.surface().closest(
-                                           np.vstack([src, det]))[1],
-                                       burial_mm=mfp, cancel=cancel,
-                                       progress=scaled(progress, 0.15, 0.3,
-                                                       "reconstruction mesh"))
+            if grading == "bisection":
+                mesh = graded_reconstruction_mesh(
+                    lm.labels_kji, lm.spacing_mm, h, roi, np.vstack([src, det]),
+                    settings["recon_coarse_mm"], target, settings["refine_factor"],
+                    surface=lm.surface(), burial_mm=mfp,
+                    see_mm=SEE_DECAY_LENGTHS / optics.min_mueff(lm.labels), cancel=cancel,
+                    progress=scaled(progress, 0.15, 0.3, "reconstruction mesh"))
+            else:
+                mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, roi, target,
+                                           settings["refine_factor"], surface=lm.surface(),
+                                           optodes=np.vstack([src, det]),
+                                           coarse_mm=settings["recon_coarse_mm"] if grading
+                                           else None,
+                                           optode_normals=lm.surface().closest(
+                                               np.vstack([src, det]))[1],
+                                           burial_mm=mfp, cancel=cancel,
+                                           progress=scaled(progress, 0.15, 0.3,
+                                                           "reconstruction mesh"))
             timings["meshing"] = time.perf_counter() - t0
         else:
             roi_info = {"chosen": "the mesh given", "truncation_max_pct": None}
@@ -549,7 +570,8 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
         "sources": len(src), "detectors": len(det),
         "moved_to_surface_mm": {"sources_max": float(d_src.max()),
                                 "detectors_max": float(d_det.max())},
-        "accuracy": dict(settings, grading=bool(mesh.meta.get("coarse_mm", h) > h + 1e-9)),
+        "accuracy": dict(settings, grading="bisection" if mesh.meta.get("method") == "bisection"
+                         else bool(mesh.meta.get("coarse_mm", h) > h + 1e-9)),
         "region_of_interest": roi_info,
         "mesh": {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "element_mm": h,
                  "coarse_element_mm": mesh.meta.get("coarse_mm"),

@@ -18,12 +18,13 @@ import numpy as np
 
 
 def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
-                acquisition=None, progress=None, cancel=None, segmentation_mm=None):
+                acquisition=None, progress=None, cancel=None, segmentation_mm=None,
+                grading=False):
     """Simulate ``scene`` (unless ``acquisition`` is given), reconstruct it with
     each method at ``accuracy`` on the label map the scene hands over (with the
     segmentation's stated accuracy ``segmentation_mm``, None: the reconstruction's
-    default), and grade the results. Returns a list of row dicts (one per method
-    and inclusion)."""
+    default) and the mesh ``grading`` (reconstruct_labelmap's), and grade the
+    results. Returns a list of row dicts (one per method and inclusion)."""
     from FluoTomoLib.tomography import optics_from_dict
     from FluoTomoLib.tomography.reconstruct import reconstruct_labelmap_methods
     from FluoTomoLib.validation.family import simulate
@@ -37,7 +38,8 @@ def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
     t0 = time.perf_counter()
     out = reconstruct_labelmap_methods(lm, optics, acquisition, methods=list(methods),
                                accuracy=accuracy, target=scene.target(), progress=progress,
-                               cancel=cancel, segmentation_mm=segmentation_mm)
+                               cancel=cancel, segmentation_mm=segmentation_mm,
+                               grading=grading)
     t_rec = time.perf_counter() - t0
     rows = []
     for method in methods:
@@ -70,7 +72,9 @@ def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
                    float(np.linalg.norm(np.asarray(cen) - np.asarray(inc["centre_ras_mm"]))),
                    "misfit": s["solver"]["diagnostics"].get("relative_misfit"),
                    "description": scene.description,
-                   "seconds_simulation": t_sim, "seconds_reconstruction": t_rec}
+                   "seconds_simulation": t_sim, "seconds_reconstruction": t_rec,
+                   "grading": grading or "none",
+                   "mesh_nodes": int(out[method]["mesh"].n_nodes)}
             rows.append(row)
     return rows
 

@@ -1,7 +1,7 @@
 """The cylinder-tube graded on Monte Carlo data (FluoTomoLib.pipelines.tube_mc,
 ``fluo validate mc-tomography``, issue #19): the stored acquisitions and the
-command's refusals.  The grading itself (minutes, ~8 GB) runs in the quick demo's
-slow test (stage tomography_mc)."""
+command's refusals, and the stored diffusion-FEM data against a rerun.  The grading
+itself runs in the quick demo's slow test (stage tomography_mc)."""
 
 from __future__ import annotations
 
@@ -82,3 +82,51 @@ def test_another_depths_acquisition_is_refused(tmp_path):
     with pytest.raises(FluoInputError, match="made for 4.7 mm"):
         tube_mc.read_stored(2.7, tmp_path)
     assert tube_mc.read_stored(4.7).meta["simulation"]["tube_depth_mm"] == 4.7
+
+
+def test_stored_fem_acquisitions_are_the_tubes_and_name_their_command():
+    """Each depth's diffusion-FEM data beside its Monte Carlo set: the same optodes
+    and pairs, no added noise, every used pair > 0, the command that remakes it;
+    the reconstruction (validate_tube_mc) reads them instead of simulating."""
+    from FluoTomoLib.pipelines import tube_mc
+
+    for d in tube_mc.DEPTHS_MM:
+        fem = tube_mc.read_stored_fem(d)
+        assert fem is not None, d
+        sim = fem.meta["simulation"]
+        assert sim["engine"] == "fem" and sim["tube_depth_mm"] == d and sim["noise_pct"] == 0.0
+        assert "--simulate-fem" in sim["regenerate"] and f"--depths {d:g}" in sim["regenerate"]
+        mc = tube_mc.read_stored(d)
+        assert np.array_equal(fem.mask, mc.mask) and np.all(fem.data[fem.mask] > 0)
+        # the two models of the same light agree to the diffusion model's own error
+        ratio = fem.data[fem.mask] / mc.data[mc.mask]
+        assert 0.7 < np.median(ratio) < 1.3, (d, np.median(ratio))
+
+
+def test_another_depths_fem_acquisition_is_refused(tmp_path):
+    import shutil
+
+    from fluoguide.errors import FluoInputError
+    from FluoTomoLib.pipelines import tube_mc
+
+    shutil.copytree(tube_mc.depth_folder(4.7) / tube_mc.FEM_FOLDER,
+                    tube_mc.depth_folder(2.7, tmp_path) / tube_mc.FEM_FOLDER)
+    with pytest.raises(FluoInputError, match="diffusion-FEM acquisition"):
+        tube_mc.read_stored_fem(2.7, tmp_path)
+    assert tube_mc.read_stored_fem(6.7, tmp_path) is None        # none stored there
+
+
+@pytest.mark.slow
+@pytest.mark.heavy(gb=6)     # the whole phantom at the fine level: 379k nodes
+def test_stored_fem_acquisition_matches_a_regeneration():
+    """The stored diffusion-FEM data are what simulate_tube makes today (the
+    shallowest depth: the whole phantom at the fine level, about a minute): a
+    change of the simulation that would silently change the demo's and the
+    validation's reference fails here."""
+    from FluoTomoLib.pipelines import tube_mc
+
+    stored = tube_mc.read_stored_fem(2.7)
+    made, info = tube_mc.simulate_tube(2.7, "fem")
+    assert info["mesh_nodes"] == stored.meta["simulation"]["mesh_nodes"]
+    np.testing.assert_array_equal(made.mask, stored.mask)
+    np.testing.assert_allclose(made.data[made.mask], stored.data[stored.mask], rtol=1e-6)
