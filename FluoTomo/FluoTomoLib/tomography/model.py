@@ -35,6 +35,29 @@ from fluoguide.errors import FluoInputError
 PRIOR_VOLUME_WARN_PCT = 10.0
 
 
+def _finish(mesh, surface, roi, progress, cancel):
+    """A reconstruction mesh's tissue-air nodes onto the smooth ``surface`` (if
+    given; :func:`fit_to_surface`), with its progress."""
+    from fluoguide.progress import check_cancel, report
+
+    if surface is not None:
+        check_cancel(cancel)
+        report(progress, 0.7, f"tissue-air nodes onto the surface ({mesh.n_nodes} nodes)")
+        mesh = fit_to_surface(mesh, surface, roi)
+    report(progress, 1.0, f"{mesh.n_nodes} nodes")
+    return mesh
+
+
+def tissue_box(labels_kji, spacing_mm, origin_mm):
+    """(x0, x1, y0, y1, z0, z1) [mm]: the box of the non-zero voxels (their outer
+    faces), in the label map's axis-aligned frame."""
+    k, j, i = np.nonzero(np.asarray(labels_kji) > 0)
+    ijk = np.stack([i, j, k], axis=1)
+    lo = np.asarray(origin_mm, float) + (ijk.min(axis=0) - 0.5) * np.asarray(spacing_mm, float)
+    hi = np.asarray(origin_mm, float) + (ijk.max(axis=0) + 0.5) * np.asarray(spacing_mm, float)
+    return np.array([lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]])
+
+
 def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refine_factor=0.5,
                         origin_mm=(0.0, 0.0, 0.0), anchor=None, surface=None, optodes=None,
                         coarse_mm=None, optode_margin_mm=None, optode_normals=None,
@@ -71,19 +94,13 @@ def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refin
     -------
     Mesh (meta: ``edges_mm``, ``target``, volumes and fidelity warnings).
     """
-    from fluoguide.progress import check_cancel, report, scaled
+    from fluoguide.progress import report, scaled
     from FluoTomoLib.meshing.voxel import mesh_labelmap_structured, target_refinement
 
     labels = np.asarray(labels_kji)
     spacing = np.asarray(spacing_mm, float)
     origin = np.asarray(origin_mm, float)
-    if roi is None:                       # the tissue's box
-        k, j, i = np.nonzero(labels > 0)
-        ijk = np.stack([i, j, k], axis=1)
-        lo = origin + (ijk.min(axis=0) - 0.5) * spacing
-        hi = origin + (ijk.max(axis=0) + 0.5) * spacing
-        roi = np.array([lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]])
-    roi = np.asarray(roi, float)
+    roi = tissue_box(labels, spacing, origin) if roi is None else np.asarray(roi, float)
     bands = [[], [], []]
     base = float(size_mm)
     t_box = None
@@ -140,12 +157,7 @@ def reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, target=None, refin
     mesh.meta["size_mm"] = float(size_mm)
     mesh.meta["coarse_mm"] = base
     mesh.meta["target"] = None if target is None else int(target)
-    if surface is not None:
-        check_cancel(cancel)
-        report(progress, 0.7, f"tissue-air nodes onto the surface ({mesh.n_nodes} nodes)")
-        mesh = fit_to_surface(mesh, surface, roi)
-    report(progress, 1.0, f"{mesh.n_nodes} nodes")
-    return mesh
+    return _finish(mesh, surface, roi, progress, cancel)
 
 
 #: the graded mesh's burial band: elements of the band's size within this many
@@ -197,13 +209,7 @@ def graded_reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, optodes, co
     rate = GRADING_RATE if rate is None else float(rate)
     h = float(size_mm)
     coarse = max(float(coarse_mm), h)
-    if roi is None:
-        k, j, i = np.nonzero(labels > 0)
-        ijk = np.stack([i, j, k], axis=1)
-        lo = origin + (ijk.min(axis=0) - 0.5) * spacing
-        hi = origin + (ijk.max(axis=0) + 0.5) * spacing
-        roi = np.array([lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]])
-    roi = np.asarray(roi, float)
+    roi = tissue_box(labels, spacing, origin) if roi is None else np.asarray(roi, float)
     opt = cKDTree(np.asarray(optodes, float))
     h_band = h
     if burial_mm is not None:
@@ -260,12 +266,7 @@ def graded_reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, optodes, co
     with warnings.catch_warnings():       # kept in mesh.meta["warnings"]
         warnings.simplefilter("ignore", MeshFidelityWarning)
         _record_fidelity(mesh, labelmap_region_volumes(labels, spacing, roi, origin))
-    if surface is not None:
-        check_cancel(cancel)
-        report(progress, 0.7, f"tissue-air nodes onto the surface ({mesh.n_nodes} nodes)")
-        mesh = fit_to_surface(mesh, surface, roi)
-    report(progress, 1.0, f"{mesh.n_nodes} nodes")
-    return mesh
+    return _finish(mesh, surface, roi, progress, cancel)
 
 
 def _element_labels(labels, spacing, origin, nodes, elements, roi):
