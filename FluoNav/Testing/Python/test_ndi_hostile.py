@@ -103,10 +103,11 @@ def test_a_reply_without_end_is_bounded_in_time_and_memory():
             # replies cut at the size limit or the time-out: counted, then one
             # protocol error once the device does not recover, or the device refused
             # when it keeps sending with no request (the stream cannot be resynchronised)
-            # tracking for up to 90 s: the error must end it long before (under CI's
-            # load the cut replies took 30 s to count; quiet, a few seconds)
+            # tracking for up to 150 s: the error must end it long before (quiet, 3 s;
+            # under CI's load the cut replies took 30 s to count, and once 86 s beside
+            # the heavy tests, the pseudo-terminal's 8 MiB a request starved of CPU)
             with pytest.raises((NDIProtocolError, FluoDeviceError)) as e:
-                client.track(90.0)
+                client.track(150.0)
             assert client.stats.frames == 0
             if isinstance(e.value, FluoDeviceError):
                 assert "keeps sending without a request" in str(e.value)
@@ -114,7 +115,7 @@ def test_a_reply_without_end_is_bounded_in_time_and_memory():
                 assert client.stats.malformed + client.stats.timeouts >= client.max_failures
     took = time.monotonic() - t0
     grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
-    assert took < 80.0 and grew_mb < 100
+    assert took < 120.0 and grew_mb < 100
     assert MAX_REPLY_BYTES <= 2**20
 
 
