@@ -79,6 +79,9 @@ def main(argv=None):
     gradings = [v.strip() for v in args.grading.split(",") if v.strip()]
     if not gradings or any(v not in ("none", "bisection", "grid") for v in gradings):
         ap.error("--grading: none, grid, bisection or a list of them")
+    if gradings != ["none"] and scans != ["default"]:
+        ap.error("--grading with --scan plan: not supported (the planned scans are "
+                 "reconstructed on the uniform grid)")
     rows = []
     t_all = time.perf_counter()
     for seed in _seeds(args.seeds):

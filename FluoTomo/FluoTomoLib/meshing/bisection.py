@@ -81,12 +81,9 @@ class _Bisector:
         a, b = el[:, 0], el[rows, tag]
         keys = _edge_keys(a, b, self.N_MAX)
         # midpoints: those of edges bisected before, new ones for the rest
-        pos = np.searchsorted(self.mid_keys, keys)
-        pos_c = np.minimum(pos, max(len(self.mid_keys) - 1, 0))
-        known = (len(self.mid_keys) > 0) & (self.mid_keys[pos_c] == keys) if len(
-            self.mid_keys) else np.zeros(len(keys), bool)
+        known, pos = self._find(keys)
         z = np.empty(len(idx), np.int64)
-        z[known] = self.mid_nodes[pos_c[known]]
+        z[known] = self.mid_nodes[pos[known]]
         new_keys, inv = np.unique(keys[~known], return_inverse=True)
         if len(new_keys):
             lo, hi = new_keys // self.N_MAX, new_keys % self.N_MAX
@@ -117,16 +114,20 @@ class _Bisector:
         self.elements = np.concatenate([self.elements[keep], c1, c2])
         self.tags = np.concatenate([self.tags[keep], new_tag, new_tag])
 
+    def _find(self, keys):
+        """(found, position): which edge keys were bisected, and where they sit in
+        ``mid_keys`` (meaningful where found)."""
+        if not len(self.mid_keys):
+            return np.zeros(len(keys), bool), np.zeros(len(keys), np.int64)
+        pos = np.minimum(np.searchsorted(self.mid_keys, keys), len(self.mid_keys) - 1)
+        return self.mid_keys[pos] == keys, pos
+
     def hanging(self):
         """Elements with a bisected edge (a midpoint node on one of their edges)."""
-        if not len(self.mid_keys):
-            return np.zeros(len(self.elements), bool)
         el = self.elements
         out = np.zeros(len(el), bool)
         for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
-            keys = _edge_keys(el[:, i], el[:, j], self.N_MAX)
-            pos = np.minimum(np.searchsorted(self.mid_keys, keys), len(self.mid_keys) - 1)
-            out |= self.mid_keys[pos] == keys
+            out |= self._find(_edge_keys(el[:, i], el[:, j], self.N_MAX))[0]
         return out
 
     def close(self, cancel=None):
@@ -143,10 +144,9 @@ class _Bisector:
 def element_size(nodes, elements):
     """Each element's size [mm]: the edge of the cube its volume is a sixth of
     (a Kuhn tetrahedron of an h cube: h; each bisection divides it by 2^(1/3))."""
-    p = nodes[elements]
-    vol = np.abs(np.einsum("ij,ij->i", p[:, 1] - p[:, 0],
-                           np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))) / 6.0
-    return np.cbrt(6.0 * vol)
+    from FluoTomoLib.meshing.mesh import element_measures
+
+    return np.cbrt(6.0 * element_measures(nodes, elements))
 
 
 def bisection_mesh(roi, coarse_mm, size_at, anchor_mm=None, min_mm=None, progress=None,

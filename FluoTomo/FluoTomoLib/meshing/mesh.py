@@ -76,6 +76,14 @@ def _shared_facet_error(name):
                          "or overlapping elements)", field=f"{name}.elements")
 
 
+def element_measures(nodes_mm, elements):
+    """Unsigned area (triangles) or volume (tetrahedra) of each element of a node
+    array and a connectivity [mm^2 or mm^3], without building a :class:`Mesh`
+    (its checks): :attr:`Mesh.measures` of the same arrays."""
+    return np.abs(_signed_measures(np.ascontiguousarray(nodes_mm, dtype=float),
+                                   np.ascontiguousarray(elements, dtype=np.int64)))
+
+
 @dataclass(eq=False)
 class Mesh:
     """Linear simplex mesh.

@@ -253,7 +253,8 @@ def graded_reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, optodes, co
                                      cancel=cancel)
     check_cancel(cancel)
     report(progress, 0.6, f"graded mesh: regions of {len(elements)} elements")
-    region = _element_labels(labels, spacing, origin, nodes, elements, roi)
+    volumes = labelmap_region_volumes(labels, spacing, roi, origin)
+    region = _element_labels(labels, spacing, origin, nodes, elements, volumes)
     tissue = region > 0
     if not tissue.any():
         raise FluoInputError("no tissue inside the roi at this element size", field="roi",
@@ -265,24 +266,22 @@ def graded_reconstruction_mesh(labels_kji, spacing_mm, size_mm, roi, optodes, co
                       "target": None if target is None else int(target)})
     with warnings.catch_warnings():       # kept in mesh.meta["warnings"]
         warnings.simplefilter("ignore", MeshFidelityWarning)
-        _record_fidelity(mesh, labelmap_region_volumes(labels, spacing, roi, origin))
+        _record_fidelity(mesh, volumes)
     return _finish(mesh, surface, roi, progress, cancel)
 
 
-def _element_labels(labels, spacing, origin, nodes, elements, roi):
+def _element_labels(labels, spacing, origin, nodes, elements, want):
     """Each element's region: the label whose trilinear indicator is largest at
     its centre (air, 0, included); then each region other than air and the
     largest, smallest first, takes the elements where its indicator is highest
-    until they hold its label-map volume inside ``roi`` (sampled at the centres
-    alone, a thin target's elements lose its rim)."""
+    until they hold its label-map volume ``want`` {label: mm^3} (sampled at the
+    centres alone, a thin target's elements lose its rim)."""
     from scipy import ndimage
 
-    from FluoTomoLib.meshing.voxel import labelmap_region_volumes
+    from FluoTomoLib.meshing.mesh import element_measures
 
     centres = nodes[elements].mean(axis=1)
-    p = nodes[elements]
-    vol = np.abs(np.einsum("ij,ij->i", p[:, 1] - p[:, 0],
-                           np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))) / 6.0
+    vol = element_measures(nodes, elements)
     kji = ((centres - origin) / spacing)[:, ::-1].T
     best = np.full(len(centres), -1.0)
     out = np.zeros(len(centres), np.int64)
@@ -292,7 +291,6 @@ def _element_labels(labels, spacing, origin, nodes, elements, roi):
                                               mode="nearest")
         better = ind[int(v)] > best
         out[better], best[better] = int(v), ind[int(v)][better]
-    want = labelmap_region_volumes(labels, spacing, roi, origin)
     tissue = [v for v in want if v != 0]
     if len(tissue) < 2:
         return out
@@ -308,6 +306,13 @@ def _element_labels(labels, spacing, origin, nodes, elements, roi):
         out[take] = v
         fixed[take] = True
     return out
+
+
+def graded_node_cells(mesh):
+    """Each node's cell width [mm] on a mesh graded by bisection
+    (:func:`node_spacing`); None on the grid meshes, whose grid lines or element
+    size say it."""
+    return node_spacing(mesh) if mesh.meta.get("method") == "bisection" else None
 
 
 def node_spacing(mesh):
@@ -385,10 +390,10 @@ def membership(mesh, labels_kji, spacing_mm, origin_mm=(0.0, 0.0, 0.0), region_l
     vols = {v: int(np.count_nonzero(labels == v)) for v in present}
     background = max(vols, key=vols.get)
     h = float(mesh.meta.get("size_mm", np.median(mesh.measures) ** (1 / 3)))
-    cell = node_spacing(mesh) if mesh.meta.get("method") == "bisection" else None
     return node_region_fractions(mesh.nodes_mm, labels, spacing_mm, origin_mm, h,
                                  labels=region_labels or present, background=background,
-                                 edges_mm=mesh.meta.get("edges_mm"), cell_mm=cell)
+                                 edges_mm=mesh.meta.get("edges_mm"),
+                                 cell_mm=graded_node_cells(mesh))
 
 
 def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
@@ -774,9 +779,10 @@ def fit_to_surface(mesh, surface, roi=None, max_move=0.75, min_quality=0.2, iter
         return mesh
     q, _, dist = surface.closest(mesh.nodes_mm[air_nodes])
     move = q - mesh.nodes_mm[air_nodes]
-    if mesh.meta.get("method") == "bisection":
+    cells = graded_node_cells(mesh)
+    if cells is not None:
         # graded: each node's staircase is as coarse as the elements around it
-        h = node_spacing(mesh)[air_nodes]
+        h = cells[air_nodes]
     limit = max_move * np.broadcast_to(h, dist.shape)
     far = dist > limit
     move[far] *= (limit[far] / dist[far])[:, None]

@@ -78,8 +78,8 @@ def _half_max_centroid(vol, lm):
     return (w[:, None] * ijk).sum(axis=0) / w.sum()
 
 
-#: the graded mesh refines the target's boundary within this many decay lengths
-#: (1 / mu_eff) of the optodes (farther, its data are exp(-3) of the nearest's)
+#: the graded mesh refines the regions' boundaries within this many decay lengths
+#: (1 / mu_eff) of the optodes (farther, their data are exp(-3) of the nearest's)
 SEE_DECAY_LENGTHS = 3.0
 
 
