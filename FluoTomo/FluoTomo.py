@@ -1372,6 +1372,26 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
                           oral_options=oralOptions)
 
     @staticmethod
+    def writeTubeTruth(surfaceTruth, folder):
+        """Write a tube case's simulated true fields (a case run with the tube
+        option ``truth="simulate"``) as ``folder/depth_<d>mm.npz``, the layout
+        of the stored sets the cases read (``fluo demo --simulate-truth``).
+
+        Parameters
+        ----------
+        surfaceTruth : FluoTomoLib.pipelines.tube_truth.SurfaceTruth
+        folder : path
+
+        Returns
+        -------
+        pathlib.Path
+            The file written.
+        """
+        from FluoTomoLib.pipelines.tube_truth import truth_file, write_truth
+
+        return write_truth(truth_file(surfaceTruth.info["depth_mm"], folder), surfaceTruth)
+
+    @staticmethod
     def runTomographyCases(tasks, recordFolder, resume=False, executor=None, threads=None,
                            progress=None, cancel=None, label="tomography cases"):
         """Run the tasks of :meth:`tomographyCaseTasks` on the run engine, each

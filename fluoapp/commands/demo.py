@@ -27,7 +27,8 @@ def _handler(args):
     with executor_for(args, threads) if distributed else contextlib.nullcontext() as ex, \
             TqdmProgress("fluo demo") as bar:
         metrics = run_demo(args.out, quick=args.quick, seed=args.seed, progress=bar, only=only,
-                           executor=ex, threads=threads, resume=args.resume)
+                           executor=ex, threads=threads, resume=args.resume,
+                           case_options={"truth": "simulate"} if args.simulate_truth else None)
     metrics["report"] = str(Path(args.out).resolve() / "report.html")
     if args.json:
         return metrics
@@ -58,6 +59,10 @@ def register(sub):
                    help="a first look: fewer tube depths, views and a smaller tomography region")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of every simulated noise (default %(default)s)")
+    p.add_argument("--simulate-truth", action="store_true",
+                   help="simulate the tube cases' true fields on the whole phantom instead of "
+                   "reading the stored ones, and write them to DIR/tube_truth (how the stored "
+                   "sets in FluoTomoLib/pipelines/data/tube_truth are made)")
     p.add_argument("--only", default=None, metavar="STAGE[,STAGE...]",
                    help="run these stages, after the stages they need; stages in run order: "
                    f"{', '.join(STAGE_NAMES)} (default: all)")

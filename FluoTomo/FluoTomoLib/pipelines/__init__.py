@@ -7,6 +7,7 @@ Modules
 - ``oral``: Image-guided fluorescence tomography of the oral-cavity phantom.
 - ``steps``: The steps every image-guided tomography case shares, whatever the phantom: the tracked camera's acquisition of a laser scan (rendered frames -> ROI counts -> normalised boundary fluence), the reconstruction model and prior from the CBCT labels, and NP / SP / HP with the optional self-absorption feedback.  ``tube`` (cylinder-tube) and ``oral`` (oral cavity) put them together.
 - ``tube``: Image-guided fluorescence tomography of the cylinder-tube phantom, end to end.
+- ``tube_truth``: The cylinder-tube cases' ground truth: the true phantom's emission fields on the surface the camera films, simulated on the whole phantom or read from the stored sets (``data/tube_truth``).
 """
 
 from fluoguide.lazy import attach
@@ -16,4 +17,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "oral": ["tissue_air_facets", "simulate_and_reconstruct_oral"],
     "steps": ["nodal_optics", "acquire", "onto_surface_from_above", "reconstruction_model", "reconstruct_methods"],
     "tube": ["simulate_and_reconstruct"],
+    "tube_truth": ["SurfaceTruth", "simulate_truth", "stored_truth", "read_truth", "write_truth",
+                   "true_yield_at"],
 })

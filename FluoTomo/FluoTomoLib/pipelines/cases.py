@@ -31,9 +31,9 @@ SECTIONS = {"cylinder-tube": ((-8.0, 8.0), (0.0, -10.0)),
             "oral-cavity": ((-16.0, 26.0), (-8.0, -40.0))}
 
 #: keyword options of the case functions a task may set (a smaller case for a
-#: test; the demo uses the defaults)
+#: test; the demo uses the defaults; ``truth="simulate"`` remakes the stored truth)
 TUBE_OPTIONS = {"fine_mm", "coarse_mm", "n_sources", "source_spacing_mm", "simulate_coarse_mm",
-                "lam", "accuracy", "grading"}
+                "lam", "accuracy", "grading", "truth"}
 ORAL_OPTIONS = {"fine_mm", "coarse_mm", "n_sources", "source_spacing_mm", "lam"}
 
 
@@ -43,9 +43,10 @@ def section_images(run, y_mm, z_mm, px_per_mm=8):
     Parameters
     ----------
     run : dict
-        What ``simulate_and_reconstruct`` (or ``_oral``) returned: ``fine`` and
-        ``true_yield_fine`` (the truth on the simulation mesh), ``coarse`` and
-        each method's ``yield`` on the reconstruction mesh.
+        What ``simulate_and_reconstruct`` (or ``_oral``) returned: the truth as
+        ``true_yield_at`` (a function of points, the tube's analytic one) or as
+        ``fine`` and ``true_yield_fine`` (on the simulation mesh), ``coarse``
+        and each method's ``yield`` on the reconstruction mesh.
     y_mm, z_mm : (float, float)
         The window (z from top to bottom, as the image rows go).
     px_per_mm : float
@@ -62,10 +63,14 @@ def section_images(run, y_mm, z_mm, px_per_mm=8):
     nz = int(abs(z_mm[1] - z_mm[0]) * px_per_mm) + 1
     yy, zz = np.meshgrid(np.linspace(*y_mm, ny), np.linspace(*z_mm, nz))
     pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
-    panels = [("truth", run["fine"], run["true_yield_fine"])]
+    out = {"y_mm": np.asarray(y_mm, float), "z_mm": np.asarray(z_mm, float)}
+    if "true_yield_at" in run:
+        out["truth"] = np.asarray(run["true_yield_at"](pts), float).reshape(yy.shape)
+        panels = []
+    else:
+        panels = [("truth", run["fine"], run["true_yield_fine"])]
     panels += [(m, run["coarse"], run["results"][m]["yield"]) for m in METHODS
                if m in run["results"]]
-    out = {"y_mm": np.asarray(y_mm, float), "z_mm": np.asarray(z_mm, float)}
     for name, mesh, values in panels:
         P = locator(mesh).interpolation_matrix(pts, outside="nan")
         inside = np.asarray(P.sum(axis=1)).ravel() > 0.5     # rows outside the mesh are empty
@@ -82,8 +87,9 @@ def _options(params, allowed, where):
     return extra
 
 
-def _record_of(run, phantom_name, extra_rows):
-    """The task's result: headline columns, ``case`` (every number), ``arrays``."""
+def _record_of(run, phantom_name, extra_rows, keep_truth=False):
+    """The task's result: headline columns, ``case`` (every number), ``arrays``
+    (with the simulated true fields when ``keep_truth``)."""
     results = {m: {k: v for k, v in r.items() if k != "yield"} for m, r in run["results"].items()}
     coarse = run["coarse"]
     arrays = {
@@ -101,8 +107,15 @@ def _record_of(run, phantom_name, extra_rows):
     y_mm, z_mm = SECTIONS[phantom_name]
     for k, v in section_images(run, y_mm, z_mm).items():
         arrays[f"section_{k}"] = v
+    truth = run.get("surface_truth")
+    if keep_truth and truth is not None:
+        # asked for (fluo demo --simulate-truth stores it): ~1 MB more per case
+        arrays.update({"truth_vertices_mm": truth.vertices_mm, "truth_facets": truth.facets,
+                       "truth_fields_per_w": truth.fields_per_w,
+                       "truth_sources_mm": truth.sources_mm})
     skip = {"results", "fine", "coarse", "true_yield_fine", "profiles", "profile_depth_mm",
-            "sources_true_mm", "sources_reported_mm", "detectors_mm", "frame_example"}
+            "sources_true_mm", "sources_reported_mm", "detectors_mm", "frame_example",
+            "surface_truth", "true_yield_at"}
     case = {k: v for k, v in run.items() if k not in skip}
     case["results"] = results
     case["coarse_meta"] = {k: v for k, v in coarse.meta.items() if not str(k).startswith("_")}
@@ -133,7 +146,8 @@ def tube_case(params, progress=None, cancel=None):
                       seed=int(params["seed"]))
     run = simulate_and_reconstruct(ph, seed=int(params["seed"]), progress=progress,
                                    cancel=cancel, **opts)
-    return _record_of(run, ph.name, {"depth_mm": run["depth_mm"]})
+    return _record_of(run, ph.name, {"depth_mm": run["depth_mm"]},
+                      keep_truth=opts.get("truth") == "simulate")
 
 
 tube_case.reports_progress = True
@@ -200,7 +214,9 @@ def case_of_record(record, arrays):
         ``results`` (each method's numbers and ``yield``), ``coarse`` (a Mesh),
         ``profiles`` and ``profile_depth_mm`` (tube), the optode positions,
         ``frame_example``, ``sections`` (:func:`section_images`' dict) and
-        every other number of the case; no simulation mesh (``fine``).
+        every other number of the case; no simulation mesh (``fine``);
+        ``surface_truth`` (a tube case's :class:`.tube_truth.SurfaceTruth`)
+        where the case simulated it.
     """
     from FluoTomoLib.meshing.mesh import Mesh
 
@@ -224,4 +240,10 @@ def case_of_record(record, arrays):
                             if k.startswith("profile_") and k != "profile_depth_mm"}
     case["sections"] = {k[len("section_"):]: v for k, v in arrays.items()
                         if k.startswith("section_")}
+    if "truth_fields_per_w" in arrays:
+        from FluoTomoLib.pipelines.tube_truth import SurfaceTruth
+
+        case["surface_truth"] = SurfaceTruth(
+            arrays["truth_vertices_mm"], arrays["truth_facets"], arrays["truth_fields_per_w"],
+            arrays["truth_sources_mm"], dict(case.get("truth") or {}))
     return case

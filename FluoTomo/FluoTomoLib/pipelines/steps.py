@@ -21,7 +21,6 @@ from FluoTomoLib.acquisition.camera_frames import (
     detector_counts,
     expose,
     frame_radiance,
-    surface_caster,
     tomography_camera,
 )
 from FluoTomoLib.fem.forward import FluorescenceModel
@@ -39,47 +38,63 @@ def nodal_optics(node_region, optics):
     return out
 
 
-def render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_centre_mm,
-                  tracking, rng, exclude_mm=3.0, laser_power_w=0.01, camera_gain=None,
-                  camera_offset_adu=100.0, camera_read_noise_adu=2.0, camera_binning=4,
-                  camera_distance_mm=150.0, detectors_mm=None, timings=None, progress=None,
-                  cancel=None):
-    """What the tracked camera records during a laser scan (the simulation side):
-    the FEM emission fields of the true tissue (``fine`` mesh, true source
-    positions) rendered into one frame per source from the *true* camera pose,
-    with shot/read noise and 14 bits; the camera's *reported* pose carries the
-    tracking error.  ``camera_gain`` None: exposure such that the brightest
-    pixel farther than ``exclude_mm`` from the active source sits at ~60 % of
-    14 bits.
-
-    Returns a dict: ``frames`` (S, H, W) [ADU], ``saturated``, ``camera``
-    (CameraModel), ``camera_true`` / ``camera_reported`` (CameraToWorld),
-    ``camera_gain``.
-    """
-    timings = {} if timings is None else timings
-    report(progress, 0.2, "forward simulation (true tissue)")
-    t0 = time.perf_counter()
+def true_emission_fields(fine, true_props, n, src_true, detectors_mm=None):
+    """The FEM emission fields of the true tissue (``fine``: the simulation mesh,
+    ``true_props``: its nodal optics, :func:`nodal_optics`) from the true source
+    positions: (N, S) fluence per W of laser power at every node.  The
+    factorisations (GBs on a whole phantom) are freed before it returns, not
+    held through the reconstruction that follows."""
     det = src_true if detectors_mm is None else detectors_mm
     sim = FluorescenceModel(fine, {"mua_per_mm": true_props["mua_x_per_mm"],
                                    "musp_per_mm": true_props["musp_x_per_mm"], "n": n},
                             {"mua_per_mm": true_props["mua_m_per_mm"],
                              "musp_per_mm": true_props["musp_m_per_mm"], "n": n},
                             src_true, det, lean=True)
-    fields = sim.emission_fields(true_props["yield_per_mm"])     # (N, S) per W
-    # the factorisations of the whole-phantom mesh (GBs) are done with: freed
-    # here, not held through the reconstruction that follows
+    fields = sim.emission_fields(true_props["yield_per_mm"])
     del sim
-    timings["forward_simulation"] = time.perf_counter() - t0
+    return fields
+
+
+def surface_of(mesh, facet_mask=None):
+    """The surface the camera films as its own small mesh: (vertices_mm (V, 3),
+    facets (F, 3) into them, node index (V,) into ``mesh``) of the boundary
+    facets (``facet_mask``: some of them only)."""
+    facets = mesh.boundary_facets if facet_mask is None else mesh.boundary_facets[facet_mask]
+    nodes, inverse = np.unique(facets, return_inverse=True)
+    return mesh.nodes_mm[nodes], inverse.reshape(facets.shape).astype(np.int64), nodes
+
+
+def render_frames(vertices_mm, facets, fields, robin_A, src_true, camera_centre_mm, tracking,
+                  rng, exclude_mm=3.0, laser_power_w=0.01, camera_gain=None,
+                  camera_offset_adu=100.0, camera_read_noise_adu=2.0, camera_binning=4,
+                  camera_distance_mm=150.0, timings=None, progress=None, cancel=None):
+    """What the tracked camera records during a laser scan (the simulation side):
+    the true emission fields on the filmed surface (``vertices_mm``, ``facets``:
+    :func:`surface_of`; ``fields``: (V, S) fluence per W at the vertices, one
+    column per source at its true position ``src_true``) rendered into one
+    frame per source from the *true* camera pose, with shot/read noise and 14
+    bits; the camera's *reported* pose carries the tracking error.
+    ``camera_gain`` None: exposure such that the brightest pixel farther than
+    ``exclude_mm`` from the active source sits at ~60 % of 14 bits.
+
+    Returns a dict: ``frames`` (S, H, W) [ADU], ``saturated``, ``camera``
+    (CameraModel), ``camera_true`` / ``camera_reported`` (CameraToWorld),
+    ``camera_gain``, ``caster`` (the surface's SurfaceCaster, for the
+    software side's casts).
+    """
+    from FluoNavLib.mapping.pixel_cast import SurfaceCaster
+
+    timings = {} if timings is None else timings
     check_cancel(cancel)
     report(progress, 0.27, "camera frames")
     t0 = time.perf_counter()
     camera = tomography_camera(camera_binning)
     cam_true = camera_pose_above(camera_centre_mm, camera_distance_mm)
     cam_rep = cam_true @ tracking.perturb(np.eye(4), rng)
-    caster, facets = surface_caster(fine, facet_mask)
+    caster = SurfaceCaster(vertices_mm, facets)
     hits_true = cast(caster, camera, cam_true, scaled(progress, 0.27, 0.27, "camera frames"),
                      cancel)
-    radiance = frame_radiance(hits_true, facets, fine.nodes_mm, fields, robin_A, laser_power_w)
+    radiance = frame_radiance(hits_true, facets, vertices_mm, fields, robin_A, laser_power_w)
     if camera_gain is None:
         pts = hits_true.point_mm
         far = np.linalg.norm(pts[None] - src_true[:, None, None, :], axis=-1) > exclude_mm
@@ -90,9 +105,9 @@ def render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_cen
         camera_gain = 0.6 * 16383 / peak
     frames, saturated = expose(radiance, camera_gain, camera_offset_adu, camera_read_noise_adu,
                                rng)
-    timings["camera_frames"] = time.perf_counter() - t0
+    timings["camera_frames"] = timings.get("camera_frames", 0.0) + time.perf_counter() - t0
     return {"frames": frames, "saturated": saturated, "camera": camera, "camera_true": cam_true,
-            "camera_reported": cam_rep, "camera_gain": float(camera_gain)}
+            "camera_reported": cam_rep, "camera_gain": float(camera_gain), "caster": caster}
 
 
 def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_centre_mm,
@@ -122,13 +137,17 @@ def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_
     if project_detectors:
         det_rep = onto_surface_from_above(det_rep, fine.nodes_mm, fine.boundary_facets[facet_mask])
     mask = detector_mask(src_rep, det_rep, exclude_mm)
-    r = render_frames(fine, true_props, n, robin_A, src_true, facet_mask, camera_centre_mm,
-                      tracking, rng, exclude_mm, laser_power_w, camera_gain, camera_offset_adu,
-                      camera_read_noise_adu, camera_binning, camera_distance_mm, det_rep,
-                      timings, progress, cancel)
+    report(progress, 0.2, "forward simulation (true tissue)")
     t0 = time.perf_counter()
-    caster, _ = surface_caster(fine, facet_mask)
-    hits_rep = cast(caster, r["camera"], r["camera_reported"], cancel=cancel)   # compiled above
+    vertices, facets, nodes = surface_of(fine, facet_mask)
+    fields = true_emission_fields(fine, true_props, n, src_true, det_rep)[nodes]
+    timings["forward_simulation"] = time.perf_counter() - t0
+    r = render_frames(vertices, facets, fields, robin_A, src_true, camera_centre_mm, tracking,
+                      rng, exclude_mm, laser_power_w, camera_gain, camera_offset_adu,
+                      camera_read_noise_adu, camera_binning, camera_distance_mm, timings,
+                      progress, cancel)
+    t0 = time.perf_counter()
+    hits_rep = cast(r["caster"], r["camera"], r["camera_reported"], cancel=cancel)  # compiled
     counts, roi_pixels = detector_counts(r["frames"], r["saturated"], hits_rep, det_rep)
     lost = mask & ~np.isfinite(counts)
     if np.any(lost):

@@ -2,12 +2,13 @@
 through the public label-map path (FluoTomoLib.tomography).
 
 Simulation (what the operating room would give):
-  the whole phantom meshed (graded: fine near the laser raster and the tube,
-  coarser away; its own mesh, never the reconstruction's) -> tracked laser
-  raster (true beam) -> FEM excitation and emission fields with the true
-  optical properties (the analytic tube absorbs and fluoresces) -> tracked
-  camera frames of the emission exitance (every pixel ray-cast onto the
-  surface), through the camera's radiometric model with shot/read noise.
+  the true emission fields on the filmed surface (:mod:`.tube_truth`: the
+  whole phantom on its own graded mesh, fine near the laser raster and the
+  tube, never the reconstruction's; the analytic tube absorbs and fluoresces;
+  stored for the demo's depths, simulated for other options) -> tracked laser
+  raster (true beam) -> tracked camera frames of the emission exitance (every
+  pixel ray-cast onto the surface), through the camera's radiometric model
+  with shot/read noise drawn from the case's seed.
 Reconstruction (what the software does with it, the raw route of an
 acquisition folder, ``acquisition_from_tracked_frames``):
   reported (tracked, noisy) laser poses -> sources where the beams meet the
@@ -34,15 +35,10 @@ from fluoguide.progress import check_cancel, report, scaled
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.optics import robin_A
-from FluoTomoLib.pipelines.steps import nodal_optics, render_frames
+from FluoTomoLib.pipelines.steps import render_frames
+from FluoTomoLib.pipelines.tube_truth import (raster_targets, simulate_truth, stored_truth,
+                                              true_yield_at)
 from FluoTomoLib.recon.metrics import depth_profile, peak_and_centroid
-
-
-def _tube_indicator(points_mm, geometry):
-    c = np.asarray(geometry["tube_centre_mm"], float)
-    r = float(geometry["tube_radius_mm"])
-    d = points_mm - c
-    return (d[:, 1] ** 2 + d[:, 2] ** 2) <= r * r
 
 
 def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
@@ -52,7 +48,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
                              camera_binning=4, camera_distance_mm=150.0,
                              camera_read_noise_adu=2.0, tracking=TrackingError(), seed=0,
                              progress=None, cancel=None, recon_labels=None, accuracy="balanced",
-                             simulate_coarse_mm=1.5, self_absorption=("HP",), grading=False):
+                             simulate_coarse_mm=1.5, self_absorption=("HP",), grading=False,
+                             truth="stored"):
     """Run one tube depth through acquisition simulation and NP/SP/HP reconstruction.
 
     ``fine_mm`` is the element size of the simulation mesh near the raster and
@@ -71,59 +68,62 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     the phantom's truth.  ``self_absorption``: the methods that feed the
     reconstructed ICG's absorption back (HP only: it took HP's mean absolute
     yield error over the five depths from 23 % to 5 %, while SP went from 10.5 %
-    to 13.7 %).  Returns a dict of numbers, profiles and the meshes/fields
-    (RAS) for figures and the scene.
+    to 13.7 %).  ``truth``: ``"stored"`` reads the depth's stored true fields
+    when the simulation options are the stored ones
+    (:func:`.tube_truth.stored_truth`) and simulates them otherwise;
+    ``"simulate"`` always simulates (how the stored sets are made).  Returns a
+    dict of numbers, profiles, the reconstruction mesh and fields (RAS) for
+    figures and the scene, ``true_yield_at`` (the analytic truth at points)
+    and ``surface_truth`` (:class:`.tube_truth.SurfaceTruth`, with where it
+    came from in its ``info``).
     """
     from FluoTomoLib.tomography import (LabelMap, acquisition_from_tracked_frames,
                                         optics_from_phantom, reconstruct_labelmap_methods)
-    from FluoTomoLib.tomography.accuracy import cap_at_burial
-    from FluoTomoLib.tomography.simulate import simulation_mesh
 
+    if truth not in ("stored", "simulate"):
+        raise FluoInputError("truth must be 'stored' or 'simulate'", field="truth", value=truth)
     t_all = time.perf_counter()
     rng = seeded_rng(seed)
-    truth = phantom.truth()
     if phantom.name != "cylinder-tube":
         raise FluoInputError("this study needs the cylinder-tube phantom", field="phantom",
                              value=phantom.name)
-    geo = truth["geometry"]
-    optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
+    phantom_truth = phantom.truth()
+    geo = phantom_truth["geometry"]
+    optics = {int(k): v["optics"] for k, v in phantom_truth["regions"].items()}
     n = optics[1]["n"]
     A = float(robin_A(n))
     timings = {}
 
-    # --- the simulation: the whole phantom, its own graded mesh
+    # --- the simulation: the true fields on the filmed surface (stored or simulated)
     prepare_kernels(progress, 0.0, cancel)       # first run: compiled, reported as it goes
-    report(progress, 0.02, "simulation mesh (whole phantom)")
     t0 = time.perf_counter()
-    lm_true = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
-                       source="cylinder-tube phantom")
-    optics_true = optics_from_phantom(optics)
-    ys = (np.arange(n_sources) - 0.5 * (n_sources - 1)) * source_spacing_mm
-    targets = np.stack([np.zeros_like(ys), ys, np.zeros_like(ys)], axis=1)
-    h_sim, mfp = cap_at_burial(fine_mm, optics_true, lm_true.labels)
-    decay = 1.0 / optics_true.min_mueff(lm_true.labels)
-    fine_local = simulation_mesh(lm_true, lm_true.to_local(targets), 2, h_sim,
-                                 max(simulate_coarse_mm, h_sim), max(4.0, 0.5 * decay), mfp,
-                                 cancel)
-    fine = lm_true.mesh_to_ras(fine_local)
-    timings["simulation_mesh"] = time.perf_counter() - t0
+    sim_options = {"fine_mm": fine_mm, "simulate_coarse_mm": simulate_coarse_mm,
+                   "n_sources": n_sources, "source_spacing_mm": source_spacing_mm}
+    surface = stored_truth(geo["tube_depth_mm"], sim_options) if truth == "stored" else None
+    if surface is None:
+        surface = simulate_truth(phantom, **sim_options,
+                                 progress=scaled(progress, 0.02, 0.25, "true fields"),
+                                 cancel=cancel)
+    timings["forward_simulation"] = time.perf_counter() - t0
     check_cancel(cancel)
-    # true optical properties on the simulation mesh: the analytic tube, not its voxels
-    true_props = nodal_optics(np.where(_tube_indicator(fine.nodes_mm, geo), 2, 1), optics)
 
     # --- tracked laser raster across the tube (along y at x = 0)
-    report(progress, 0.1, "tracked laser scan")
-    top = fine.boundary_normals[:, 2] > 0.99
+    report(progress, 0.25, "tracked laser scan")
     beam_origin, beam_dir = np.zeros(3), np.array([0.0, 0.0, 1.0])
-    scan = raster_scan(targets, beam_origin, beam_dir, fine.nodes_mm, fine.boundary_facets[top],
-                       error=tracking, rng=rng)
+    scan = raster_scan(raster_targets(n_sources, source_spacing_mm), beam_origin, beam_dir,
+                       surface.vertices_mm, surface.facets, error=tracking, rng=rng)
     if np.any(scan["miss"]):
         raise FluoInputError("a reported laser beam misses the CBCT surface",
                              field="laser pose", value=int(np.flatnonzero(scan["miss"])[0]))
     src_true = scan["true_points_mm"]
-    frames = render_frames(fine, true_props, n, A, src_true, top, (0.0, 0.0, 0.0), tracking, rng,
-                           exclude_mm=exclude_mm, laser_power_w=laser_power_w,
-                           camera_gain=camera_gain, camera_offset_adu=camera_offset_adu,
+    if not np.allclose(src_true, surface.sources_mm, atol=1e-6):
+        raise FluoInputError("the true fields were simulated from other laser positions "
+                             "than this raster's", file=surface.info.get("source"),
+                             field="sources_mm")
+    frames = render_frames(surface.vertices_mm, surface.facets, surface.fields_per_w, A,
+                           src_true, (0.0, 0.0, 0.0), tracking, rng, exclude_mm=exclude_mm,
+                           laser_power_w=laser_power_w, camera_gain=camera_gain,
+                           camera_offset_adu=camera_offset_adu,
                            camera_read_noise_adu=camera_read_noise_adu,
                            camera_binning=camera_binning, camera_distance_mm=camera_distance_mm,
                            timings=timings, progress=progress, cancel=cancel)
@@ -134,7 +134,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
         lm = LabelMap(r_labels, r_spacing, r_origin, r_dir[0] if r_dir else np.eye(3),
                       source="CBCT labels")
     else:
-        lm = lm_true
+        lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                      source="cylinder-tube phantom")
     t0 = time.perf_counter()
     acq = acquisition_from_tracked_frames(
         lm, frames["frames"], frames["saturated"], frames["camera"], frames["camera_reported"],
@@ -160,7 +161,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     depth = float(geo["tube_depth_mm"])
     true_peak = float(optics[2]["yield_per_mm"])
     results, profiles = {}, {}
-    zc, profiles["truth"] = depth_profile(fine, true_props["yield_per_mm"], (0.0, 0.0))
+    zc = np.arange(0.0, 20.0 + 1e-9, 0.05)         # depth_profile's line, through the tube
+    profiles["truth"] = true_yield_at(np.stack([0 * zc, 0 * zc, -zc], axis=1), phantom)
     for method, out in solved.items():
         res = out["result"]
         z, prof = depth_profile(coarse, res.yield_per_mm, (0.0, 0.0))
@@ -185,7 +187,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     roi_info = first["summary"]["region_of_interest"]
     return {
         "depth_mm": depth, "results": results, "profile_depth_mm": zc, "profiles": profiles,
-        "fine": fine, "coarse": coarse, "true_yield_fine": true_props["yield_per_mm"],
+        "coarse": coarse, "surface_truth": surface,
+        "true_yield_at": lambda points_mm: true_yield_at(points_mm, phantom),
         "sources_true_mm": src_true, "sources_reported_mm": src_rep,
         "detectors_mm": acq.detectors_ras_mm,
         "source_error_mm": float(np.mean(np.linalg.norm(src_true - src_rep, axis=1))),
@@ -198,6 +201,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
                                                      - frames["camera_true"][:3, 3])),
         "region_of_interest": roi_info,
         "timings": timings, "solver": first["model"].model.solver_name,
-        "mesh_nodes": {"forward": fine.n_nodes, "reconstruction": coarse.n_nodes},
-        "mesh_elements": {"forward": fine.n_elements, "reconstruction": coarse.n_elements},
+        "truth": {k: v for k, v in surface.info.items()},
+        "mesh_nodes": {"forward": surface.info["mesh_nodes"], "reconstruction": coarse.n_nodes},
+        "mesh_elements": {"forward": surface.info["mesh_elements"],
+                          "reconstruction": coarse.n_elements},
     }
