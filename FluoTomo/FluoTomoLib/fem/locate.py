@@ -64,6 +64,34 @@ class PointLocator:
                                 np.ascontiguousarray(self.mesh.elements), pts, tol)
         elem = np.full(n, -1, dtype=np.int64)
         bary = np.full((n, self.mesh.dim + 1), np.nan)
+        # in batches: the candidate search holds k (and 16 k when widened)
+        # indices and distances per point, which for a whole label map's voxels
+        # at once was hundreds of MB
+        for a in range(0, n, LOCATE_BATCH):
+            sl = slice(a, min(n, a + LOCATE_BATCH))
+            elem[sl], bary[sl] = self._locate_batch(pts[sl], tol)
+        idx = np.flatnonzero(elem < 0)
+        # rare: thin/large elements whose centroid is farther still, or points
+        # outside the mesh: every element within reach, one batch per point
+        for i in idx:
+            cand = np.asarray(self.tree.query_ball_point(pts[i], self.max_radius + 1e-9),
+                              dtype=np.int64)
+            if len(cand) == 0:
+                continue
+            lam = barycentric(self.mesh, cand, np.repeat(pts[i:i + 1], len(cand), axis=0))
+            inside = np.flatnonzero(np.all(lam >= -tol, axis=1))
+            if len(inside):
+                # the lowest id among those holding the point, as the scan gives
+                j = inside[np.argmin(cand[inside])]
+                elem[i], bary[i] = cand[j], lam[j]
+        return elem, bary
+
+    def _locate_batch(self, pts, tol):
+        """:meth:`locate` of a batch of points, by the nearest centroids (k, then
+        16 k of them); -1 where neither holds the point."""
+        n = len(pts)
+        elem = np.full(n, -1, dtype=np.int64)
+        bary = np.full((n, self.mesh.dim + 1), np.nan)
         _, cand = self.tree.query(pts, k=self.k)
         cand = cand.reshape(n, -1)
         todo = np.ones(n, bool)
@@ -78,10 +106,11 @@ class PointLocator:
             bary[hit] = lam[inside]
             todo[hit] = False
         # a graded mesh's large elements: their centroids lie beyond the nearest
-        # k small ones; more candidates, still one batch
-        idx = np.flatnonzero(todo)
+        # k small ones; more candidates, a sixteenth of the batch at a time
         wide = int(min(16 * self.k, self.mesh.n_elements))
-        if len(idx) and wide > self.k:
+        left = np.flatnonzero(todo)
+        for b in range(0, len(left) if wide > self.k else 0, LOCATE_BATCH // 16):
+            idx = left[b:b + LOCATE_BATCH // 16]
             _, more = self.tree.query(pts[idx], k=wide)
             more = more.reshape(len(idx), -1)[:, self.k:]
             for c in range(more.shape[1]):
@@ -92,19 +121,6 @@ class PointLocator:
                 elem[idx[inside]] = more[inside, c]
                 bary[idx[inside]] = lam[inside]
                 idx, more = idx[~inside], more[~inside]
-        # rare: thin/large elements whose centroid is farther still, or points
-        # outside the mesh: every element within reach, one batch per point
-        for i in idx:
-            cand = np.asarray(self.tree.query_ball_point(pts[i], self.max_radius + 1e-9),
-                              dtype=np.int64)
-            if len(cand) == 0:
-                continue
-            lam = barycentric(self.mesh, cand, np.repeat(pts[i:i + 1], len(cand), axis=0))
-            inside = np.flatnonzero(np.all(lam >= -tol, axis=1))
-            if len(inside):
-                # the lowest id among those holding the point, as the scan gives
-                j = inside[np.argmin(cand[inside])]
-                elem[i], bary[i] = cand[j], lam[j]
         return elem, bary
 
     def interpolation_matrix(self, points, outside="error", what="point"):
@@ -121,6 +137,10 @@ class PointLocator:
         cols = self.mesh.elements[np.maximum(elem, 0)].ravel()
         vals = np.where(elem[:, None] >= 0, bary, 0.0).ravel()
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(elem), self.mesh.n_nodes))
+
+
+#: points located per batch (the wider search: a sixteenth of it)
+LOCATE_BATCH = 65536
 
 
 @njit(cache=True)

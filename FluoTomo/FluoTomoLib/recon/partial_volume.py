@@ -117,12 +117,19 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
     hi_b = np.minimum(ijk[idx].max(axis=0) + reach[::-1] + 2, shape_ijk)
     sub = lab[lo_b[2]:hi_b[2], lo_b[1]:hi_b[1], lo_b[0]:hi_b[0]]
     sub_origin = origin + lo_b * spacing
+    # each label's indicator once (not per chunk), and only for labels present
+    indicators = {}
+    for v in col:
+        hit = sub == v
+        if hit.any():
+            indicators[v] = hit.astype(np.float32)
+        del hit
     for start in range(0, len(idx), 2048):
         sel = idx[start:start + 2048]
         pts = (cell_lo[sel, None, :] + g[None] * (cell_hi - cell_lo)[sel, None, :]).reshape(-1, 3)
         kji = ((pts - sub_origin) / spacing)[:, ::-1].T
-        for v, k in col.items():
-            ind = (sub == v).astype(np.float32)
+        for v, ind in indicators.items():
+            k = col[v]
             vals = ndimage.map_coordinates(ind, kji, order=1, mode="nearest")
             F[sel, k] = vals.reshape(len(sel), -1) @ w
     tissue = F.sum(axis=1)

@@ -427,25 +427,38 @@ def perturb_regions(labels_kji, spacing_mm, delta_mm, background):
     region but ``background`` dilated (``delta_mm`` > 0, into the background only:
     other regions and air keep their voxels) or eroded (< 0, its rim handed to the
     background; a region keeps at least its deepest voxels), by distance in mm
-    on the anisotropic grid."""
+    on the anisotropic grid.
+
+    Each region's distances are computed in its bounding box grown by the move
+    (and a voxel): no voxel farther away can change, and a small target in a
+    large region of interest then costs a small box, not the whole grid (the
+    distance transform holds about 20 bytes a voxel)."""
     from scipy import ndimage
 
     labels = np.asarray(labels_kji)
     out = labels.copy()
     sampling = np.asarray(spacing_mm, float)[::-1]           # (K, J, I) axes
+    pad = np.ceil(abs(float(delta_mm)) / sampling).astype(int) + 1
     for lab in np.unique(labels):
         if lab in (0, background):
             continue
-        m = labels == lab
+        idx = np.nonzero(labels == lab)
+        lo = np.maximum(np.array([i.min() for i in idx]) - pad, 0)
+        hi = np.minimum(np.array([i.max() for i in idx]) + pad + 1, labels.shape)
+        box = tuple(slice(a, b) for a, b in zip(lo, hi))
+        sub, sub_out = labels[box], out[box]                  # sub_out: a view into out
+        m = sub == lab
         if delta_mm > 0:
             grow = ndimage.distance_transform_edt(~m, sampling=sampling) <= delta_mm
-            out[grow & (labels == background)] = lab
+            sub_out[grow & (sub == background)] = lab
         elif delta_mm < 0:
+            # the box's own edges are not region borders unless the grid's are: a
+            # box edge inside the grid lies at least ``pad`` voxels from the region
             depth = ndimage.distance_transform_edt(m, sampling=sampling)
             keep = depth > -delta_mm
             if not keep.any():
                 keep = depth >= depth.max()
-            out[m & ~keep] = background
+            sub_out[m & ~keep] = background
     return out
 
 
@@ -459,21 +472,38 @@ def label_mean_weights(mesh, labels_kji, spacing_mm, origin_mm, region_labels):
     from FluoTomoLib.fem.locate import locator
 
     labels = np.asarray(labels_kji)
-    k, j, i = np.indices(labels.shape)
-    pts = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * np.asarray(spacing_mm, float) \
-        + np.asarray(origin_mm, float)
+    spacing, origin = np.asarray(spacing_mm, float), np.asarray(origin_mm, float)
     lo, hi = mesh.bounds()
-    flat = labels.ravel()
-    out = {}
+    # the voxels inside the mesh's box only, located a slab of k at a time: the
+    # locator's candidate search holds ~100 bytes a point, so a whole label map
+    # at once cost hundreds of MB for a sum of N numbers per label
+    box_lo = np.clip(np.floor((lo - origin) / spacing).astype(int) - 1, 0, None)
+    box_hi = np.minimum(np.ceil((hi - origin) / spacing).astype(int) + 2,
+                        np.array(labels.shape[::-1]))
+    if np.any(box_hi <= box_lo):
+        return {}
+    sub = labels[box_lo[2]:box_hi[2], box_lo[1]:box_hi[1], box_lo[0]:box_hi[0]]
     loc = locator(mesh)
-    for lab in region_labels:
-        sel = (flat == int(lab)) & np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
-        if not sel.any():
-            continue
-        P = loc.interpolation_matrix(pts[sel], outside="zero")
-        w = np.asarray(P.sum(axis=0)).ravel() / float(sel.sum())
-        out[int(lab)] = w
-    return out
+    sums = {int(lab): np.zeros(mesh.n_nodes) for lab in region_labels}
+    counts = {int(lab): 0 for lab in region_labels}
+    j, i = np.indices(sub.shape[1:])
+    slab = max(1, 200_000 // max(1, i.size))
+    for k0 in range(0, sub.shape[0], slab):
+        part = sub[k0:k0 + slab]
+        kk = np.arange(k0, k0 + len(part))[:, None, None] + np.zeros_like(i)[None]
+        ijk = np.stack([np.broadcast_to(i, part.shape).ravel(),
+                        np.broadcast_to(j, part.shape).ravel(), kk.ravel()], axis=1)
+        pts = (ijk + box_lo) * spacing + origin
+        flat = part.ravel()
+        inside = np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
+        for lab in sums:
+            sel = (flat == lab) & inside
+            if not sel.any():
+                continue
+            P = loc.interpolation_matrix(pts[sel], outside="zero")
+            sums[lab] += np.asarray(P.sum(axis=0)).ravel()
+            counts[lab] += int(sel.sum())
+    return {lab: sums[lab] / float(counts[lab]) for lab in sums if counts[lab]}
 
 
 class TissueModel:
@@ -670,6 +700,10 @@ class TissueModel:
         lo = np.maximum(lo, 0)
         hi = np.minimum(hi, np.array(self.labels_kji.shape[::-1]))
         fine = self.labels_kji[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+        # the smallest integer type that holds the labels: the finer grid is up to
+        # 27 times the region of interest's voxels, copied a few times per move
+        fine = fine.astype(np.result_type(np.min_scalar_type(int(fine.min())),
+                                          np.min_scalar_type(int(fine.max()))), copy=False)
         for ax in range(3):
             fine = np.repeat(fine, f, axis=ax)
         sp = self.spacing_mm / f

@@ -154,3 +154,44 @@ def test_points_in_a_graded_mesh_are_found_in_one_batch():
                                atol=1e-9)
     outside = pts + np.array([0.0, 0.0, 9.0])            # above the box
     assert np.all(PointLocator(m).locate(outside)[0] == -1)
+
+
+def test_locating_in_batches_changes_no_point(monkeypatch):
+    """The locator works a batch of points at a time (its candidate search holds
+    ~100 bytes a point): small batches find the same elements and weights."""
+    from FluoTomoLib.fem import locate
+
+    nodes, el = bisection_mesh(ROI, 2.0, _size_at)
+    m = Mesh(nodes, el, np.ones(len(el), int)).oriented()
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(np.array(ROI[0::2]) - 1.0, np.array(ROI[1::2]) + 1.0, size=(3000, 3))
+    whole = locate.PointLocator(m, k=4).locate(pts)
+    monkeypatch.setattr(locate, "LOCATE_BATCH", 64)
+    batched = locate.PointLocator(m, k=4).locate(pts)
+    np.testing.assert_array_equal(whole[0], batched[0])
+    np.testing.assert_array_equal(whole[1], batched[1])
+    assert np.any(whole[0] < 0) and np.any(whole[0] >= 0)        # outside and inside
+
+
+def test_label_mean_weights_are_the_mean_of_the_field_over_the_label():
+    """A region's weights, applied to a nodal field, give the field's mean over
+    the label's voxels inside the mesh (computed here point by point)."""
+    from FluoTomoLib.fem.locate import locator
+    from FluoTomoLib.tomography.model import label_mean_weights
+
+    nodes, el = bisection_mesh(ROI, 2.0, _size_at)
+    m = Mesh(nodes, el, np.ones(len(el), int)).oriented()
+    rng = np.random.default_rng(6)
+    spacing, origin = np.array([0.7, 0.9, 0.8]), np.array(ROI[0::2]) - 2.0
+    shape = tuple((np.ceil((np.array(ROI[1::2]) - origin + 2.0) / spacing)).astype(int)[::-1])
+    labels = rng.integers(0, 3, shape)
+    w = label_mean_weights(m, labels, spacing, origin, [1, 2])
+    field = rng.normal(size=m.n_nodes)
+    k, j, i = np.indices(shape)
+    pts = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * spacing + origin
+    lo, hi = m.bounds()
+    inside = np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
+    values = locator(m).interpolation_matrix(pts[inside], outside="zero") @ field
+    for lab in (1, 2):
+        assert w[lab] @ field == pytest.approx(values[labels.ravel()[inside] == lab].mean(),
+                                               rel=1e-10)

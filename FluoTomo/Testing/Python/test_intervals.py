@@ -122,6 +122,45 @@ def test_perturbed_regions_move_their_boundaries_only():
     assert (tiny == 7).sum() >= 1 and (tiny == 9).sum() == 1
 
 
+def test_perturbed_regions_in_their_boxes_equal_the_whole_grid_distances():
+    """Each region is moved inside its own box (its bounding box grown by the
+    move): the same labels as distances over the whole grid, regions touching
+    the grid's edges and anisotropic voxels included."""
+    from scipy import ndimage
+
+    def whole_grid(labels, spacing, delta, background):
+        out = labels.copy()
+        sampling = np.asarray(spacing, float)[::-1]
+        for lab in np.unique(labels):
+            if lab in (0, background):
+                continue
+            m = labels == lab
+            if delta > 0:
+                out[(ndimage.distance_transform_edt(~m, sampling=sampling) <= delta)
+                    & (labels == background)] = lab
+            else:
+                depth = ndimage.distance_transform_edt(m, sampling=sampling)
+                keep = depth > -delta
+                if not keep.any():
+                    keep = depth >= depth.max()
+                out[m & ~keep] = background
+        return out
+
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        shape = tuple(rng.integers(6, 24, 3))
+        lab = np.ones(shape, np.uint8)
+        lab[:, :, :rng.integers(0, 3)] = 0
+        k, j, i = np.indices(shape)
+        for r in (2, 4):
+            c = rng.integers(0, shape)
+            lab[(k - c[0]) ** 2 + (j - c[1]) ** 2 + (i - c[2]) ** 2 < rng.uniform(0.5, 6) ** 2] = r
+        sp = rng.uniform(0.3, 1.0, 3)
+        for d in (-1.5, -0.4, 0.4, 1.5):
+            np.testing.assert_array_equal(perturb_regions(lab, sp, d, 1),
+                                          whole_grid(lab, sp, d, 1))
+
+
 def test_the_stated_noise_is_the_acquisitions_own_or_its_simulations():
     """acquisition.json's noise_pct first, then its simulation's; 0 (noise-free
     simulated data, the demo's Monte Carlo stage) is no noise model, not a refusal."""
