@@ -1005,14 +1005,19 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         if size is not None and not (np.isfinite(size) and 0.2 <= size <= 10.0):
             raise FluoInputError("element size must be within 0.2..10 mm", field="sizeMm",
                                  value=sizeMm)
+        if grading not in (False, None, True, "grid", "bisection"):
+            raise FluoInputError("grading must be none, grid or bisection", field="grading",
+                                 value=grading)
+        if grading and acq is None and not quality:
+            raise FluoInputError("a graded mesh is graded from the optodes: give the "
+                                 "acquisition", field="grading", value=grading)
 
         def job(progress=None, cancel=None):
-            from FluoTomoLib.tomography.accuracy import accuracy_settings
+            from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
             from FluoTomoLib.tomography.labelmap import place_on_surface
             from FluoTomoLib.tomography.model import reconstruction_mesh
-            from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
-
-            from FluoTomoLib.tomography.accuracy import cap_at_burial
+            from FluoTomoLib.tomography.reconstruct import labelmap_mesh
+            from FluoTomoLib.tomography.roi import roi_from_ras
 
             if not quality:             # the structured mesher's checks are compiled
                 from FluoTomoLib.fem.kernels import prepare_kernels
@@ -1035,27 +1040,21 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             tgt = lm.default_target() if target is None else int(target)
             roi_info = None
             if acq is not None:
+                # the mesh reconstruct() would build for this acquisition (one path)
                 src, _ = place_on_surface(lm, acq.sources_ras_mm, "sources",
                                           file=acq.file_of("sources"))
                 det, _ = place_on_surface(lm, acq.detectors_ras_mm, "detectors",
                                           file=acq.file_of("detectors"))
-                anchor = lm.region_centroid_local(tgt) if tgt is not None else None
-                box, roi_info = choose_roi(lm, optics, src, det, acq.mask, tgt,
-                                           settings["truncation_pct"], anchor=anchor,
-                                           progress=progress, cancel=cancel)
-            elif roi is not None:
-                box = roi_from_ras(lm, roi)
+                mesh, roi_info, _ = labelmap_mesh(
+                    lm, optics, src, det, acq.mask, tgt, settings, grading, roi,
+                    progress=progress, cancel=cancel)
             else:
-                box = None
-            check_cancel(cancel)
-            optodes = None if acq is None else np.vstack([src, det])
-            mfp = cap_at_burial(h, optics, lm.labels)[1] if optics is not None else None
-            mesh = reconstruction_mesh(
-                lm.labels_kji, lm.spacing_mm, h, box, tgt, settings["refine_factor"],
-                surface=lm.surface(), optodes=optodes,
-                coarse_mm=settings["recon_coarse_mm"] if grading else None,
-                optode_normals=None if optodes is None else lm.surface().closest(optodes)[1],
-                burial_mm=mfp, cancel=cancel)
+                box = None if roi is None else roi_from_ras(lm, roi)
+                check_cancel(cancel)
+                mfp = cap_at_burial(h, optics, lm.labels)[1] if optics is not None else None
+                mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, box, tgt,
+                                           settings["refine_factor"], surface=lm.surface(),
+                                           burial_mm=mfp, cancel=cancel)
             report(progress, 1.0, "mesh done")
             return {"mesh_ras": lm.mesh_to_ras(mesh), "mesh_local": mesh, "labelmap": lm,
                     "preview": False, "roi_info": roi_info, "accuracy": settings}

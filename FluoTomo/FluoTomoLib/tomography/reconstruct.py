@@ -83,6 +83,79 @@ def _half_max_centroid(vol, lm):
 SEE_DECAY_LENGTHS = 3.0
 
 
+def labelmap_mesh(lm, optics, src, det, mask, target, settings, grading=False, roi_ras=None,
+                  timings=None, progress=None, cancel=None):
+    """The reconstruction mesh of a label map for an acquisition's optodes: the
+    region of interest (``roi_ras``, a RAS box, or chosen from the light's decay
+    length with its truncation error estimated), then the mesh on it.
+
+    Parameters
+    ----------
+    lm : LabelMap
+    optics : Optics
+    src, det : (S, 3), (D, 3) optodes on the tissue surface, local mm
+    mask : (S, D) bool, the pairs used
+    target : label to anchor on and refine across (None: neither)
+    settings : dict, ``accuracy.accuracy_settings``' (``recon_mm``,
+        ``recon_coarse_mm``, ``refine_factor``, ``truncation_pct``)
+    grading : False or "grid" / True (a rectilinear grid graded from the
+        optodes) or "bisection" (:func:`.model.graded_reconstruction_mesh`)
+    roi_ras : (x0, x1, y0, y1, z0, z1) RAS mm, optional
+    timings : dict, optional; gets ``roi`` and ``meshing`` [s]
+    progress, cancel : optional
+
+    Returns
+    -------
+    (Mesh in the local frame, roi_info dict, warnings list)
+    """
+    from FluoTomoLib.tomography.accuracy import cap_at_burial
+    from FluoTomoLib.tomography.model import graded_reconstruction_mesh, reconstruction_mesh
+    from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
+
+    if grading not in (False, True, None, "grid", "bisection"):
+        raise FluoInputError("grading must be none, grid or bisection", field="grading",
+                             value=grading)
+    timings = {} if timings is None else timings
+    notes = []
+    h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
+    t0 = time.perf_counter()
+    if roi_ras is not None:
+        roi = roi_from_ras(lm, roi_ras)
+        roi_info = {"chosen": "given", "truncation_max_pct": None}
+        notes.append("the region of interest was given: its truncation error is not "
+                     "estimated")
+    else:
+        anchor = lm.region_centroid_local(target) if target is not None else None
+        roi, roi_info = choose_roi(lm, optics, src, det, mask, target,
+                                   settings["truncation_pct"], anchor=anchor,
+                                   progress=progress, cancel=cancel)
+        roi_info["chosen"] = "from the decay length"
+        if (roi_info.get("truncation_max_pct") or 0) > settings["truncation_pct"]:
+            notes.append(f"the region of interest changes the data by up to "
+                         f"{roi_info['truncation_max_pct']:.1f} % (tolerance "
+                         f"{settings['truncation_pct']:g} %)")
+    timings["roi"] = time.perf_counter() - t0
+    check_cancel(cancel)
+    report(progress, 0.15, "reconstruction mesh")
+    t0 = time.perf_counter()
+    optodes = np.vstack([src, det])
+    if grading == "bisection":
+        mesh = graded_reconstruction_mesh(
+            lm.labels_kji, lm.spacing_mm, h, roi, optodes, settings["recon_coarse_mm"], target,
+            settings["refine_factor"], surface=lm.surface(), burial_mm=mfp,
+            see_mm=SEE_DECAY_LENGTHS / optics.min_mueff(lm.labels), cancel=cancel,
+            progress=scaled(progress, 0.15, 0.3, "reconstruction mesh"))
+    else:
+        mesh = reconstruction_mesh(
+            lm.labels_kji, lm.spacing_mm, h, roi, target, settings["refine_factor"],
+            surface=lm.surface(), optodes=optodes,
+            coarse_mm=settings["recon_coarse_mm"] if grading else None,
+            optode_normals=lm.surface().closest(optodes)[1], burial_mm=mfp, cancel=cancel,
+            progress=scaled(progress, 0.15, 0.3, "reconstruction mesh"))
+    timings["meshing"] = time.perf_counter() - t0
+    return mesh, roi_info, notes
+
+
 def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=None,
                          accuracy="balanced", size_mm=None, refine_factor=None, roi_ras=None,
                          truncation_pct=None, data_model="linear", self_absorption=("HP", "SP"),
@@ -156,9 +229,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     if grading not in (False, True, None, "grid", "bisection"):
         raise FluoInputError("grading must be none, grid or bisection", field="grading",
                              value=grading)
-    from FluoTomoLib.tomography.model import (TissueModel, check_prior_volumes,
-                                              graded_reconstruction_mesh, reconstruction_mesh)
-    from FluoTomoLib.tomography.roi import choose_roi, label_map_cut, roi_from_ras
+    from FluoTomoLib.tomography.model import TissueModel, check_prior_volumes
+    from FluoTomoLib.tomography.roi import label_map_cut
 
     t_all = time.perf_counter()
     timings = {}
@@ -220,49 +292,15 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         for text in coverage["warnings"]:
             report(progress, 0.02, text)
         notes.extend(coverage.pop("warnings"))
-        h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
+        h = cap_at_burial(settings["recon_mm"], optics, lm.labels)[0]
         if h < settings["recon_mm"]:
             remarks.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
                            f"(asked for {settings['recon_mm']:g} mm)")
         if mesh is None:
-            t0 = time.perf_counter()
-            if roi_ras is not None:
-                roi = roi_from_ras(lm, roi_ras)
-                roi_info = {"chosen": "given", "truncation_max_pct": None}
-                notes.append("the region of interest was given: its truncation error is not "
-                             "estimated")
-            else:
-                anchor = lm.region_centroid_local(target) if target is not None else None
-                roi, roi_info = choose_roi(lm, optics, src, det, acquisition.mask, target,
-                                           settings["truncation_pct"], anchor=anchor,
-                                           progress=progress, cancel=cancel)
-                roi_info["chosen"] = "from the decay length"
-                if (roi_info.get("truncation_max_pct") or 0) > settings["truncation_pct"]:
-                    notes.append(f"the region of interest changes the data by up to "
-                                 f"{roi_info['truncation_max_pct']:.1f} % (tolerance "
-                                 f"{settings['truncation_pct']:g} %)")
-            timings["roi"] = time.perf_counter() - t0
-            report(progress, 0.15, "reconstruction mesh")
-            t0 = time.perf_counter()
-            if grading == "bisection":
-                mesh = graded_reconstruction_mesh(
-                    lm.labels_kji, lm.spacing_mm, h, roi, np.vstack([src, det]),
-                    settings["recon_coarse_mm"], target, settings["refine_factor"],
-                    surface=lm.surface(), burial_mm=mfp,
-                    see_mm=SEE_DECAY_LENGTHS / optics.min_mueff(lm.labels), cancel=cancel,
-                    progress=scaled(progress, 0.15, 0.3, "reconstruction mesh"))
-            else:
-                mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, roi, target,
-                                           settings["refine_factor"], surface=lm.surface(),
-                                           optodes=np.vstack([src, det]),
-                                           coarse_mm=settings["recon_coarse_mm"] if grading
-                                           else None,
-                                           optode_normals=lm.surface().closest(
-                                               np.vstack([src, det]))[1],
-                                           burial_mm=mfp, cancel=cancel,
-                                           progress=scaled(progress, 0.15, 0.3,
-                                                           "reconstruction mesh"))
-            timings["meshing"] = time.perf_counter() - t0
+            mesh, roi_info, mesh_notes = labelmap_mesh(
+                lm, optics, src, det, acquisition.mask, target, settings, grading, roi_ras,
+                timings, progress, cancel)
+            notes.extend(mesh_notes)
         else:
             roi_info = {"chosen": "the mesh given", "truncation_max_pct": None}
             if mesh.meta.get("frame") not in (None, "local"):

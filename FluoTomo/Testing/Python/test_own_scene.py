@@ -242,6 +242,42 @@ def test_small_scene_simulated_and_reconstructed_in_any_direction(tmp_path):
     assert summary["output"].endswith("yield.nrrd")
 
 
+@pytest.mark.parametrize("grading", [False, "bisection"])
+def test_the_logic_builds_the_mesh_the_reconstruction_uses(tmp_path, grading):
+    """FluoTomoLogic.buildMesh with an acquisition builds the mesh reconstruct()
+    would build for it (one set-up: reconstruct.labelmap_mesh), the graded one
+    too; a graded mesh without the optodes it is graded from is refused."""
+    from fluoguide import mrml_io
+    from fluoguide.labelmap_io import write_volume_nrrd
+    from FluoTomo import FluoTomoLogic
+    from FluoTomoLib.tomography import default_scan
+    from FluoTomoLib.tomography.accuracy import accuracy_settings
+    from FluoTomoLib.tomography.reconstruct import labelmap_mesh
+
+    sc = small_scene()
+    lm = _lm(sc)
+    write_volume_nrrd(tmp_path / "labels.nrrd", sc["labels_kji"], sc["spacing_mm"],
+                      sc["origin_mm"], sc["direction"])
+    (tmp_path / "optics.json").write_text(json.dumps(OPTICS))
+    src, det, _ = default_scan(lm, 7)            # RAS mm
+    mask = np.linalg.norm(src[:, None] - det[None], axis=2) > 3
+    write_acquisition(tmp_path / "acq", Acquisition(src, det, np.where(mask, 1e-6, 0), mask))
+    logic = FluoTomoLogic(mrml_io.new_scene())
+    lab = logic.loadLabelMap(tmp_path / "labels.nrrd")
+    node = logic.buildMesh(lab, acquisition=tmp_path / "acq", optics=tmp_path / "optics.json",
+                           accuracy="fast", grading=grading)
+    built = mrml_io.get_json_attribute(node, "FluoTomo.Mesh")
+    acq = read_acquisition(tmp_path / "acq")
+    ps, _ = place_on_surface(lm, acq.sources_ras_mm, "sources")
+    pd, _ = place_on_surface(lm, acq.detectors_ras_mm, "detectors")
+    mesh, _, _ = labelmap_mesh(lm, optics_from_dict(OPTICS), ps, pd, acq.mask, 7,
+                               accuracy_settings("fast"), grading)
+    assert built["nodes"] == mesh.n_nodes and built["elements"] == mesh.n_elements
+    assert (mesh.meta.get("method") == "bisection") == (grading == "bisection")
+    with pytest.raises(FluoInputError, match="graded from the optodes"):
+        logic.buildMesh(lab, grading="bisection")
+
+
 # ------------------------------------------------------------------ the Monte Carlo engine
 
 @pytest.mark.slow
