@@ -23,6 +23,9 @@ Conventions every subcommand follows:
   as readable ``key: value`` lines and tables with units (``fluoapp/format.py``).
   ``"_exit_code": 1`` in it (not printed) says the work partly failed (a run with
   failed tasks: they are in its table).
+- The long commands (:data:`MEMORY_REPORTED`) add ``peak_memory_gb`` to their
+  result: this process's peak resident memory (Dask workers are other
+  processes; the run engine's table has their own).
 """
 
 from __future__ import annotations
@@ -118,6 +121,10 @@ def _quiet_vtk():
         pass
 
 
+#: commands (or command groups) whose result says the process's peak memory
+MEMORY_REPORTED = ("demo", "study", "forward", "mesh", "tomo", "validate", "phantom")
+
+
 def main(argv=None):
     from fluoguide.progress import mark_command_start
 
@@ -175,10 +182,18 @@ def main(argv=None):
     # a handler whose work partly failed (a run with failed tasks) returns its
     # result with "_exit_code": printed as usual, then exit 1
     rc = int(result.pop("_exit_code", 0)) if isinstance(result, dict) else 0
+    from fluoapp.format import command_name
+
+    if isinstance(result, dict) and command_name(args).split(" ")[0] in MEMORY_REPORTED:
+        from fluoguide.memory import peak_resident_bytes
+
+        peak = peak_resident_bytes()
+        if peak is not None:
+            result.setdefault("peak_memory_gb", round(peak / 1e9, 2))
     if getattr(args, "json", False):
         print(dumps(result))
     else:
-        from fluoapp.format import command_name, format_result
+        from fluoapp.format import format_result
 
         print(format_result(result, command_name(args)))
     return rc

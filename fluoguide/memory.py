@@ -132,3 +132,18 @@ def check_fits(need_bytes, what, hint, file=None, field=None, value=None):
     avail = available_bytes()
     if avail is not None and need_bytes > avail:
         refuse(need_bytes, what, file=file, field=field, value=value, hint=hint, available=avail)
+
+
+def peak_resident_bytes():
+    """This process's peak resident memory so far [bytes] (``VmHWM``: what
+    ``/usr/bin/time -v`` reports as its maximum resident set), or None where
+    the system does not say."""
+    hwm = _proc_bytes("/proc/self/status", "VmHWM")
+    if hwm is not None:
+        return hwm
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    if not peak:
+        return None
+    import sys
+
+    return int(peak) if sys.platform == "darwin" else int(peak) * 1024   # bytes / kB

@@ -170,6 +170,21 @@ def test_json_is_unchanged_by_the_text_form(capsys):
     assert doc["R_rho"] == pytest.approx(expected.tolist(), rel=1e-15)
 
 
+def test_long_commands_report_their_peak_memory(capsys, tmp_path):
+    """A long command's result says the process's peak resident memory (what a
+    laptop user sizes the next run by); a quick one's result is unchanged."""
+    from fluoapp.cli import MEMORY_REPORTED
+    from fluoguide.memory import peak_resident_bytes
+
+    assert "tomo" in MEMORY_REPORTED and "demo" in MEMORY_REPORTED
+    assert main(["phantom", "slab", "--voxel-mm", "1.0", "--out", str(tmp_path / "p"),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert 0.05 < doc["peak_memory_gb"] <= peak_resident_bytes() / 1e9 + 0.01
+    assert main(["analytic", "--mua", "0.016", "--musp", "0.89", "--json"]) == 0
+    assert "peak_memory_gb" not in json.loads(capsys.readouterr().out)
+
+
 def test_rows_become_tables_and_long_data_a_summary():
     result = {
         "rows": [{"case": "A: 2.5 mm disc", "method": m, "lambda": 10.0, "peak": p,
