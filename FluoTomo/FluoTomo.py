@@ -962,7 +962,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
     def buildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
                   optics=None, accuracy="balanced", quality=False, outputModelNode=None,
-                  grading=False, progress=None, cancel=None):
+                  grading=None, progress=None, cancel=None):
         """Tetrahedral mesh of a label map as a model node (a volume mesh: cell
         array ``region`` = label, RAS mm) -> the node.
 
@@ -982,7 +982,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return self.storeBuiltMesh(job(progress, cancel), outputModelNode)
 
     def prepareBuildMesh(self, labelNode, sizeMm=None, roi=None, target=None, acquisition=None,
-                         optics=None, accuracy="balanced", quality=False, grading=False):
+                         optics=None, accuracy="balanced", quality=False, grading=None):
         """:meth:`buildMesh` split for a worker thread: read the scene now,
         return ``job(progress, cancel) -> built``; hand ``built`` to
         :meth:`storeBuiltMesh` on the scene's thread."""
@@ -1008,6 +1008,10 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         if grading not in (False, None, True, "grid", "bisection"):
             raise FluoInputError("grading must be none, grid or bisection", field="grading",
                                  value=grading)
+        if grading is None:
+            from FluoTomoLib.tomography.reconstruct import DEFAULT_GRADING
+
+            grading = DEFAULT_GRADING if acq is not None else False
         if grading and acq is None and not quality:
             raise FluoInputError("a graded mesh is graded from the optodes: give the "
                                  "acquisition", field="grading", value=grading)

@@ -477,12 +477,12 @@ def _register_reconstruct(tomo):
                    "segmentation's accuracy): the regions are solved again with their "
                    "boundaries moved by it and the 95 %% intervals reach the values found "
                    "(default: half the largest voxel; 0: exact)")
-    p.add_argument("--grading", choices=["none", "grid", "bisection"], default="none",
-                   help="the reconstruction mesh: none (default), a uniform grid refined in "
-                   "bands through the optodes and the target; grid, its cells twice as large "
-                   "away from them; bisection, refined only near the optodes and the "
-                   "regions' boundaries and growing away from them "
-                   "(docs/physics.md section 8.1; on the scene family: docs/validation.md)")
+    p.add_argument("--grading", choices=["none", "grid", "bisection"], default="bisection",
+                   help="the reconstruction mesh: bisection (default), refined only near the "
+                   "optodes and the regions' boundaries and growing away from them "
+                   "(docs/physics.md section 8.1; on the scene family: docs/validation.md); "
+                   "none, a uniform grid refined in bands through the optodes and the target; "
+                   "grid, that grid's cells twice as large away from them")
     p.add_argument("--no-self-absorption", dest="self_absorption", action="store_false",
                    help="do not feed the fluorophore's absorption back (default: fed back for "
                    "HP and SP when optics.json names a fluorophore)")
