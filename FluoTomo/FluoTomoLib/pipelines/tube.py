@@ -99,7 +99,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     t0 = time.perf_counter()
     sim_options = {"fine_mm": fine_mm, "simulate_coarse_mm": simulate_coarse_mm,
                    "n_sources": n_sources, "source_spacing_mm": source_spacing_mm}
-    surface = stored_truth(geo["tube_depth_mm"], sim_options) if truth == "stored" else None
+    surface = (stored_truth(geo["tube_depth_mm"], sim_options, phantom=phantom)
+               if truth == "stored" else None)
     if surface is None:
         surface = simulate_truth(phantom, **sim_options,
                                  progress=scaled(progress, 0.02, 0.25, "true fields"),

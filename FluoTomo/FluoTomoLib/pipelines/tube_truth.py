@@ -37,6 +37,10 @@ STORED_OPTIONS = {"fine_mm": 0.8, "simulate_coarse_mm": 1.5, "n_sources": 16,
                   "source_spacing_mm": 2.5}
 #: layout version of a stored set
 FORMAT = 1
+#: the phantom's parameters a set is made for (``fluoguide.phantoms.cylinder_tube``'s
+#: but the seed, which only draws the CBCT's noise): another phantom simulates
+PHANTOM_KEYS = ("voxel_mm", "tube_diameter_mm", "tube_icg_ug_per_ml",
+                "background_icg_ug_per_ml")
 #: the stored fields are float32 (a quarter of the disk); their rounding,
 #: 6e-8 relative, is far below the frames' shot noise
 FIELD_DTYPE = np.float32
@@ -152,11 +156,28 @@ def simulate_truth(phantom, fine_mm=0.8, simulate_coarse_mm=1.5, n_sources=16,
                            facets)["true_points_mm"]
     fields = true_emission_fields(fine, true_props, optics[1]["n"], src_true)[nodes]
     info = {"format": FORMAT, "depth_mm": float(geo["tube_depth_mm"]),
+            "phantom": phantom_key(phantom),
             "fine_mm": float(fine_mm), "simulate_coarse_mm": float(simulate_coarse_mm),
             "n_sources": int(n_sources), "source_spacing_mm": float(source_spacing_mm),
             "mesh_nodes": int(fine.n_nodes), "mesh_elements": int(fine.n_elements),
             "seconds": time.perf_counter() - t0, "source": "simulated"}
     return SurfaceTruth(vertices, facets, fields, src_true, info)
+
+
+def phantom_key(phantom):
+    """The parameters of a cylinder-tube phantom that its true fields depend on
+    (:data:`PHANTOM_KEYS`), as plain floats."""
+    return {k: float(phantom.params[k]) for k in PHANTOM_KEYS}
+
+
+def _default_phantom_key():
+    """:data:`PHANTOM_KEYS` of ``cylinder_tube()`` called with its defaults."""
+    import inspect
+
+    from fluoguide.phantoms import cylinder_tube
+
+    defaults = inspect.signature(cylinder_tube).parameters
+    return {k: float(defaults[k].default) for k in PHANTOM_KEYS}
 
 
 def truth_file(depth_mm, root=None):
@@ -219,10 +240,11 @@ def read_truth(path):
     return SurfaceTruth(vertices, facets, fields, sources, {**info, "source": str(path)})
 
 
-def stored_truth(depth_mm, options, root=None):
+def stored_truth(depth_mm, options, root=None, phantom=None):
     """The stored set of a depth when ``options`` (the case's simulation
-    options, :data:`STORED_OPTIONS`' names) are the stored ones; None when
-    they differ or no set is stored for the depth."""
+    options, :data:`STORED_OPTIONS`' names) and the ``phantom``'s parameters
+    (:data:`PHANTOM_KEYS`; None: the default phantom's) are the stored ones;
+    None when they differ or no set is stored for the depth."""
     opts = {k: options.get(k, v) for k, v in STORED_OPTIONS.items()}
     if any(abs(float(opts[k]) - float(v)) > 1e-9 for k, v in STORED_OPTIONS.items()):
         return None
@@ -236,4 +258,10 @@ def stored_truth(depth_mm, options, root=None):
         raise FluoInputError(f"is not this depth's tube truth with the stored options "
                              f"(regenerate: {regenerate_command(depth_mm)})", file=str(path),
                              field="depth_mm", value=truth.info.get("depth_mm"))
+    # the first sets predate the key: they were made for the default phantom
+    made_for = truth.info.get("phantom") or _default_phantom_key()
+    if phantom is not None and any(
+            abs(float(made_for.get(k, np.nan)) - v) > 1e-9
+            for k, v in phantom_key(phantom).items()):
+        return None                  # another tube, dye or voxel: simulated instead
     return truth

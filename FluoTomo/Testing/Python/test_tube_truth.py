@@ -43,9 +43,16 @@ def test_every_demo_depth_is_stored_whole_and_consistent():
         assert np.all(truth.fields_per_w > 0)
 
 
-def test_other_options_or_depths_are_not_read_from_the_store(tmp_path):
+def test_other_options_depths_or_phantoms_are_not_read_from_the_store(tmp_path):
+    from fluoguide.phantoms import make_phantom
     from FluoTomoLib.pipelines import tube_truth as tt
 
+    assert tt.stored_truth(2.7, {}, phantom=make_phantom("cylinder-tube", depth_mm=2.7,
+                                                         seed=5)) is not None
+    for other in ({"tube_icg_ug_per_ml": 1.0}, {"tube_diameter_mm": 3.0},
+                  {"background_icg_ug_per_ml": 0.1}, {"voxel_mm": 1.0}):
+        ph = make_phantom("cylinder-tube", depth_mm=2.7, **other)
+        assert tt.stored_truth(2.7, {}, phantom=ph) is None, other
     assert tt.stored_truth(2.7, {"fine_mm": 1.0}) is None
     assert tt.stored_truth(2.7, {"n_sources": 8}) is None
     assert tt.stored_truth(3.2, {}) is None                      # no set for that depth
