@@ -409,10 +409,11 @@ def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
         sp = float(v[prior.node_region == lab].sum())
         out[int(lab)] = {"labelmap_mm3": ref, "hard_prior_mm3": hp, "soft_prior_mm3": sp}
         if ref > 0:
-            for what, got in (("hard-prior basis", hp), ("soft-prior node regions", sp)):
+            for what, got in (("hard-prior basis holds", hp),
+                              ("soft-prior node regions hold", sp)):
                 err = 100.0 * (got - ref) / ref
                 if abs(err) > PRIOR_VOLUME_WARN_PCT:
-                    notes.append(f"region {int(lab)}: the {what} holds {got:.4g} mm^3 against "
+                    notes.append(f"region {int(lab)}: the {what} {got:.4g} mm^3 against "
                                  f"the label map's {ref:.4g} mm^3 ({err:+.0f} %): the prior "
                                  "does not match the segmentation")
     return out, notes
