@@ -11,7 +11,7 @@ Modules
 from fluoguide.lazy import attach
 
 __getattr__, __dir__, __all__ = attach(__name__, {
-    "camera_frames": ["tomography_camera", "camera_pose_above", "surface_caster", "cast", "surface_values", "frame_radiance", "expose", "detector_counts"],
+    "camera_frames": ["tomography_camera", "camera_pose_above", "surface_caster", "cast", "surface_values", "frame_radiance", "exposure_gain", "expose", "detector_counts"],
     "noncontact_optodes": ["ray_triangle_intersect", "virtual_detectors", "detector_mask", "roi_mean_counts", "counts_to_boundary_fluence", "boundary_fluence_to_counts"],
     "tracked_scan": ["rotation_between", "TrackingError", "laser_tool_pose_for_target", "beam_in_world", "raster_scan", "camera_pose_looking_at", "world_to_camera"],
 })

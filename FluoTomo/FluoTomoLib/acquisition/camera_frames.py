@@ -94,6 +94,20 @@ def frame_radiance(hits, facets, nodes_mm, fluence_per_w, robin_A, laser_power_w
     return np.moveaxis(np.maximum(phi, 0.0) * laser_power_w / (2.0 * robin_A) / np.pi, -1, 0)
 
 
+def exposure_gain(hits, radiance, sources_mm, exclude_mm=3.0, field="camera"):
+    """The gain G [ADU per W/mm^2/sr] a user sets with the exposure time: the
+    brightest pixel farther than ``exclude_mm`` from its frame's source (the
+    laser spot itself saturates) at 60 % of the 14-bit range.  ``radiance``:
+    (S, H, W) as :func:`frame_radiance` gives it; ``sources_mm`` (S, 3)."""
+    far = np.linalg.norm(hits.point_mm[None] - np.asarray(sources_mm, float)[:, None, None, :],
+                         axis=-1) > exclude_mm
+    peak = float(np.max(np.where(far & hits.visible[None], radiance, 0.0)))
+    if not peak > 0:
+        raise FluoInputError("the camera sees no fluorescence away from the sources",
+                             field=field)
+    return 0.6 * ADC_MAX_ADU / peak
+
+
 def expose(radiance, gain_adu_per_radiance, offset_adu, read_noise_adu, rng):
     """Noisy 14-bit frames [ADU] and their saturation mask: G L signal with
     shot noise (gain 1 e-/ADU), offset and Gaussian read noise."""

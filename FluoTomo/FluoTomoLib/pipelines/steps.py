@@ -19,6 +19,7 @@ from FluoTomoLib.acquisition.camera_frames import (
     camera_pose_above,
     cast,
     detector_counts,
+    exposure_gain,
     expose,
     frame_radiance,
     tomography_camera,
@@ -96,13 +97,7 @@ def render_frames(vertices_mm, facets, fields, robin_A, src_true, camera_centre_
                      cancel)
     radiance = frame_radiance(hits_true, facets, vertices_mm, fields, robin_A, laser_power_w)
     if camera_gain is None:
-        pts = hits_true.point_mm
-        far = np.linalg.norm(pts[None] - src_true[:, None, None, :], axis=-1) > exclude_mm
-        peak = float(np.max(np.where(far & hits_true.visible[None], radiance, 0.0)))
-        if not peak > 0:
-            raise FluoInputError("the camera sees no fluorescence away from the sources",
-                                 field="camera")
-        camera_gain = 0.6 * 16383 / peak
+        camera_gain = exposure_gain(hits_true, radiance, src_true, exclude_mm)
     frames, saturated = expose(radiance, camera_gain, camera_offset_adu, camera_read_noise_adu,
                                rng)
     timings["camera_frames"] = timings.get("camera_frames", 0.0) + time.perf_counter() - t0

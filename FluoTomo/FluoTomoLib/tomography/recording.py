@@ -824,7 +824,8 @@ def _render_frames(lm, mesh, fields, optics, src_ras, cam_true, camera_distance_
     """
     from FluoCalibLib.geometry.transforms import invert_rigid
     from FluoTomoLib.acquisition.camera_frames import (ADC_MAX_ADU, cast, expose,
-                                                       frame_radiance, tomography_camera)
+                                                       exposure_gain, frame_radiance,
+                                                       tomography_camera)
     from FluoTomoLib.optics import robin_A
     from FluoNavLib.mapping.pixel_cast import SurfaceCaster
 
@@ -836,12 +837,7 @@ def _render_frames(lm, mesh, fields, optics, src_ras, cam_true, camera_distance_
     hits = cast(caster, camera, cam_true)
     A = float(robin_A(optics.n, optics.boundary))
     radiance = frame_radiance(hits, facets, mesh_ras.nodes_mm, fields, A, laser_power_w)
-    far = np.linalg.norm(hits.point_mm[None] - src_ras[:, None, None, :], axis=-1) > 3.0
-    peak = float(np.max(np.where(far & hits.visible[None], radiance, 0.0)))
-    if not peak > 0:
-        raise FluoInputError("the camera sees no fluorescence away from the sources",
-                             field="yield")
-    gain = 0.6 * ADC_MAX_ADU / peak          # G at exposure_s [ADU per W/mm^2/sr]
+    gain = exposure_gain(hits, radiance, src_ras, 3.0, field="yield")   # G at exposure_s
     # the laser's spot through the emission filter: a 0.4 mm (1 sd) Gaussian
     # at the true entry point, 50 times saturation at its centre
     uv = camera.project((invert_rigid(cam_true) @ np.c_[src_ras, np.ones(S)].T).T[:, :3])
