@@ -1029,9 +1029,9 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
                 prepare_kernels(progress, 0.0, cancel)
             report(progress, 0.05, "meshing the label map")
             settings = accuracy_settings(accuracy, recon_mm=size)
-            h = settings["recon_mm"]
+            h, mfp = settings["recon_mm"], None
             if optics is not None:
-                h, _ = cap_at_burial(h, optics, lm.labels)
+                h, mfp = cap_at_burial(h, optics, lm.labels)
             if quality:
                 from FluoTomoLib.meshing.tetwild import mesh_labelmap_quality
 
@@ -1055,7 +1055,6 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             else:
                 box = None if roi is None else roi_from_ras(lm, roi)
                 check_cancel(cancel)
-                mfp = cap_at_burial(h, optics, lm.labels)[1] if optics is not None else None
                 mesh = reconstruction_mesh(lm.labels_kji, lm.spacing_mm, h, box, tgt,
                                            settings["refine_factor"], surface=lm.surface(),
                                            burial_mm=mfp, cancel=cancel)

@@ -53,11 +53,10 @@ def depth_folder(depth_mm, root=None):
 
 def optode_line(n_sources=SOURCES, pitch_mm=PITCH_MM):
     """Sources (S, 3) and detectors (S + 1, 3) on the liquid surface (z = 0), RAS mm."""
-    ys = (np.arange(n_sources) - 0.5 * (n_sources - 1)) * pitch_mm
-    yd = (np.arange(n_sources + 1) - 0.5 * n_sources) * pitch_mm
-    src = np.stack([np.zeros_like(ys), ys, np.zeros_like(ys)], axis=1)
-    det = np.stack([np.zeros_like(yd), yd, np.zeros_like(yd)], axis=1)
-    return src, det
+    from FluoTomoLib.pipelines.tube_truth import raster_targets
+
+    # the detectors: a line one longer, between and beyond the sources
+    return raster_targets(n_sources, pitch_mm), raster_targets(n_sources + 1, pitch_mm)
 
 
 def tube_scene(depth_mm, voxel_mm):

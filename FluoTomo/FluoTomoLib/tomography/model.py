@@ -475,36 +475,28 @@ def label_mean_weights(mesh, labels_kji, spacing_mm, origin_mm, region_labels):
     labels = np.asarray(labels_kji)
     spacing, origin = np.asarray(spacing_mm, float), np.asarray(origin_mm, float)
     lo, hi = mesh.bounds()
-    # the voxels inside the mesh's box only, located a slab of k at a time: the
-    # locator's candidate search holds ~100 bytes a point, so a whole label map
-    # at once cost hundreds of MB for a sum of N numbers per label
+    # the voxels in the mesh's box only (a voxel grid over the whole map cost
+    # 24 bytes a voxel for points most of which lie outside it)
     box_lo = np.clip(np.floor((lo - origin) / spacing).astype(int) - 1, 0, None)
     box_hi = np.minimum(np.ceil((hi - origin) / spacing).astype(int) + 2,
                         np.array(labels.shape[::-1]))
     if np.any(box_hi <= box_lo):
         return {}
     sub = labels[box_lo[2]:box_hi[2], box_lo[1]:box_hi[1], box_lo[0]:box_hi[0]]
+    k, j, i = np.indices(sub.shape)
+    pts = (np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) + box_lo) * spacing + origin
+    del k, j, i
+    inside = np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
+    flat = sub.ravel()
+    out = {}
     loc = locator(mesh)
-    sums = {int(lab): np.zeros(mesh.n_nodes) for lab in region_labels}
-    counts = {int(lab): 0 for lab in region_labels}
-    j, i = np.indices(sub.shape[1:])
-    slab = max(1, 200_000 // max(1, i.size))
-    for k0 in range(0, sub.shape[0], slab):
-        part = sub[k0:k0 + slab]
-        kk = np.arange(k0, k0 + len(part))[:, None, None] + np.zeros_like(i)[None]
-        ijk = np.stack([np.broadcast_to(i, part.shape).ravel(),
-                        np.broadcast_to(j, part.shape).ravel(), kk.ravel()], axis=1)
-        pts = (ijk + box_lo) * spacing + origin
-        flat = part.ravel()
-        inside = np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
-        for lab in sums:
-            sel = (flat == lab) & inside
-            if not sel.any():
-                continue
-            P = loc.interpolation_matrix(pts[sel], outside="zero")
-            sums[lab] += np.asarray(P.sum(axis=0)).ravel()
-            counts[lab] += int(sel.sum())
-    return {lab: sums[lab] / float(counts[lab]) for lab in sums if counts[lab]}
+    for lab in region_labels:
+        sel = (flat == int(lab)) & inside
+        if not sel.any():
+            continue
+        P = loc.interpolation_matrix(pts[sel], outside="zero")
+        out[int(lab)] = np.asarray(P.sum(axis=0)).ravel() / float(sel.sum())
+    return out
 
 
 class TissueModel:
