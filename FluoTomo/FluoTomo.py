@@ -645,24 +645,6 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         self.mesh = mesh
         return mesh
 
-    def reconstructTubePhantom(self, depthMm=4.7, methods=("NP", "SP", "HP"), seed=0,
-                               progress=None, cancel=None):
-        """Simulated tracked acquisition of the cylinder-tube phantom and its NP/SP/HP
-        reconstructions; adds the phantom (if absent) and ``FluoTomoYield*`` volumes."""
-        from fluoguide import mrml_io
-        from fluoguide.phantoms import add_phantom_to_scene, make_phantom
-        from FluoTomoLib.pipelines.tube import simulate_and_reconstruct
-        from FluoTomoLib.scene import store_reconstructions
-
-        phantom = make_phantom("cylinder-tube", depth_mm=depthMm, seed=seed)
-        run = simulate_and_reconstruct(phantom, methods=methods, seed=seed, progress=progress,
-                                       cancel=cancel)
-        if mrml_io.get_node(self.scene, "CBCTLabels", required=False) is None:
-            add_phantom_to_scene(self.scene, phantom)
-        store_reconstructions(self.scene, run["coarse"], run["results"], phantom.labels.shape,
-                              phantom.spacing_mm, phantom.origin_mm)
-        return run
-
     def labelVolumes(self, labelNodeName="CBCTLabels"):
         """Volume [mm^3] of each label of a label-map node."""
         import numpy as np

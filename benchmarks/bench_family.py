@@ -18,10 +18,14 @@ read while it goes.
         --segmentation-mm 1 --json seg1.jsonl      # the error stated to the reconstruction
     python -m benchmarks family -- --seeds 1-8 --scan plan,default --json plan.jsonl
     python -m benchmarks family -- --seeds 1-12 --grading none,bisection --json graded.jsonl
+    python -m benchmarks family -- --seeds 1-12 --grading bisection \
+        --accuracy fast,balanced,fine --json levels.jsonl     # the levels' trade
 
 ``--grading none,bisection`` simulates each scene once and reconstructs it on the
 uniform grid and on the mesh graded by bisection (each row carries its ``grading``,
-``mesh_nodes`` and seconds); the table is then one per mesh.
+``mesh_nodes`` and seconds); the table is then one per mesh. ``--accuracy
+fast,balanced,fine`` does the same for the accuracy levels (each row carries its
+``accuracy``).
 
 ``--scan plan`` (issue #36) plans the laser positions on the label map handed over
 (``tomography.plan.plan_scan``: every inclusion a target, as many positions as the
@@ -62,7 +66,9 @@ def main(argv=None):
     ap.add_argument("--segmentation-mm", type=float, default=None,
                     help="the segmentation's accuracy stated to the reconstruction [mm] "
                     "(default: its own, half the largest voxel side)")
-    ap.add_argument("--accuracy", default="fast", choices=["fast", "balanced", "fine"])
+    ap.add_argument("--accuracy", default="fast",
+                    help="fast, balanced, fine or a list of them (each scene simulated "
+                    "once and reconstructed at each level)")
     ap.add_argument("--methods", default="HP,SP")
     ap.add_argument("--json", default=None, help="append the rows here (JSON lines)")
     ap.add_argument("--scan", default="default", help="default, plan, or plan,default")
@@ -76,12 +82,16 @@ def main(argv=None):
     if not scans or any(v not in ("default", "plan") for v in scans):
         ap.error("--scan: default, plan or plan,default")
 
+    levels = [v.strip() for v in args.accuracy.split(",") if v.strip()]
+    if not levels or any(v not in ("fast", "balanced", "fine") for v in levels):
+        ap.error("--accuracy: fast, balanced, fine or a list of them")
     gradings = [v.strip() for v in args.grading.split(",") if v.strip()]
     if not gradings or any(v not in ("none", "bisection", "grid") for v in gradings):
         ap.error("--grading: none, grid, bisection or a list of them")
-    if gradings != ["none"] and scans != ["default"]:
-        ap.error("--grading with --scan plan: not supported (the planned scans are "
-                 "reconstructed on the uniform grid)")
+    if (gradings != ["none"] or len(levels) > 1) and scans != ["default"]:
+        ap.error("--grading or several --accuracy levels with --scan plan: not supported "
+                 "(the planned scans are reconstructed on the uniform grid at one level)")
+    combos = [(g, a) for g in gradings for a in levels]
     rows = []
     t_all = time.perf_counter()
     for seed in _seeds(args.seeds):
@@ -91,20 +101,24 @@ def main(argv=None):
         if scans == ["default"]:
             from FluoTomoLib.validation.family import simulate
 
-            acq = simulate(scene)[0] if len(gradings) > 1 else None
+            acq = simulate(scene)[0] if len(combos) > 1 else None
             mine = []
-            for g in gradings:
-                mine += grade_scene(scene, methods=args.methods.split(","),
-                                    accuracy=args.accuracy, acquisition=acq,
-                                    segmentation_mm=args.segmentation_mm,
-                                    grading=False if g == "none" else g)
+            for g, level in combos:
+                got = grade_scene(scene, methods=args.methods.split(","),
+                                  accuracy=level, acquisition=acq,
+                                  segmentation_mm=args.segmentation_mm,
+                                  grading=False if g == "none" else g)
+                for r in got:
+                    r["accuracy"] = level
+                mine += got
         else:
             mine = []
             for scan in scans:
                 mine += _graded_scan(scene, scan, args)
         for r in mine:
             ci = r["ci_half_width_pct"]
-            print(f"  {r['grading']} ({r['mesh_nodes']} nodes, {r['seconds_reconstruction']:.0f} s) "
+            print(f"  {r['grading']}, {r.get('accuracy', levels[0])} ({r['mesh_nodes']} nodes, "
+                  f"{r['seconds_reconstruction']:.0f} s) "
                   f"{r['method']} label {r['label']}: error {r['error_pct']:+.1f} %, 95 % "
                   f"interval +-{ci if ci is None else round(ci, 1)} %, holds the truth: "
                   f"{r['covered']}, warned: {r['warned']}", flush=True)
@@ -120,16 +134,17 @@ def main(argv=None):
               f"{time.perf_counter() - t_all:.0f} s")
         print(json.dumps(table, indent=1))
         return 0
-    if len(gradings) > 1:
+    if len(combos) > 1:
         import numpy as np
 
         table = {}
-        for g in gradings:
-            mine = [r for r in rows if r["grading"] == g]
-            table[g] = summarise(mine)
-            table[g]["median_nodes"] = float(np.median([r["mesh_nodes"] for r in mine]))
-            table[g]["median_seconds"] = float(np.median([r["seconds_reconstruction"]
-                                                          for r in mine]))
+        for g, level in combos:
+            mine = [r for r in rows if r["grading"] == g and r["accuracy"] == level]
+            key = g if len(levels) == 1 else level if len(gradings) == 1 else f"{g}, {level}"
+            table[key] = summarise(mine)
+            table[key]["median_nodes"] = float(np.median([r["mesh_nodes"] for r in mine]))
+            table[key]["median_seconds"] = float(np.median([r["seconds_reconstruction"]
+                                                            for r in mine]))
         print(json.dumps(table, indent=1))
         return 0
     table = summarise(rows)

@@ -92,11 +92,15 @@ def test_quick_demo_end_to_end(tmp_path):
     assert light["illumination: axis error [deg]"] < 0.5
     assert light["laser: direction error [deg]"] < 0.3
     assert (tmp_path / "q" / "illumination_ratio.png").is_file()
-    # the tube cases read rendered frames; the oral cavity runs through the same steps
+    # the tube cases read rendered frames; the oral cavity runs through the same path
     assert (tmp_path / "q" / "tomo_frame.png").is_file()
     assert metrics["tomography"]["pixels per detector ROI (median)"] >= 4
     oral = metrics["oral_tomography"]
     assert abs(oral["HP tongue yield error %"]) < abs(oral["NP tongue yield error %"])
+    # a region whose 95 % interval misses the truth is a method that says why
+    for m in ("NP", "SP", "HP"):
+        if not all(oral[f"{m} 95 % intervals hold the truth (tongue, agar)"]):
+            assert any(w.startswith(f"{m}: ") for w in oral["reconstruction warnings"]), m
     assert (tmp_path / "q" / "oral_sections.png").is_file()
     mapping = metrics["surface_mapping"]
     assert mapping["self-consistent: visible pixels with transport within 5 %"] >= 0.9

@@ -38,13 +38,11 @@ class PointLocator:
         self.k = int(min(k, mesh.n_elements))
         self.scan_max = int(scan_max)
         self._tree = None
+        self._classes = None
 
     def _build(self):
         centroids = self.mesh.nodes_mm[self.mesh.elements].mean(axis=1)
         self._tree = cKDTree(centroids)
-        # the farthest a node is from its element centroid bounds the search radius
-        self.max_radius = float(np.max(np.linalg.norm(
-            self.mesh.nodes_mm[self.mesh.elements] - centroids[:, None, :], axis=2)))
 
     @property
     def tree(self):
@@ -71,20 +69,55 @@ class PointLocator:
             sl = slice(a, min(n, a + LOCATE_BATCH))
             elem[sl], bary[sl] = self._locate_batch(pts[sl], tol)
         idx = np.flatnonzero(elem < 0)
-        # rare: thin/large elements whose centroid is farther still, or points
-        # outside the mesh: every element within reach, one batch per point
-        for i in idx:
-            cand = np.asarray(self.tree.query_ball_point(pts[i], self.max_radius + 1e-9),
-                              dtype=np.int64)
-            if len(cand) == 0:
-                continue
-            lam = barycentric(self.mesh, cand, np.repeat(pts[i:i + 1], len(cand), axis=0))
-            inside = np.flatnonzero(np.all(lam >= -tol, axis=1))
-            if len(inside):
-                # the lowest id among those holding the point, as the scan gives
-                j = inside[np.argmin(cand[inside])]
-                elem[i], bary[i] = cand[j], lam[j]
+        if len(idx):
+            # thin/large elements whose centroid is farther still, or points outside
+            # the mesh (a section through a cavity, the air voxels of a label map):
+            # every element within reach, checked together
+            self._locate_within_reach(pts, idx, elem, bary, tol)
         return elem, bary
+
+    #: points searched together by the wide search
+    REACH_BATCH = 8192
+
+    def _size_classes(self):
+        """Element centroids grouped by their reach (the farthest node from the
+        centroid), each group a KD-tree with its own largest reach: a graded
+        mesh's small elements are then searched within their own small reach,
+        not the largest element's (which put thousands of candidates around a
+        point outside a fine region)."""
+        if self._classes is None:
+            el = self.mesh.elements
+            c = self.mesh.nodes_mm[el].mean(axis=1)
+            r = np.max(np.linalg.norm(self.mesh.nodes_mm[el] - c[:, None, :], axis=2), axis=1)
+            k = np.floor(np.log2(r / max(float(r.min()), 1e-12))).astype(np.int64)
+            self._classes = []
+            for v in np.unique(k):
+                ids = np.flatnonzero(k == v)
+                self._classes.append((cKDTree(c[ids]), ids, float(r[ids].max()) + 1e-9))
+        return self._classes
+
+    def _locate_within_reach(self, pts, idx, elem, bary, tol):
+        """Every element whose centroid lies within its own reach of each point of
+        ``idx`` (the only ones that can hold it), checked together; the lowest
+        element id holding a point is its element, as the scan gives."""
+        big = np.iinfo(np.int64).max
+        for a in range(0, len(idx), self.REACH_BATCH):
+            chunk = idx[a:a + self.REACH_BATCH]
+            best = np.full(len(chunk), big, dtype=np.int64)
+            for tree, ids, reach in self._size_classes():
+                lists = tree.query_ball_point(pts[chunk], reach)
+                counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
+                if counts.sum() == 0:
+                    continue
+                owner = np.repeat(np.arange(len(chunk)), counts)
+                cand = ids[np.concatenate([np.asarray(v, dtype=np.int64) for v in lists if v])]
+                lam = barycentric(self.mesh, cand, pts[chunk[owner]])
+                ok = np.all(lam >= -tol, axis=1)
+                np.minimum.at(best, owner[ok], cand[ok])
+            found = np.flatnonzero(best < big)
+            if len(found):
+                elem[chunk[found]] = best[found]
+                bary[chunk[found]] = barycentric(self.mesh, best[found], pts[chunk[found]])
 
     def _locate_batch(self, pts, tol):
         """:meth:`locate` of a batch of points, by the nearest centroids (k, then

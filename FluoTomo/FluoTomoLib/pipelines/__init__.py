@@ -5,7 +5,7 @@ Modules
 -------
 - ``cases``: The demo's tomography cases as run-engine tasks (one per tube depth, the oral cavity): plain values in, plain arrays out, so they run on Dask workers and resume.
 - ``oral``: Image-guided fluorescence tomography of the oral-cavity phantom.
-- ``steps``: The steps every image-guided tomography case shares, whatever the phantom: the tracked camera's acquisition of a laser scan (rendered frames -> ROI counts -> normalised boundary fluence), the reconstruction model and prior from the CBCT labels, and NP / SP / HP with the optional self-absorption feedback.  ``tube`` (cylinder-tube) and ``oral`` (oral cavity) put them together.
+- ``steps``: The simulation side every image-guided tomography case shares, whatever the phantom: the true tissue's emission fields on the filmed surface and the tracked camera's frames of them (what the software makes of them is the label-map path's).
 - ``tube``: Image-guided fluorescence tomography of the cylinder-tube phantom, end to end.
 - ``tube_truth``: The cylinder-tube cases' ground truth: the true phantom's emission fields on the surface the camera films, simulated on the whole phantom or read from the stored sets (``data/tube_truth``).
 """
@@ -14,8 +14,10 @@ from fluoguide.lazy import attach
 
 __getattr__, __dir__, __all__ = attach(__name__, {
     "cases": ["tube_case", "oral_case", "case_tasks", "case_of_record", "section_images"],
-    "oral": ["tissue_air_facets", "simulate_and_reconstruct_oral"],
-    "steps": ["nodal_optics", "acquire", "onto_surface_from_above", "reconstruction_model", "reconstruct_methods"],
+    "oral": ["line_targets", "simulate_oral_truth", "region_results", "oral_yield_at",
+             "simulate_and_reconstruct_oral"],
+    "steps": ["nodal_optics", "true_emission_fields", "surface_of", "render_frames",
+              "reconstruct_from_frames", "case_record"],
     "tube": ["simulate_and_reconstruct"],
     "tube_truth": ["SurfaceTruth", "simulate_truth", "stored_truth", "read_truth", "write_truth",
                    "true_yield_at"],

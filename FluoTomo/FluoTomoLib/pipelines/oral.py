@@ -5,15 +5,21 @@ whose floor holds an ICG-rich tongue (2 ug/mL, 5x the agar's yield) bulging
 8 mm into the cavity.  Unlike the cylinder-tube case the surface is curved
 and the light enters and leaves through the cavity: the tracked laser scans a
 line across the tongue from above (the beams hit the tongue or the cavity
-floor wherever they land), the tracked camera looks into the cavity, pixels
-are cast onto the tissue-air surface (the cavity walls can hide parts of it),
-and only the tissue-air facets of the cropped CBCT mesh carry sources and
-detectors.
+floor wherever they land), the tracked camera looks into the cavity, and
+pixels are cast onto the tissue-air surface (the cavity walls can hide parts
+of it).
 
-What is measured is the tongue's yield (its volume-weighted mean over the
-reconstruction nodes wholly inside the tongue, against the truth) and the
-agar's, per method; the profile metrics of the tube study (peak and centroid along a
-depth line) do not apply to a bulk target.
+Simulation (:func:`simulate_oral_truth`): the whole tissue on a mesh of its
+own, fine at the laser line and the tongue, the analytic tongue's optics at its
+nodes, the FEM emission fields on its surface, rendered into tracked camera
+frames.  Reconstruction: the tube's and ``fluo tomo reconstruct``'s path
+(``steps.reconstruct_from_frames``), so the oral case's numbers come with the
+label-map path's intervals and warnings.
+
+What is measured is the tongue's yield and the agar's (each region's value as
+the reconstruction reports it, with its 95 % interval) against the truth; the
+profile metrics of the tube study (peak and centroid along a depth line) do
+not apply to a bulk target.
 """
 
 from __future__ import annotations
@@ -25,39 +31,12 @@ import numpy as np
 from fluoguide.errors import FluoInputError, seeded_rng
 from fluoguide.progress import check_cancel, report
 
-from FluoTomoLib.pipelines.steps import (
-    acquire,
-    nodal_optics,
-    reconstruct_methods,
-    reconstruction_model,
-)
-from FluoTomoLib.optics import robin_A
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
-from FluoTomoLib.meshing.voxel import mesh_labelmap_structured, nodal_volumes
-
-#: region of interest around the tongue (x0, x1, y0, y1, z0, z1) [mm]: the
-#: tongue's box plus 6-8 mm of agar; the cavity air above it is not meshed
-ORAL_ROI_MM = (-20.0, 20.0, -16.0, 26.0, -40.0, -8.0)
-
-
-def tissue_air_facets(mesh, labels_kji, spacing_mm, origin_mm, probe_mm=None):
-    """Boundary facets of a cropped mesh that face air in the label map (the
-    real tissue surface), not the faces where the region of interest cut the
-    tissue: the label ``probe_mm`` outside each facet's centre is 0 (default
-    0.75 element: a structured mesh's surface lies up to half a cell off the
-    label map's)."""
-    if probe_mm is None:
-        probe_mm = 0.75 * float(mesh.meta.get("size_mm", 1.0))
-    f = mesh.boundary_facets
-    c = mesh.nodes_mm[f].mean(axis=1) + probe_mm * mesh.boundary_normals
-    ijk = np.round((c - np.asarray(origin_mm, float)) / np.asarray(spacing_mm, float)).astype(int)
-    shape = np.array(np.shape(labels_kji)[::-1])
-    inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
-    lab = np.zeros(len(f), dtype=np.int64)
-    i, j, k = ijk[inside].T
-    lab[inside] = np.asarray(labels_kji)[k, j, i]
-    return lab == 0
+from FluoTomoLib.optics import robin_A
+from FluoTomoLib.pipelines.steps import (case_record, nodal_optics, phantom_simulation_mesh,
+                                         reconstruct_from_frames, render_frames, surface_of,
+                                         true_emission_fields)
 
 
 def _ellipsoid(points_mm, centre, semi_axes):
@@ -65,101 +44,181 @@ def _ellipsoid(points_mm, centre, semi_axes):
     return np.einsum("ij,ij->i", q, q) <= 1.0
 
 
-def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=1.5, n_sources=16,
+def oral_yield_at(points_mm, phantom):
+    """The true fluorescence yield [1/mm] at points (N, 3): the analytic
+    tongue's inside it, the agar's elsewhere in the tissue (the label map's
+    non-zero voxels), NaN in the air."""
+    truth = phantom.truth()
+    geo = truth["geometry"]
+    p = np.asarray(points_mm, float)
+    ijk = np.round((p - np.asarray(phantom.origin_mm, float))
+                   / np.asarray(phantom.spacing_mm, float)).astype(int)
+    labels = np.asarray(phantom.labels)
+    inside = np.all((ijk >= 0) & (ijk < np.array(labels.shape[::-1])), axis=1)
+    lab = np.zeros(len(p), dtype=np.int64)
+    i, j, k = ijk[inside].T
+    lab[inside] = labels[k, j, i]
+    tongue = _ellipsoid(p, geo["tongue_centre_mm"], geo["tongue_semi_axes_mm"])
+    y = {int(r): float(v["optics"]["yield_per_mm"]) for r, v in truth["regions"].items()}
+    return np.where(lab == 0, np.nan, np.where(tongue, y[2], y[1]))
+
+
+def line_targets(phantom, n_sources=16, source_spacing_mm=1.5):
+    """Where the laser line's beams are aimed (S, 3) [mm]: along y across the
+    tongue's centre, 9 mm below the cavity's rim (each beam's direction, straight
+    down into the cavity; where it lands is where it meets the surface)."""
+    centre = np.asarray(phantom.truth()["geometry"]["tongue_centre_mm"], float)
+    ys = centre[1] + (np.arange(n_sources) - 0.5 * (n_sources - 1)) * source_spacing_mm
+    return np.stack([np.full_like(ys, centre[0]), ys, np.full_like(ys, -9.0)], axis=1)
+
+
+#: the laser's beam in its tool frame: from the origin along +z
+BEAM_ORIGIN, BEAM_DIR = np.zeros(3), np.array([0.0, 0.0, 1.0])
+
+
+def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=16,
+                        source_spacing_mm=1.5, progress=None, cancel=None):
+    """The true phantom's emission fields on its surface, on a mesh of its own.
+
+    As the tube's truth (``tube_truth.simulate_truth``): the whole tissue meshed
+    (``tomography.simulate.simulation_mesh``) with ``fine_mm`` cells at the
+    laser line and the tongue (capped at the sources' burial depth) and
+    ``simulate_coarse_mm`` elsewhere (the largest power-of-two multiple of the
+    fine size at most that), the tissue-air nodes on the label map's smooth
+    surface (not a voxel staircase); the analytic tongue's optics at the nodes;
+    the FEM emission fields from each beam of :func:`line_targets` (no tracking
+    error: where the true beams land).
+
+    Returns
+    -------
+    tube_truth.SurfaceTruth
+        On the whole tissue surface (the camera sees the cavity through its rim).
+    """
+    from FluoTomoLib.pipelines.tube_truth import SurfaceTruth
+    from FluoTomoLib.tomography import LabelMap
+
+    t0 = time.perf_counter()
+    truth = phantom.truth()
+    geo = truth["geometry"]
+    optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
+    report(progress, 0.02, "simulation mesh (whole phantom)")
+    targets = line_targets(phantom, n_sources, source_spacing_mm)
+    # where the beams land, on the label map's surface: the simulation mesh is fine there
+    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm)
+    surf = lm.surface()
+    aimed = raster_scan(targets, BEAM_ORIGIN, BEAM_DIR, lm.to_ras(surf.points),
+                        surf.triangles)["true_points_mm"]
+    fine = phantom_simulation_mesh(phantom, aimed, 2, fine_mm, simulate_coarse_mm, cancel)
+    check_cancel(cancel)
+    report(progress, 0.15, "forward simulation (true tissue)")
+    in_tongue = _ellipsoid(fine.nodes_mm, geo["tongue_centre_mm"], geo["tongue_semi_axes_mm"])
+    true_props = nodal_optics(np.where(in_tongue, 2, 1), optics)
+    vertices, facets, nodes = surface_of(fine)
+    src_true = raster_scan(targets, BEAM_ORIGIN, BEAM_DIR, vertices, facets)["true_points_mm"]
+    fields = true_emission_fields(fine, true_props, optics[1]["n"], src_true)[nodes]
+    info = {"fine_mm": float(fine_mm), "simulate_coarse_mm": float(simulate_coarse_mm),
+            "n_sources": int(n_sources), "source_spacing_mm": float(source_spacing_mm),
+            "mesh_nodes": int(fine.n_nodes), "mesh_elements": int(fine.n_elements),
+            "seconds": time.perf_counter() - t0, "source": "simulated"}
+    return SurfaceTruth(vertices, facets, fields, src_true, info)
+
+
+def region_results(solved, phantom_optics, names):
+    """Each method's region values as the reconstruction reports them, against the
+    truth: ``<name>_yield_per_mm``, ``_true_yield_per_mm``, ``_yield_error_pct``,
+    ``_ci95_per_mm`` and ``_ci95_covers_truth`` per region (``names``: {label:
+    name}), with the solver's summary, the nodal yield and the warnings."""
+    results = {}
+    for method, out in solved.items():
+        res, s = out["result"], out["summary"]
+        row = {}
+        for label, name in names.items():
+            reg = s["regions"][str(label)]
+            true = float(phantom_optics[label]["yield_per_mm"])
+            value, ci = reg["yield_per_mm"], reg["ci95_per_mm"]
+            row[f"{name}_yield_per_mm"] = value
+            row[f"{name}_true_yield_per_mm"] = true
+            row[f"{name}_yield_error_pct"] = 100.0 * (value - true) / true
+            row[f"{name}_ci95_per_mm"] = ci
+            row[f"{name}_ci95_covers_truth"] = None if ci is None else bool(ci[0] <= true <= ci[1])
+        results[method] = {**row, **res.summary(), "yield": res.yield_per_mm,
+                           "self_absorption_peaks": s["solver"]["self_absorption_peaks"],
+                           "regions": s["regions"], "warnings": s["warnings"]}
+    return results
+
+
+def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=None, n_sources=16,
                                   source_spacing_mm=1.5, detector_factor=2, exclude_mm=3.0,
                                   methods=("NP", "SP", "HP"), lam=10.0, laser_power_w=0.01,
                                   tracking=TrackingError(), seed=0, self_absorption=("HP",),
-                                  roi=ORAL_ROI_MM, progress=None, cancel=None, **camera):
-    """One tracked laser line across the tongue, rendered camera frames,
-    NP / SP / HP with the CBCT labels (agar, tongue) as the prior.
+                                  roi=None, accuracy="balanced", grading=None,
+                                  simulate_coarse_mm=2.0, camera_gain=None,
+                                  camera_offset_adu=100.0, camera_read_noise_adu=2.0,
+                                  camera_binning=4, camera_distance_mm=150.0, progress=None,
+                                  cancel=None):
+    """One tracked laser line across the tongue, rendered camera frames, NP / SP
+    / HP with the CBCT labels (agar, tongue) as the prior.
 
-    ``camera`` takes the camera options of ``steps.acquire``
-    (``camera_gain``, ``camera_offset_adu``, ``camera_read_noise_adu``,
-    ``camera_binning``, ``camera_distance_mm``).  Returns a dict of numbers,
-    the meshes and fields for figures and the scene.
+    ``fine_mm``, ``simulate_coarse_mm``: the simulation mesh's element sizes
+    [mm] (:func:`simulate_oral_truth`); ``coarse_mm``, ``accuracy``,
+    ``grading`` (None: the label-map path's default), ``roi`` (x0, x1, y0, y1,
+    z0, z1) [mm] (None: from the decay length): the reconstruction's, as
+    ``reconstruct_labelmap_methods`` takes them.  Returns a dict of numbers
+    (per method the tongue's and the agar's value, error and 95 % interval:
+    :func:`region_results`), the reconstruction mesh and fields for figures and
+    the scene, and ``true_yield_at`` (the analytic truth, :func:`oral_yield_at`).
     """
+    from FluoTomoLib.tomography import LabelMap
+    from FluoTomoLib.tomography.reconstruct import DEFAULT_GRADING
+
     t_all = time.perf_counter()
     rng = seeded_rng(seed)
     if phantom.name != "oral-cavity":
         raise FluoInputError("this case needs the oral-cavity phantom", field="phantom",
                              value=phantom.name)
     truth = phantom.truth()
-    geo = truth["geometry"]
     optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
     timings = {}
 
+    # --- the simulation: the true fields on the tissue surface, on a mesh of its own
     prepare_kernels(progress, 0.0, cancel)       # first run: compiled, reported as it goes
-    report(progress, 0.02, "meshing")
-    t0 = time.perf_counter()
-    fine = mesh_labelmap_structured(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
-                                    fine_mm, roi=roi, name="forward")
-    coarse = mesh_labelmap_structured(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
-                                      coarse_mm, roi=roi, name="reconstruction")
-    timings["meshing"] = time.perf_counter() - t0
-    check_cancel(cancel)
-
-    # true tissue on the simulation mesh: the analytic tongue, agar elsewhere
-    in_tongue = _ellipsoid(fine.nodes_mm, geo["tongue_centre_mm"], geo["tongue_semi_axes_mm"])
-    true_props = nodal_optics(np.where(in_tongue, 2, 1), optics)
-    n = optics[1]["n"]
-    A = float(robin_A(n))
-    surface = tissue_air_facets(fine, phantom.labels, phantom.spacing_mm, phantom.origin_mm)
-
-    # laser line along y across the tongue, beams straight down into the cavity
-    report(progress, 0.1, "tracked laser scan")
-    centre = np.asarray(geo["tongue_centre_mm"], float)
-    ys = centre[1] + (np.arange(n_sources) - 0.5 * (n_sources - 1)) * source_spacing_mm
-    targets = np.stack([np.full_like(ys, centre[0]), ys, np.full_like(ys, roi[5] - 1.0)], axis=1)
-    scan = raster_scan(targets, np.zeros(3), np.array([0.0, 0.0, 1.0]), fine.nodes_mm,
-                       fine.boundary_facets[surface], error=tracking, rng=rng)
+    surface = simulate_oral_truth(phantom, fine_mm, simulate_coarse_mm, n_sources,
+                                  source_spacing_mm, progress, cancel)
+    timings["forward_simulation"] = surface.info["seconds"]
+    report(progress, 0.25, "tracked laser scan")
+    scan = raster_scan(line_targets(phantom, n_sources, source_spacing_mm), BEAM_ORIGIN,
+                       BEAM_DIR, surface.vertices_mm, surface.facets, error=tracking, rng=rng)
     if np.any(scan["miss"]):
         raise FluoInputError("a reported laser beam misses the CBCT surface",
                              field="laser pose", value=int(np.flatnonzero(scan["miss"])[0]))
-    src_true, src_rep = scan["true_points_mm"], scan["reported_points_mm"]
+    src_true = scan["true_points_mm"]
+    centre = np.asarray(truth["geometry"]["tongue_centre_mm"], float)
     look_at = np.array([centre[0], centre[1], float(np.mean(src_true[:, 2]))])
-    acq = acquire(fine, true_props, n, A, src_true, src_rep, surface, look_at, tracking, rng,
-                  detector_factor=detector_factor, exclude_mm=exclude_mm,
-                  laser_power_w=laser_power_w, project_detectors=True, timings=timings,
-                  progress=progress, cancel=cancel, **camera)
-    det_rep, mask = acq["detectors_mm"], acq["mask"]
+    frames = render_frames(surface.vertices_mm, surface.facets, surface.fields_per_w,
+                           float(robin_A(optics[1]["n"])), src_true, look_at, tracking, rng,
+                           exclude_mm=exclude_mm, laser_power_w=laser_power_w,
+                           camera_gain=camera_gain, camera_offset_adu=camera_offset_adu,
+                           camera_read_noise_adu=camera_read_noise_adu,
+                           camera_binning=camera_binning, camera_distance_mm=camera_distance_mm,
+                           timings=timings, progress=progress, cancel=cancel)
 
-    report(progress, 0.35, "Jacobian")
-    bg = optics[1]
-    J, model, make_model, prior = reconstruction_model(
-        coarse, bg, n, src_rep, det_rep, mask, phantom.labels, phantom.spacing_mm,
-        phantom.origin_mm, coarse_mm, timings=timings)
-    solved = reconstruct_methods(J, acq["y"][mask], mask, prior, make_model, bg, methods, lam,
-                                 self_absorption, progress, cancel)
-
-    # region yields are read over the nodes wholly inside each region (partial
-    # volume >= 0.99): a node on the tongue's rim carries half agar, whatever
-    # the method, and would bias every mean towards the other region
-    vol = nodal_volumes(coarse)
-    K = prior.K()
-    results = {}
-    for method, (res, passes, _) in solved.items():
-        x = res.yield_per_mm
-        row = {}
-        for label, name in ((2, "tongue"), (1, "agar")):
-            sel = K[:, list(prior.labels).index(label)] >= 0.99
-            mean = float(np.sum(x[sel] * vol[sel]) / np.sum(vol[sel]))
-            true = float(optics[label]["yield_per_mm"])
-            row[f"{name}_yield_per_mm"] = mean
-            row[f"{name}_true_yield_per_mm"] = true
-            row[f"{name}_yield_error_pct"] = 100.0 * (mean - true) / true
-        results[method] = {**row, **res.summary(), "yield": x, "self_absorption_peaks": passes}
-    timings["reconstruction"] = sum(v[2] for v in solved.values())
+    # --- the software: what fluo tomo makes of the frames, on the CBCT labels
+    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                  source="oral-cavity phantom")
+    acq, solved, coarse = reconstruct_from_frames(
+        lm, frames, scan["reported_poses"], BEAM_ORIGIN, BEAM_DIR, optics, methods, lam, 2,
+        accuracy, coarse_mm, None if roi is None else tuple(roi), self_absorption,
+        DEFAULT_GRADING if grading is None else grading, detector_factor, exclude_mm,
+        camera_offset_adu, laser_power_w, timings, progress, cancel)
+    results = region_results(solved, optics, {2: "tongue", 1: "agar"})
     timings["total"] = time.perf_counter() - t_all
     report(progress, 1.0, "done")
     return {
-        "results": results, "fine": fine, "coarse": coarse,
-        "true_yield_fine": true_props["yield_per_mm"],
-        "sources_true_mm": src_true, "sources_reported_mm": src_rep, "detectors_mm": det_rep,
-        "source_error_mm": float(np.mean(np.linalg.norm(src_true - src_rep, axis=1))),
-        "measurements": int(mask.sum()), "camera_gain": acq["camera_gain"],
-        "roi_pixels_median": float(np.median(acq["roi_pixels"][mask])),
-        "frame_example": acq["frames"][n_sources // 2], "frame_example_source": n_sources // 2,
-        "timings": timings, "solver": model.solver_name,
-        "mesh_nodes": {"forward": fine.n_nodes, "reconstruction": coarse.n_nodes},
-        "mesh_elements": {"forward": fine.n_elements, "reconstruction": coarse.n_elements},
+        "results": results, "coarse": coarse,
+        "true_yield_at": lambda points_mm: oral_yield_at(points_mm, phantom),
+        **case_record(src_true, acq, frames, solved[tuple(solved)[0]], n_sources // 2, timings),
+        "truth": dict(surface.info),
+        "mesh_nodes": {"forward": surface.info["mesh_nodes"], "reconstruction": coarse.n_nodes},
+        "mesh_elements": {"forward": surface.info["mesh_elements"],
+                          "reconstruction": coarse.n_elements},
     }

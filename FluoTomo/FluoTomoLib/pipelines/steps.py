@@ -1,9 +1,9 @@
-"""The steps every image-guided tomography case shares, whatever the phantom:
-the tracked camera's acquisition of a laser scan (rendered frames -> ROI
-counts -> normalised boundary fluence), the reconstruction model and prior
-from the CBCT labels, and NP / SP / HP with the optional self-absorption
-feedback.  ``pipelines.tube`` (cylinder-tube) and ``pipelines.oral`` (oral cavity) put them
-together."""
+"""The simulation side every image-guided tomography case shares, whatever
+the phantom: the true tissue's emission fields on the filmed surface and the
+tracked camera's frames of them.  What the software makes of the frames is
+the label-map path's (``tomography.acquisition_from_tracked_frames``, then
+``tomography.reconstruct_labelmap_methods``), for ``pipelines.tube``
+(cylinder-tube) and ``pipelines.oral`` (oral cavity) alike."""
 
 from __future__ import annotations
 
@@ -11,25 +11,18 @@ import time
 
 import numpy as np
 
-from fluoguide.errors import FluoInputError
-from fluoguide.optics_table import icg_absorption_per_yield
 from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.acquisition.camera_frames import (
     camera_pose_above,
     cast,
-    detector_counts,
     exposure_gain,
     expose,
     frame_radiance,
     tomography_camera,
 )
 from FluoTomoLib.fem.forward import FluorescenceModel
-from FluoTomoLib.acquisition.noncontact_optodes import counts_to_boundary_fluence, detector_mask, virtual_detectors
-from FluoTomoLib.recon.partial_volume import PartialVolumePrior, node_region_fractions
-from FluoTomoLib.recon.solver import RegionPrior, reconstruct
-from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
-from FluoTomoLib.meshing.voxel import node_regions_volume_preserving
+
 
 def nodal_optics(node_region, optics):
     """Nodal property arrays from per-region optics dicts (labels as keys)."""
@@ -54,6 +47,30 @@ def true_emission_fields(fine, true_props, n, src_true, detectors_mm=None):
     fields = sim.emission_fields(true_props["yield_per_mm"])
     del sim
     return fields
+
+
+def phantom_simulation_mesh(phantom, points_mm, target, fine_mm, simulate_coarse_mm,
+                            cancel=None):
+    """The mesh a phantom's truth is simulated on (RAS), the whole tissue
+    (``tomography.simulate.simulation_mesh``): ``fine_mm`` cells, capped at the
+    sources' burial depth, in the box of ``points_mm`` (where the laser enters)
+    and of the ``target`` label where it is compact, grown by max(4 mm, half the
+    decay length); ``simulate_coarse_mm`` elsewhere (the largest power-of-two
+    multiple of the fine size at most that); the tissue-air nodes on the label
+    map's smooth surface."""
+    from FluoTomoLib.tomography import LabelMap, optics_from_phantom
+    from FluoTomoLib.tomography.accuracy import cap_at_burial
+    from FluoTomoLib.tomography.simulate import simulation_mesh
+
+    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                  source=f"{phantom.name} phantom")
+    optics = optics_from_phantom({int(k): v["optics"]
+                                  for k, v in phantom.truth()["regions"].items()})
+    h_sim, mfp = cap_at_burial(fine_mm, optics, lm.labels)
+    decay = 1.0 / optics.min_mueff(lm.labels)
+    return lm.mesh_to_ras(simulation_mesh(lm, lm.to_local(np.asarray(points_mm, float)), target,
+                                          h_sim, max(simulate_coarse_mm, h_sim),
+                                          max(4.0, 0.5 * decay), mfp, cancel))
 
 
 def surface_of(mesh, facet_mask=None):
@@ -105,122 +122,63 @@ def render_frames(vertices_mm, facets, fields, robin_A, src_true, camera_centre_
             "camera_reported": cam_rep, "camera_gain": float(camera_gain), "caster": caster}
 
 
-def acquire(fine, true_props, n, robin_A, src_true, src_rep, facet_mask, camera_centre_mm,
-            tracking, rng, detector_factor=2, exclude_mm=3.0, laser_power_w=0.01,
-            camera_gain=None, camera_offset_adu=100.0, camera_read_noise_adu=2.0,
-            camera_binning=4, camera_distance_mm=150.0, project_detectors=False, timings=None,
-            progress=None, cancel=None):
-    """Simulated acquisition of one laser scan with the tracked camera, mapped
-    to the surface of the simulation mesh (the oral-cavity case; the
-    cylinder-tube case maps its frames onto the label map's surface with
-    FluoTomoLib.tomography.acquisition_from_tracked_frames).
+def reconstruct_from_frames(lm, frames, laser_poses, beam_origin, beam_dir, phantom_optics,
+                            methods, lam, target, accuracy, size_mm, roi_ras, self_absorption,
+                            grading, detector_factor=2, exclude_mm=3.0, camera_offset_adu=100.0,
+                            laser_power_w=0.01, timings=None, progress=None, cancel=None):
+    """What the software makes of a case's tracked frames, as ``fluo tomo`` does:
+    the raw route (``acquisition_from_tracked_frames``: beams onto the label
+    map's surface, virtual detectors, pixels cast from the reported camera pose,
+    ROI counts -> boundary fluence per watt), then
+    ``reconstruct_labelmap_methods`` on the label map ``lm`` with the phantom's
+    optics less the dye (``optics_from_phantom``).
 
-    The frames (:func:`render_frames`) are mapped to the surface with the
-    *reported* pose, ~1 mm^2 ROIs averaged at the virtual detectors (the
-    reported sources plus points between them), excluding those within
-    ``exclude_mm`` of the active source.  ``project_detectors``: the points
-    interpolated between sources are moved onto the surface (straight down,
-    along the beams); needed where the surface is curved, a no-op on a plane.
+    ``frames``: :func:`render_frames`' dict; ``laser_poses``: the reported
+    LaserToolToRAS poses; the other arguments are those of the two calls.
+    ``timings`` gains ``camera_frames`` (added), the reconstruction's steps and
+    ``reconstruction`` (every method's solve).
 
-    Returns a dict: ``detectors_mm``, ``mask`` (S, D), ``y`` (S, D) boundary
-    fluence per watt [1/mm^2] (0 where masked out), ``counts``, ``roi_pixels``,
-    ``frames`` (S, H, W), ``camera_gain``, ``camera_true`` / ``camera_reported``
-    (CameraToWorld).
+    Returns (Acquisition, {method: result}, the reconstruction mesh in RAS).
     """
+    from FluoTomoLib.tomography import (acquisition_from_tracked_frames, optics_from_phantom,
+                                        reconstruct_labelmap_methods)
+
     timings = {} if timings is None else timings
-    det_rep = virtual_detectors(src_rep, factor=detector_factor)
-    if project_detectors:
-        det_rep = onto_surface_from_above(det_rep, fine.nodes_mm, fine.boundary_facets[facet_mask])
-    mask = detector_mask(src_rep, det_rep, exclude_mm)
-    report(progress, 0.2, "forward simulation (true tissue)")
+    n = next(iter(phantom_optics.values()))["n"]
     t0 = time.perf_counter()
-    vertices, facets, nodes = surface_of(fine, facet_mask)
-    fields = true_emission_fields(fine, true_props, n, src_true, det_rep)[nodes]
-    timings["forward_simulation"] = time.perf_counter() - t0
-    r = render_frames(vertices, facets, fields, robin_A, src_true, camera_centre_mm, tracking,
-                      rng, exclude_mm, laser_power_w, camera_gain, camera_offset_adu,
-                      camera_read_noise_adu, camera_binning, camera_distance_mm, timings,
-                      progress, cancel)
-    t0 = time.perf_counter()
-    hits_rep = cast(r["caster"], r["camera"], r["camera_reported"], cancel=cancel)  # compiled
-    counts, roi_pixels = detector_counts(r["frames"], r["saturated"], hits_rep, det_rep)
-    lost = mask & ~np.isfinite(counts)
-    if np.any(lost):
-        raise FluoInputError(f"{int(lost.sum())} detector ROIs have too few unsaturated pixels "
-                             "(saturated, or not seen by the camera)", field="camera_gain",
-                             value=r["camera_gain"])
-    y = np.where(mask, counts_to_boundary_fluence(np.nan_to_num(counts), camera_offset_adu,
-                                                  r["camera_gain"], robin_A, laser_power_w), 0.0)
-    timings["camera_frames"] += time.perf_counter() - t0
-    return {"detectors_mm": det_rep, "mask": mask, "y": y, "counts": counts,
-            "roi_pixels": roi_pixels, "frames": r["frames"], "camera_gain": r["camera_gain"],
-            "camera_true": r["camera_true"], "camera_reported": r["camera_reported"]}
+    acq = acquisition_from_tracked_frames(
+        lm, frames["frames"], frames["saturated"], frames["camera"], frames["camera_reported"],
+        laser_poses, beam_origin, beam_dir, frames["camera_gain"], camera_offset_adu,
+        laser_power_w, n_tissue=n, detector_factor=detector_factor, exclude_mm=exclude_mm)
+    timings["camera_frames"] = timings.get("camera_frames", 0.0) + time.perf_counter() - t0
+    check_cancel(cancel)
+    report(progress, 0.35, "reconstruction")
+    solved = reconstruct_labelmap_methods(
+        lm, optics_from_phantom(phantom_optics), acq, methods, lam, target=target,
+        accuracy=accuracy, size_mm=size_mm, roi_ras=roi_ras, self_absorption=self_absorption,
+        grading=grading, progress=scaled(progress, 0.35, 0.98, "reconstruction"), cancel=cancel)
+    first = solved[tuple(solved)[0]]
+    timings.update({k: v for k, v in first["summary"]["timings"].items()
+                    if k != "reconstruction"})
+    timings["reconstruction"] = sum(o["result"].seconds for o in solved.values())
+    return acq, solved, lm.mesh_to_ras(first["mesh"])
 
 
-def onto_surface_from_above(points_mm, vertices_mm, triangles, height_mm=50.0):
-    """The surface point straight below (along -z) each point: where a virtual
-    detector interpolated between two sources on a curved surface really lies."""
-    from FluoTomoLib.acquisition.noncontact_optodes import ray_triangle_intersect
-
-    p = np.asarray(points_mm, float)
-    origins = p + np.array([0.0, 0.0, height_mm])
-    hit, _, face = ray_triangle_intersect(origins, np.tile([0.0, 0.0, -1.0], (len(p), 1)),
-                                          vertices_mm, triangles)
-    if np.any(face < 0):
-        raise FluoInputError("a virtual detector has no surface below it", field="detectors_mm",
-                             value=p[np.flatnonzero(face < 0)[0]].tolist())
-    return hit
-
-
-def reconstruction_model(coarse, bg, n, src_rep, det_rep, mask, labels, spacing_mm, origin_mm,
-                         h_mm, partial_volume=True, timings=None):
-    """Jacobian with the background properties on the reconstruction mesh, a
-    factory for models with other nodal absorption (self-absorption), and the
-    region prior from the CBCT labels.  Returns (J, model, make_model, prior)."""
-    timings = {} if timings is None else timings
-    t0 = time.perf_counter()
-    model = FluorescenceModel(coarse, {"mua_per_mm": bg["mua_x_per_mm"],
-                                       "musp_per_mm": bg["musp_x_per_mm"], "n": n},
-                              {"mua_per_mm": bg["mua_m_per_mm"], "musp_per_mm": bg["musp_m_per_mm"],
-                               "n": n}, src_rep, det_rep)
-    J = model.jacobian_yield()[mask.ravel()]
-    timings["jacobian"] = time.perf_counter() - t0
-
-    def make_model(mua_x_nodes, mua_m_nodes):
-        """The reconstruction model with the dye's absorption (self_absorption.py)."""
-        return FluorescenceModel(coarse, {"mua_per_mm": mua_x_nodes,
-                                          "musp_per_mm": bg["musp_x_per_mm"], "n": n},
-                                 {"mua_per_mm": mua_m_nodes,
-                                  "musp_per_mm": bg["musp_m_per_mm"], "n": n}, src_rep, det_rep)
-
-    # SP: each region's nodes carry its label-map volume; HP: partial volumes
-    node_region = node_regions_volume_preserving(coarse, labels, spacing_mm, origin_mm)
-    if partial_volume:
-        prior = PartialVolumePrior(node_region, *node_region_fractions(
-            coarse.nodes_mm, labels, spacing_mm, origin_mm, h_mm,
-            edges_mm=coarse.meta.get("edges_mm")))
-    else:
-        prior = RegionPrior(node_region)
-    return J, model, make_model, prior
-
-
-def reconstruct_methods(J, y, mask, prior, make_model, bg, methods=("NP", "SP", "HP"), lam=10.0,
-                        self_absorption=("HP",), progress=None, cancel=None):
-    """NP / SP / HP (and the self-absorption feedback for the methods listed).
-    Returns {method: (ReconResult, per-pass peaks, seconds)}."""
-    out = {}
-    for i, method in enumerate(methods):
-        check_cancel(cancel)
-        report(progress, 0.5 + 0.45 * i / len(methods), f"reconstruction {method}")
-        t0 = time.perf_counter()
-        passes = []
-        if method in tuple(self_absorption or ()):
-            res, passes = reconstruct_self_absorbing(
-                method, J, y, mask, prior, make_model,
-                (bg["mua_x_per_mm"], bg["mua_m_per_mm"]), bg["yield_per_mm"],
-                icg_absorption_per_yield(), lam=lam, cancel=cancel)
-        else:
-            res = reconstruct(J, y, method=method, lam=lam, prior=prior)
-        res.seconds = time.perf_counter() - t0
-        out[method] = (res, passes, res.seconds)
-    return out
+def case_record(src_true, acq, frames, first, n_frame, timings):
+    """The numbers every case reports beside its methods' results: optodes and
+    their tracking error, measurements, camera gain and ROI pixels, an example
+    frame, the region of interest, timings, solver, mesh sizes (the simulation
+    mesh's are the caller's to add)."""
+    return {
+        "sources_true_mm": src_true, "sources_reported_mm": acq.sources_ras_mm,
+        "detectors_mm": acq.detectors_ras_mm,
+        "source_error_mm": float(np.mean(np.linalg.norm(src_true - acq.sources_ras_mm,
+                                                        axis=1))),
+        "measurements": int(acq.mask.sum()), "camera_gain": frames["camera_gain"],
+        "roi_pixels_median": float(np.median(acq.meta["roi_pixels"][acq.mask])),
+        "frame_example": frames["frames"][n_frame], "frame_example_source": n_frame,
+        "camera_pose_error_mm": float(np.linalg.norm(frames["camera_reported"][:3, 3]
+                                                     - frames["camera_true"][:3, 3])),
+        "region_of_interest": first["summary"]["region_of_interest"],
+        "timings": timings, "solver": first["model"].model.solver_name,
+    }

@@ -35,7 +35,7 @@ from fluoguide.progress import check_cancel, report, scaled
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.optics import robin_A
-from FluoTomoLib.pipelines.steps import render_frames
+from FluoTomoLib.pipelines.steps import case_record, reconstruct_from_frames, render_frames
 from FluoTomoLib.pipelines.tube_truth import (raster_targets, simulate_truth, stored_truth,
                                               true_yield_at)
 from FluoTomoLib.recon.metrics import depth_profile, peak_and_centroid
@@ -77,8 +77,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     and ``surface_truth`` (:class:`.tube_truth.SurfaceTruth`, with where it
     came from in its ``info``).
     """
-    from FluoTomoLib.tomography import (LabelMap, acquisition_from_tracked_frames,
-                                        optics_from_phantom, reconstruct_labelmap_methods)
+    from FluoTomoLib.tomography import LabelMap
 
     if truth not in ("stored", "simulate"):
         raise FluoInputError("truth must be 'stored' or 'simulate'", field="truth", value=truth)
@@ -137,30 +136,43 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     else:
         lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
                       source="cylinder-tube phantom")
-    t0 = time.perf_counter()
-    acq = acquisition_from_tracked_frames(
-        lm, frames["frames"], frames["saturated"], frames["camera"], frames["camera_reported"],
-        scan["reported_poses"], beam_origin, beam_dir, frames["camera_gain"], camera_offset_adu,
-        laser_power_w, n_tissue=n, detector_factor=detector_factor, exclude_mm=exclude_mm)
-    timings["camera_frames"] += time.perf_counter() - t0
-    check_cancel(cancel)
     roi_ras = None
     if roi_half_mm is not None:
         hz = float(geo["liquid_depth_mm"])
         roi_ras = (-roi_half_mm[0], roi_half_mm[0], -roi_half_mm[1], roi_half_mm[1], -hz, 0.0)
-    report(progress, 0.35, "reconstruction")
-    solved = reconstruct_labelmap_methods(
-        lm, optics_from_phantom(optics), acq, methods, lam, target=2, accuracy=accuracy,
-        size_mm=coarse_mm, roi_ras=roi_ras, self_absorption=self_absorption, grading=grading,
-        progress=scaled(progress, 0.35, 0.98, "reconstruction"), cancel=cancel)
-    first = solved[tuple(solved)[0]]
-    coarse = lm.mesh_to_ras(first["mesh"])
-    timings.update({k: v for k, v in first["summary"]["timings"].items()
-                    if k != "reconstruction"})
+    acq, solved, coarse = reconstruct_from_frames(
+        lm, frames, scan["reported_poses"], beam_origin, beam_dir, optics, methods, lam, 2,
+        accuracy, coarse_mm, roi_ras, self_absorption, grading, detector_factor, exclude_mm,
+        camera_offset_adu, laser_power_w, timings, progress, cancel)
 
     # --- truth and the reconstructions on the profile line x = y = 0
     depth = float(geo["tube_depth_mm"])
-    true_peak = float(optics[2]["yield_per_mm"])
+    results, profiles, zc = profile_results(solved, coarse, phantom)
+    timings["total"] = time.perf_counter() - t_all
+    report(progress, 1.0, "done")
+    counts = acq.meta["roi_counts"]
+    return {
+        "depth_mm": depth, "results": results, "profile_depth_mm": zc, "profiles": profiles,
+        "coarse": coarse, "surface_truth": surface,
+        "true_yield_at": lambda points_mm: true_yield_at(points_mm, phantom),
+        **case_record(src_true, acq, frames, solved[tuple(solved)[0]], n_sources // 2, timings),
+        "counts_range": [float(counts[acq.mask].min()), float(counts[acq.mask].max())],
+        "truth": {k: v for k, v in surface.info.items()},
+        "mesh_nodes": {"forward": surface.info["mesh_nodes"], "reconstruction": coarse.n_nodes},
+        "mesh_elements": {"forward": surface.info["mesh_elements"],
+                          "reconstruction": coarse.n_elements},
+    }
+
+
+def profile_results(solved, coarse, phantom):
+    """Each method's depth profile through the tube (x = y = 0) on the
+    reconstruction mesh ``coarse`` (RAS), its peak and half-maximum centroid
+    against the analytic tube's, with the solver's summary, the nodal yield,
+    the region values and the warnings.  Returns (results, profiles, depths):
+    {method: numbers}, {"truth" | method: profile}, the profile's depths [mm]."""
+    truth = phantom.truth()
+    depth = float(truth["geometry"]["tube_depth_mm"])
+    true_peak = float(truth["regions"]["2"]["optics"]["yield_per_mm"])
     results, profiles = {}, {}
     zc = np.arange(0.0, 20.0 + 1e-9, 0.05)         # depth_profile's line, through the tube
     profiles["truth"] = true_yield_at(np.stack([0 * zc, 0 * zc, -zc], axis=1), phantom)
@@ -179,31 +191,4 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
             "self_absorption_peaks": s["solver"]["self_absorption_peaks"],
             "regions": s["regions"], "warnings": s["warnings"],
         }
-    timings["reconstruction"] = sum(o["result"].seconds for o in solved.values())
-    timings["total"] = time.perf_counter() - t_all
-    report(progress, 1.0, "done")
-    src_rep = acq.sources_ras_mm
-    mask = acq.mask
-    counts = acq.meta["roi_counts"]
-    roi_info = first["summary"]["region_of_interest"]
-    return {
-        "depth_mm": depth, "results": results, "profile_depth_mm": zc, "profiles": profiles,
-        "coarse": coarse, "surface_truth": surface,
-        "true_yield_at": lambda points_mm: true_yield_at(points_mm, phantom),
-        "sources_true_mm": src_true, "sources_reported_mm": src_rep,
-        "detectors_mm": acq.detectors_ras_mm,
-        "source_error_mm": float(np.mean(np.linalg.norm(src_true - src_rep, axis=1))),
-        "measurements": int(mask.sum()), "camera_gain": frames["camera_gain"],
-        "counts_range": [float(counts[mask].min()), float(counts[mask].max())],
-        "roi_pixels_median": float(np.median(acq.meta["roi_pixels"][mask])),
-        "frame_example": frames["frames"][n_sources // 2],
-        "frame_example_source": n_sources // 2,
-        "camera_pose_error_mm": float(np.linalg.norm(frames["camera_reported"][:3, 3]
-                                                     - frames["camera_true"][:3, 3])),
-        "region_of_interest": roi_info,
-        "timings": timings, "solver": first["model"].model.solver_name,
-        "truth": {k: v for k, v in surface.info.items()},
-        "mesh_nodes": {"forward": surface.info["mesh_nodes"], "reconstruction": coarse.n_nodes},
-        "mesh_elements": {"forward": surface.info["mesh_elements"],
-                          "reconstruction": coarse.n_elements},
-    }
+    return results, profiles, zc

@@ -127,25 +127,16 @@ def simulate_truth(phantom, fine_mm=0.8, simulate_coarse_mm=1.5, n_sources=16,
     SurfaceTruth
     """
     from FluoTomoLib.acquisition.tracked_scan import raster_scan
-    from FluoTomoLib.pipelines.steps import nodal_optics, surface_of, true_emission_fields
-    from FluoTomoLib.tomography import LabelMap, optics_from_phantom
-    from FluoTomoLib.tomography.accuracy import cap_at_burial
-    from FluoTomoLib.tomography.simulate import simulation_mesh
+    from FluoTomoLib.pipelines.steps import (nodal_optics, phantom_simulation_mesh, surface_of,
+                                             true_emission_fields)
 
     t0 = time.perf_counter()
     truth = phantom.truth()
     geo = truth["geometry"]
     optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
     report(progress, 0.02, "simulation mesh (whole phantom)")
-    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
-                  source="cylinder-tube phantom")
-    optics_true = optics_from_phantom(optics)
     targets = raster_targets(n_sources, source_spacing_mm)
-    h_sim, mfp = cap_at_burial(fine_mm, optics_true, lm.labels)
-    decay = 1.0 / optics_true.min_mueff(lm.labels)
-    fine = lm.mesh_to_ras(simulation_mesh(lm, lm.to_local(targets), 2, h_sim,
-                                          max(simulate_coarse_mm, h_sim),
-                                          max(4.0, 0.5 * decay), mfp, cancel))
+    fine = phantom_simulation_mesh(phantom, targets, 2, fine_mm, simulate_coarse_mm, cancel)
     check_cancel(cancel)
     report(progress, 0.15, "forward simulation (true tissue)")
     true_props = nodal_optics(np.where(tube_indicator(fine.nodes_mm, geo), 2, 1), optics)

@@ -195,3 +195,29 @@ def test_label_mean_weights_are_the_mean_of_the_field_over_the_label():
     for lab in (1, 2):
         assert w[lab] @ field == pytest.approx(values[labels.ravel()[inside] == lab].mean(),
                                                rel=1e-10)
+
+
+def test_points_in_a_cavity_are_outside_at_once():
+    """Points inside the mesh's box but in a hole of it (a section through the oral
+    cavity, the air voxels of a label map) are searched among the elements that
+    can reach them, each size class within its own reach: the same answer as the
+    element-by-element scan, without the largest element's reach around every
+    point (which took 5-6 s for a figure's 86k pixels)."""
+    from FluoTomoLib.fem.locate import PointLocator, _scan_locate
+
+    nodes, el = bisection_mesh(ROI, 2.0, _size_at)
+    c = nodes[el].mean(axis=1)
+    centre = np.array([(ROI[0] + ROI[1]) / 2, (ROI[2] + ROI[3]) / 2, (ROI[4] + ROI[5]) / 2])
+    keep = np.linalg.norm(c - centre, axis=1) > 3.0
+    m = Mesh(nodes, el[keep], np.ones(int(keep.sum()), int)).oriented()
+    rng = np.random.default_rng(5)
+    pts = np.vstack([centre + rng.normal(0.0, 1.5, size=(1500, 3)),
+                     rng.uniform(np.array(ROI[0::2]), np.array(ROI[1::2]), size=(1500, 3))])
+    elem, bary = PointLocator(m, k=4).locate(pts)
+    ref, _ = _scan_locate(np.ascontiguousarray(m.nodes_mm), np.ascontiguousarray(m.elements),
+                          pts, 1e-9)
+    np.testing.assert_array_equal(elem < 0, ref < 0)
+    assert np.sum(elem < 0) > 300 and np.sum(elem >= 0) > 1500
+    ok = elem >= 0
+    np.testing.assert_allclose(np.einsum("pk,pkd->pd", bary[ok], m.nodes_mm[m.elements[elem[ok]]]),
+                               pts[ok], atol=1e-9)

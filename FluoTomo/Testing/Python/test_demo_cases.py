@@ -4,7 +4,7 @@ and on Dask workers, a killed demo resumed from its finished cases.
 
 The tube cases here are the demo's pipeline at a coarser resolution (1.2 mm
 simulation mesh, 6 sources: ~25 s and 2.3 GB each, against 105 s and 9.7 GB for a
-quick-demo depth); the oral case is the demo's own (9 s, 0.7 GB).
+quick-demo depth); the oral case is the quick demo's own (about 60 s, 2.1 GB).
 """
 
 from __future__ import annotations
@@ -102,7 +102,8 @@ def _fluo(*args):
     return forkserver.fluo(*args, cwd=ROOT, timeout=900)
 
 
-@pytest.mark.slow      # three oral cases, one on a Dask worker: about 25 s
+@pytest.mark.slow      # three oral cases, two computed (one on a Dask worker): about 2.5 min
+@pytest.mark.heavy(gb=3)     # one oral case at a time, 2.1 GB (/usr/bin/time -v)
 def test_demo_cli_oral_case_on_workers_and_resumed(tmp_path):
     """``fluo demo --workers``: the oral-cavity case on a local Dask cluster gives
     the serial demo's numbers; ``--resume`` reuses the finished case."""

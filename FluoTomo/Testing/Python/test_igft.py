@@ -38,27 +38,28 @@ def test_self_absorption_feedback_corrects_the_hard_prior_yield():
     assert abs(fed["centroid_error_pct"]) < 6
 
 
-def test_tissue_air_facets_and_detectors_on_a_curved_surface():
-    from FluoTomoLib.pipelines.oral import ORAL_ROI_MM, tissue_air_facets
-    from FluoTomoLib.pipelines.steps import onto_surface_from_above
-    from FluoTomoLib.meshing.voxel import mesh_labelmap_structured
+def test_oral_truth_and_line():
+    """The oral case's analytic truth: the tongue's yield inside the tongue, the
+    agar's elsewhere in the tissue, NaN in the cavity's air; its laser line runs
+    along y over the tongue's centre and its beams land on the tongue's dome (the
+    outermost may reach the cavity floor beside it)."""
+    from FluoTomoLib.acquisition.tracked_scan import raster_scan
+    from FluoTomoLib.pipelines.oral import BEAM_DIR, BEAM_ORIGIN, line_targets, oral_yield_at
+    from FluoTomoLib.tomography import LabelMap
 
     ph = make_phantom("oral-cavity")
-    m = mesh_labelmap_structured(ph.labels, ph.spacing_mm, ph.origin_mm, 2.0, roi=ORAL_ROI_MM)
-    air = tissue_air_facets(m, ph.labels, ph.spacing_mm, ph.origin_mm)
-    c = m.nodes_mm[m.boundary_facets].mean(axis=1)
-    lo, hi = np.array(ORAL_ROI_MM[0::2]), np.array(ORAL_ROI_MM[1::2])
-    on_cut = np.any((np.abs(c - lo) < 1e-6) | (np.abs(c - hi) < 1e-6), axis=1)
-    # the faces where the roi cut the agar are not tissue-air (except where the cut
-    # runs along the cavity: there the probe lands in its air); the dome's are
-    assert np.mean(air[on_cut]) < 0.1, np.mean(air[on_cut])
-    dome = (np.abs(c[:, 0]) < 6) & (np.abs(c[:, 1] - 4) < 6) & (c[:, 2] > -20)
-    up = dome & (m.boundary_normals[:, 2] > 0.5)
-    assert up.sum() > 10 and np.mean(air[up]) > 0.9, np.mean(air[up])
-    # a point between two sources on the tongue's dome drops onto the dome
-    p = onto_surface_from_above(np.array([[0.0, 4.0, -10.0]]), m.nodes_mm,
-                                m.boundary_facets[air])
-    assert -18.5 < p[0, 2] < -15.0
-    with pytest.raises(Exception, match="no surface below"):
-        onto_surface_from_above(np.array([[100.0, 4.0, -10.0]]), m.nodes_mm,
-                                m.boundary_facets[air])
+    truth = ph.truth()
+    geo = truth["geometry"]
+    y = {k: v["optics"]["yield_per_mm"] for k, v in truth["regions"].items()}
+    c = np.asarray(geo["tongue_centre_mm"], float)
+    pts = np.array([c, c + [0.0, 0.0, 12.0], [0.0, 0.0, -45.0], [30.0, 25.0, -5.0]])
+    got = oral_yield_at(pts, ph)
+    assert got[0] == y["2"] and np.isnan(got[1]) and got[2] == y["1"] and got[3] == y["1"]
+    targets = line_targets(ph, 16, 1.5)
+    assert np.allclose(targets[:, 0], c[0]) and np.ptp(targets[:, 1]) == 22.5
+    lm = LabelMap(ph.labels, ph.spacing_mm, ph.origin_mm)
+    s = lm.surface()
+    hit = raster_scan(targets, BEAM_ORIGIN, BEAM_DIR, lm.to_ras(s.points),
+                      s.triangles)["true_points_mm"]
+    under = oral_yield_at(hit - [0.0, 0.0, 0.5], ph)                  # just under the hit
+    assert np.sum(under == y["2"]) >= 14 and np.all(np.isfinite(under))
