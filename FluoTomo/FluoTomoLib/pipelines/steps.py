@@ -1,9 +1,12 @@
-"""The simulation side every image-guided tomography case shares, whatever
-the phantom: the true tissue's emission fields on the filmed surface and the
-tracked camera's frames of them.  What the software makes of the frames is
-the label-map path's (``tomography.acquisition_from_tracked_frames``, then
+"""The steps both image-guided tomography cases share, whatever the phantom.
+
+The simulation side: the mesh a phantom's truth is simulated on, the true
+tissue's emission fields on the filmed surface, the tracked camera's frames of
+them.  The software side, :func:`reconstruct_from_frames`: what ``fluo tomo``
+makes of the frames (``tomography.acquisition_from_tracked_frames``, then
 ``tomography.reconstruct_labelmap_methods``), for ``pipelines.tube``
-(cylinder-tube) and ``pipelines.oral`` (oral cavity) alike."""
+(cylinder-tube) and ``pipelines.oral`` (oral cavity) alike.
+"""
 
 from __future__ import annotations
 
