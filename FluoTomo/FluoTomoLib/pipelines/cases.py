@@ -69,7 +69,7 @@ def section_images(run, y_mm, z_mm, px_per_mm=8):
     panels = [(m, run["results"][m]["yield"]) for m in METHODS if m in run["results"]]
     if panels:
         # every method's yield lives on the one reconstruction mesh: locate the
-        # pixels once (5-6 s on a 90k-node graded mesh)
+        # pixels once, not once per method
         P = locator(run["coarse"]).interpolation_matrix(pts, outside="nan")
         inside = np.asarray(P.sum(axis=1)).ravel() > 0.5     # rows outside the mesh are empty
     for name, values in panels:

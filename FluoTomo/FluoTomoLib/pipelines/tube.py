@@ -136,10 +136,8 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     else:
         lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
                       source="cylinder-tube phantom")
-    roi_ras = None
-    if roi_half_mm is not None:
-        hz = float(geo["liquid_depth_mm"])
-        roi_ras = (-roi_half_mm[0], roi_half_mm[0], -roi_half_mm[1], roi_half_mm[1], -hz, 0.0)
+    r = roi_half_mm
+    roi_ras = None if r is None else (-r[0], r[0], -r[1], r[1], -float(geo["liquid_depth_mm"]), 0.0)
     acq, solved, coarse = reconstruct_from_frames(
         lm, frames, scan["reported_poses"], beam_origin, beam_dir, optics, methods, lam, 2,
         accuracy, coarse_mm, roi_ras, self_absorption, grading, detector_factor, exclude_mm,

@@ -202,7 +202,7 @@ def test_points_in_a_cavity_are_outside_at_once():
     cavity, the air voxels of a label map) are searched among the elements that
     can reach them, each size class within its own reach: the same answer as the
     element-by-element scan, without the largest element's reach around every
-    point (which took 5-6 s for a figure's 86k pixels)."""
+    point (docs/changelog.md: the oral case's sections)."""
     from FluoTomoLib.fem.locate import PointLocator, _scan_locate
 
     nodes, el = bisection_mesh(ROI, 2.0, _size_at)
