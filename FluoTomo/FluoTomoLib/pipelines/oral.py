@@ -34,9 +34,9 @@ from fluoguide.progress import check_cancel, report
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.optics import robin_A
-from FluoTomoLib.pipelines.steps import (case_record, nodal_optics, phantom_simulation_mesh,
-                                         reconstruct_from_frames, render_frames, surface_of,
-                                         true_emission_fields)
+from FluoTomoLib.pipelines.steps import (case_record, method_result, nodal_optics,
+                                         phantom_simulation_mesh, reconstruct_from_frames,
+                                         render_frames, surface_of, true_emission_fields)
 
 
 def _ellipsoid(points_mm, centre, semi_axes):
@@ -48,16 +48,12 @@ def oral_yield_at(points_mm, phantom):
     """The true fluorescence yield [1/mm] at points (N, 3): the analytic
     tongue's inside it, the agar's elsewhere in the tissue (the label map's
     non-zero voxels), NaN in the air."""
+    from FluoTomoLib.meshing.voxel import node_labels_from_labelmap
+
     truth = phantom.truth()
     geo = truth["geometry"]
     p = np.asarray(points_mm, float)
-    ijk = np.round((p - np.asarray(phantom.origin_mm, float))
-                   / np.asarray(phantom.spacing_mm, float)).astype(int)
-    labels = np.asarray(phantom.labels)
-    inside = np.all((ijk >= 0) & (ijk < np.array(labels.shape[::-1])), axis=1)
-    lab = np.zeros(len(p), dtype=np.int64)
-    i, j, k = ijk[inside].T
-    lab[inside] = labels[k, j, i]
+    lab = node_labels_from_labelmap(p, phantom.labels, phantom.spacing_mm, phantom.origin_mm)
     tongue = _ellipsoid(p, geo["tongue_centre_mm"], geo["tongue_semi_axes_mm"])
     y = {int(r): float(v["optics"]["yield_per_mm"]) for r, v in truth["regions"].items()}
     return np.where(lab == 0, np.nan, np.where(tongue, y[2], y[1]))
@@ -77,7 +73,7 @@ BEAM_ORIGIN, BEAM_DIR = np.zeros(3), np.array([0.0, 0.0, 1.0])
 
 
 def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=16,
-                        source_spacing_mm=1.5, progress=None, cancel=None):
+                        source_spacing_mm=1.5, progress=None, cancel=None, lm=None):
     """The true phantom's emission fields on its surface, on a mesh of its own.
 
     As the tube's truth (``tube_truth.simulate_truth``): the whole tissue meshed
@@ -87,7 +83,8 @@ def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=
     fine size at most that), the tissue-air nodes on the label map's smooth
     surface (not a voxel staircase); the analytic tongue's optics at the nodes;
     the FEM emission fields from each beam of :func:`line_targets` (no tracking
-    error: where the true beams land).
+    error: where the true beams land).  ``lm``: the phantom's LabelMap where
+    the caller has one (its surface is extracted once).
 
     Returns
     -------
@@ -104,11 +101,13 @@ def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=
     report(progress, 0.02, "simulation mesh (whole phantom)")
     targets = line_targets(phantom, n_sources, source_spacing_mm)
     # where the beams land, on the label map's surface: the simulation mesh is fine there
-    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm)
+    if lm is None:
+        lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                      source="oral-cavity phantom")
     surf = lm.surface()
     aimed = raster_scan(targets, BEAM_ORIGIN, BEAM_DIR, lm.to_ras(surf.points),
                         surf.triangles)["true_points_mm"]
-    fine = phantom_simulation_mesh(phantom, aimed, 2, fine_mm, simulate_coarse_mm, cancel)
+    fine = phantom_simulation_mesh(phantom, aimed, 2, fine_mm, simulate_coarse_mm, cancel, lm)
     check_cancel(cancel)
     report(progress, 0.15, "forward simulation (true tissue)")
     in_tongue = _ellipsoid(fine.nodes_mm, geo["tongue_centre_mm"], geo["tongue_semi_axes_mm"])
@@ -130,10 +129,9 @@ def region_results(solved, phantom_optics, names):
     name}), with the solver's summary, the nodal yield and the warnings."""
     results = {}
     for method, out in solved.items():
-        res, s = out["result"], out["summary"]
         row = {}
         for label, name in names.items():
-            reg = s["regions"][str(label)]
+            reg = out["summary"]["regions"][str(label)]
             true = float(phantom_optics[label]["yield_per_mm"])
             value, ci = reg["yield_per_mm"], reg["ci95_per_mm"]
             row[f"{name}_yield_per_mm"] = value
@@ -141,9 +139,7 @@ def region_results(solved, phantom_optics, names):
             row[f"{name}_yield_error_pct"] = 100.0 * (value - true) / true
             row[f"{name}_ci95_per_mm"] = ci
             row[f"{name}_ci95_covers_truth"] = None if ci is None else bool(ci[0] <= true <= ci[1])
-        results[method] = {**row, **res.summary(), "yield": res.yield_per_mm,
-                           "self_absorption_peaks": s["solver"]["self_absorption_peaks"],
-                           "regions": s["regions"], "warnings": s["warnings"]}
+        results[method] = {**row, **method_result(out)}
     return results
 
 
@@ -180,10 +176,14 @@ def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=None, n_source
     optics = {int(k): v["optics"] for k, v in truth["regions"].items()}
     timings = {}
 
+    # the CBCT labels: the truth's surface and the reconstruction's (extracted once)
+    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                  source="oral-cavity phantom")
+
     # --- the simulation: the true fields on the tissue surface, on a mesh of its own
     prepare_kernels(progress, 0.0, cancel)       # first run: compiled, reported as it goes
     surface = simulate_oral_truth(phantom, fine_mm, simulate_coarse_mm, n_sources,
-                                  source_spacing_mm, progress, cancel)
+                                  source_spacing_mm, progress, cancel, lm)
     timings["forward_simulation"] = surface.info["seconds"]
     report(progress, 0.25, "tracked laser scan")
     scan = raster_scan(line_targets(phantom, n_sources, source_spacing_mm), BEAM_ORIGIN,
@@ -203,8 +203,6 @@ def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=None, n_source
                            timings=timings, progress=progress, cancel=cancel)
 
     # --- the software: what fluo tomo makes of the frames, on the CBCT labels
-    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
-                  source="oral-cavity phantom")
     acq, solved, coarse = reconstruct_from_frames(
         lm, frames, scan["reported_poses"], BEAM_ORIGIN, BEAM_DIR, optics, methods, lam, 2,
         accuracy, coarse_mm, None if roi is None else tuple(roi), self_absorption,
@@ -216,7 +214,7 @@ def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=None, n_source
     return {
         "results": results, "coarse": coarse,
         "true_yield_at": lambda points_mm: oral_yield_at(points_mm, phantom),
-        **case_record(src_true, acq, frames, solved[tuple(solved)[0]], n_sources // 2, timings),
+        **case_record(src_true, acq, frames, solved, n_sources // 2, timings),
         "truth": dict(surface.info),
         "mesh_nodes": {"forward": surface.info["mesh_nodes"], "reconstruction": coarse.n_nodes},
         "mesh_elements": {"forward": surface.info["mesh_elements"],

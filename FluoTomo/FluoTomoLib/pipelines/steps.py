@@ -53,20 +53,22 @@ def true_emission_fields(fine, true_props, n, src_true, detectors_mm=None):
 
 
 def phantom_simulation_mesh(phantom, points_mm, target, fine_mm, simulate_coarse_mm,
-                            cancel=None):
+                            cancel=None, lm=None):
     """The mesh a phantom's truth is simulated on (RAS), the whole tissue
     (``tomography.simulate.simulation_mesh``): ``fine_mm`` cells, capped at the
     sources' burial depth, in the box of ``points_mm`` (where the laser enters)
     and of the ``target`` label where it is compact, grown by max(4 mm, half the
     decay length); ``simulate_coarse_mm`` elsewhere (the largest power-of-two
     multiple of the fine size at most that); the tissue-air nodes on the label
-    map's smooth surface."""
+    map's smooth surface.  ``lm``: the phantom's LabelMap where the caller has
+    one already (its surface is then extracted once)."""
     from FluoTomoLib.tomography import LabelMap, optics_from_phantom
     from FluoTomoLib.tomography.accuracy import cap_at_burial
     from FluoTomoLib.tomography.simulate import simulation_mesh
 
-    lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
-                  source=f"{phantom.name} phantom")
+    if lm is None:
+        lm = LabelMap(phantom.labels, phantom.spacing_mm, phantom.origin_mm,
+                      source=f"{phantom.name} phantom")
     optics = optics_from_phantom({int(k): v["optics"]
                                   for k, v in phantom.truth()["regions"].items()})
     h_sim, mfp = cap_at_burial(fine_mm, optics, lm.labels)
@@ -167,11 +169,23 @@ def reconstruct_from_frames(lm, frames, laser_poses, beam_origin, beam_dir, phan
     return acq, solved, lm.mesh_to_ras(first["mesh"])
 
 
-def case_record(src_true, acq, frames, first, n_frame, timings):
+def method_result(out):
+    """What every case reports of one method's solution (``out``: one value of
+    ``reconstruct_labelmap_methods``): the solver's summary, the nodal yield,
+    the self-absorption passes, the region values and the warnings."""
+    s = out["summary"]
+    return {**out["result"].summary(), "yield": out["result"].yield_per_mm,
+            "self_absorption_peaks": s["solver"]["self_absorption_peaks"],
+            "regions": s["regions"], "warnings": s["warnings"]}
+
+
+def case_record(src_true, acq, frames, solved, n_frame, timings):
     """The numbers every case reports beside its methods' results: optodes and
     their tracking error, measurements, camera gain and ROI pixels, an example
-    frame, the region of interest, timings, solver, mesh sizes (the simulation
-    mesh's are the caller's to add)."""
+    frame, the region of interest, timings, solver (``solved``:
+    :func:`reconstruct_from_frames`' methods, one model; the mesh sizes are the
+    caller's to add)."""
+    first = solved[tuple(solved)[0]]
     return {
         "sources_true_mm": src_true, "sources_reported_mm": acq.sources_ras_mm,
         "detectors_mm": acq.detectors_ras_mm,

@@ -35,7 +35,8 @@ from fluoguide.progress import check_cancel, report, scaled
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.optics import robin_A
-from FluoTomoLib.pipelines.steps import case_record, reconstruct_from_frames, render_frames
+from FluoTomoLib.pipelines.steps import (case_record, method_result, reconstruct_from_frames,
+                                         render_frames)
 from FluoTomoLib.pipelines.tube_truth import (raster_targets, simulate_truth, stored_truth,
                                               true_yield_at)
 from FluoTomoLib.recon.metrics import depth_profile, peak_and_centroid
@@ -153,7 +154,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
         "depth_mm": depth, "results": results, "profile_depth_mm": zc, "profiles": profiles,
         "coarse": coarse, "surface_truth": surface,
         "true_yield_at": lambda points_mm: true_yield_at(points_mm, phantom),
-        **case_record(src_true, acq, frames, solved[tuple(solved)[0]], n_sources // 2, timings),
+        **case_record(src_true, acq, frames, solved, n_sources // 2, timings),
         "counts_range": [float(counts[acq.mask].min()), float(counts[acq.mask].max())],
         "truth": {k: v for k, v in surface.info.items()},
         "mesh_nodes": {"forward": surface.info["mesh_nodes"], "reconstruction": coarse.n_nodes},
@@ -175,18 +176,13 @@ def profile_results(solved, coarse, phantom):
     zc = np.arange(0.0, 20.0 + 1e-9, 0.05)         # depth_profile's line, through the tube
     profiles["truth"] = true_yield_at(np.stack([0 * zc, 0 * zc, -zc], axis=1), phantom)
     for method, out in solved.items():
-        res = out["result"]
-        z, prof = depth_profile(coarse, res.yield_per_mm, (0.0, 0.0))
+        z, prof = depth_profile(coarse, out["result"].yield_per_mm, (0.0, 0.0))
         peak, centroid = peak_and_centroid(z, prof)
         profiles[method] = prof
-        s = out["summary"]
         results[method] = {
             "true_peak": true_peak, "peak": peak,
             "peak_error_pct": 100.0 * (peak - true_peak) / true_peak,
             "true_centroid_mm": depth, "centroid_mm": centroid,
-            "centroid_error_pct": 100.0 * (centroid - depth) / depth,
-            **res.summary(), "yield": res.yield_per_mm,
-            "self_absorption_peaks": s["solver"]["self_absorption_peaks"],
-            "regions": s["regions"], "warnings": s["warnings"],
+            "centroid_error_pct": 100.0 * (centroid - depth) / depth, **method_result(out),
         }
     return results, profiles, zc
