@@ -93,9 +93,21 @@ def _text(pg, sel):
 
 
 def _wait_text(pg, sel, needle, timeout_ms=60000):
-    pg.wait_for_function(
-        f"document.querySelector({sel!r}) && document.querySelector({sel!r}).innerText.includes({needle!r})",
-        timeout=timeout_ms)
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    try:
+        pg.wait_for_function(
+            f"document.querySelector({sel!r}) && "
+            f"document.querySelector({sel!r}).innerText.includes({needle!r})",
+            timeout=timeout_ms)
+    except PlaywrightTimeout:
+        # say what the page showed instead: a timeout alone cannot be diagnosed
+        shown = pg.evaluate(f"(document.querySelector({sel!r}) || {{}}).innerText")
+        message = pg.evaluate("(document.querySelector('#fluo-message') || {}).innerText")
+        log = (ARTIFACTS / "server.log").read_text(errors="replace").splitlines()[-15:]
+        raise AssertionError(f"{sel} never showed {needle!r} in {timeout_ms / 1000:.0f} s; "
+                             f"it showed {shown!r}; the message bar: {message!r}; "
+                             "the server's log ends:\n" + "\n".join(log)) from None
 
 
 def _ping_ms(pg):

@@ -122,6 +122,10 @@ class FluoGuideApp:
         self.state.fluo_message = text
         self.state.fluo_message_color = color
         self.state.fluo_message_visible = True
+        # Pushed even where the server already holds True: the page closes the
+        # message itself after its timeout, and a close still on its way when the
+        # next message comes would otherwise leave that message hidden.
+        self.state.dirty("fluo_message_visible")
         (log.warning if color == "error" else log.info)("%s", text)
 
     def guarded(self, fn):
