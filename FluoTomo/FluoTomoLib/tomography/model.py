@@ -655,8 +655,12 @@ class TissueModel:
         Returns a dict: ``offsets_mm`` (negative: eroded), ``shifts`` {label: [value
         at each offset - unmoved value]} [1/mm], ``kept`` [bool per offset],
         ``base`` {label: unmoved value}, ``best_offset_mm`` (the best-fitting
-        offset) and ``unmoved_ruled_out`` (the segmentation as given fits worse than
-        a moved one by more than that: it is likely off).
+        offset), ``unmoved_ruled_out`` (the segmentation as given fits worse than
+        a moved one by more than that: it is likely off), ``unmoved_excess`` (by how
+        many residual variances it fits worse) and ``region_model`` (the
+        unmoved solve's fit grade, ``fit``, and the labels whose data ask for a
+        negative yield, ``negative_regions``: how well the regions as constants
+        explain the data).
 
         ``progress(fraction, message)`` hears of each solve (one per offset, and
         the solver's iterations inside it) and of each moved segmentation's
@@ -717,7 +721,14 @@ class TissueModel:
         best = min([res0.residual] + rss)
         kept = [bool(var > 0 and (r - best) / var <= CHI2_1_95) for r in rss]
         best_offset = 0.0 if best == res0.residual else offsets[int(np.argmin(rss))]
-        return {"offsets_mm": offsets,
+        # the unmoved solve is the regions-as-constants model's own fit of these
+        # data: what SP's resolution-corrected value assumes (reconstruct.py)
+        zero = res0.diagnostics.get("at_zero_bound") or {}
+        region_model = {"fit": res0.diagnostics.get("fit"),
+                        "negative_regions": sorted(int(lab) for lab, c in zero.items()
+                                                   if not c.get("consistent_with_zero", True))}
+        return {"offsets_mm": offsets, "region_model": region_model,
+                "unmoved_excess": float((res0.residual - best) / var) if var > 0 else None,
                 "shifts": {lab: [v[lab] - base[lab] for _, v in moved] for lab in base},
                 "kept": kept, "base": base, "best_offset_mm": best_offset,
                 "unmoved_ruled_out": bool(var > 0 and (res0.residual - best) / var > CHI2_1_95)}

@@ -389,7 +389,7 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                 "the data's noise is not stated (acquisition.json's noise_pct, or "
                 "--noise-pct): the 95 % intervals count the whole misfit as noise and leave "
                 "out a bound for the model's own error")
-        _add_segmentation(out[method]["summary"], shifts, seg_mm)
+        _add_segmentation(out[method]["summary"], shifts, seg_mm, method)
         _add_prior_volume(out[method]["summary"], prior_volumes, method)
         _add_forward_error(out[method]["summary"], forward_err)
     report(progress, 1.0, "done")
@@ -463,18 +463,25 @@ def _add_prior_volume(summary, volumes, method):
         r["ci95_per_mm"] = _widen(ci, rel * v, rel * v)
 
 
-def _add_segmentation(summary, seg, seg_mm):
+def _add_segmentation(summary, seg, seg_mm, method="HP"):
     """The segmentation's part of each region's 95 % interval: it reaches the
     values the region takes with its boundaries moved by the offsets the data do
     not rule out (``TissueModel.segmentation_shifts``: HP's relative changes,
     carried over to every method); a warning when the segmentation as given fits
-    worse than a moved one."""
+    worse than a moved one, and for SP (:func:`_region_model_warning`) when the
+    regions as constants do not explain the data."""
     summary["segmentation_mm"] = seg_mm
     if not seg:
         return
     kept = [d for d, k in zip(seg["offsets_mm"], seg["kept"]) if k]
     summary["segmentation"] = {"offsets_mm": seg["offsets_mm"], "not_ruled_out_mm": kept,
-                               "best_offset_mm": seg["best_offset_mm"]}
+                               "best_offset_mm": seg["best_offset_mm"],
+                               "unmoved_excess": seg.get("unmoved_excess"),
+                               "region_model": seg.get("region_model")}
+    if method == "SP":
+        text = _region_model_warning(seg.get("region_model"))
+        if text:
+            summary["warnings"].append(text)
     if seg["unmoved_ruled_out"]:
         d = seg["best_offset_mm"]
         # a warning only where the model otherwise explains the data (a good fit):
@@ -497,6 +504,34 @@ def _add_segmentation(summary, seg, seg_mm):
         # added to the other parts (as they are to each other): a boundary off moves
         # the value whatever the noise did
         r["ci95_per_mm"] = _widen(r.get("ci95_per_mm"), -lo, hi)
+
+
+def _region_model_warning(region_model):
+    """SP quotes the value that its damped image would have come from under the
+    regions-as-constants model (docs/reconstruction.md, "SP's value"); HP is that
+    model's fit of the same data (the segmentation test's unmoved solve). Where
+    that fit is poor, or a region's data ask for a negative yield, the model is
+    wrong for these data (a segmentation off, optics, or dye the regions miss)
+    and SP's value and interval inherit it, whatever SP's own, more flexible, fit
+    says: the family's SP misses with a 1 mm segmentation error and no warning
+    were all such scenes (docs/validation.md). Returns the warning, or None."""
+    if not region_model:
+        return None
+    fit = region_model.get("fit") or {}
+    poor = fit.get("grade") in ("poor", "fails")
+    negative = region_model.get("negative_regions") or []
+    if not poor and not negative:
+        return None
+    why = []
+    if poor:
+        why.append(f"the hard prior fits them to {fit['residual_over_noise']:.2g} times "
+                   "the stated noise")
+    if negative:
+        why.append(f"region(s) {negative} would need a negative yield")
+    return ("SP's value assumes each labelled region holds one yield, and that model does "
+            f"not explain these data ({'; '.join(why)}): the "
+            "segmentation, the optical properties or dye outside the labelled regions may "
+            "be off, and the value may be off by more than its interval says")
 
 
 def _fit_notes(summary, settings):

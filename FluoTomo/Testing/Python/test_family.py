@@ -75,3 +75,27 @@ def test_one_scene_through_the_grading():
     table = summarise(rows)
     assert table["HP"]["rows"] == len(scene.inclusions)
     assert 0.0 <= table["HP"]["coverage"] <= 1.0
+
+
+@pytest.mark.slow      # one scene simulated (fine) and reconstructed (SP): about 30 s
+def test_sp_says_so_when_the_regions_as_constants_do_not_explain_the_data():
+    """Scene 108 handed over with its inclusions shifted by 1 mm: SP's own fit was
+    'fair' and it said nothing while its interval missed the first inclusion
+    (-48 %). The hard prior on the same data (the segmentation test's unmoved solve)
+    fits them far worse: SP's resolution-corrected value rests on that model, and
+    now says so."""
+    from FluoTomoLib.tomography import optics_from_dict
+    from FluoTomoLib.tomography.reconstruct import reconstruct_labelmap_methods
+    from FluoTomoLib.validation.family import simulate
+
+    scene = make_scene(108, segmentation_error_mm=1.0)
+    assert scene.segmentation.startswith("shifted")
+    acq, _ = simulate(scene)
+    s = reconstruct_labelmap_methods(scene.labelmap(recon=True), optics_from_dict(scene.optics),
+                                     acq, methods=["SP"], accuracy="fast",
+                                     target=scene.target())["SP"]["summary"]
+    region_model = s["segmentation"]["region_model"]
+    assert region_model["fit"]["grade"] in ("poor", "fails"), region_model
+    said = [w for w in s["warnings"] if w.startswith("SP's value assumes each labelled region")]
+    assert len(said) == 1, s["warnings"]
+    assert "the hard prior fits them to" in said[0]
