@@ -29,6 +29,9 @@ def small(own_scene):
     return own_scene.dir, own_scene.sc, own_scene.simulated
 
 
+# slow: the first test of the file to ask for the shared own scene pays for its
+# simulation, close to the fast tests' time limit on a loaded machine
+@pytest.mark.slow
 def test_simulate_writes_a_folder_a_person_can_read(small):
     d, sc, out = small
     doc = json.loads((d / "acq" / "acquisition.json").read_text())
