@@ -585,7 +585,7 @@ class TissueModel:
                 time.perf_counter() - t0)
         return self._J
 
-    def region_matrix(self, prior):
+    def region_matrix(self, prior, model=None):
         """(M, R) the used data's sensitivity to each region's yield for HP's basis
         (``prior.K()``'s columns, in ``prior.labels`` order).
 
@@ -594,25 +594,28 @@ class TissueModel:
         K[:, r] it is G_d^T M(K_r) F_s, with M(K_r) the mass matrix weighted by
         the region's nodal share: one sparse product per region on the stored
         fields (the self-absorption passes compute the same quantity by forward
-        solves).  Equal to ``J @ K`` to rounding; no (M, N) array.
+        solves).  Equal to ``J @ K`` to rounding; no (M, N) array. ``model``: the
+        fields' model (default this one's, without the dye's absorption).
         """
         from FluoTomoLib.fem.operators import weighted_mass
 
-        F, G = self.model.phi_x, self.model.adjoint_m
+        model = self.model if model is None else model
+        F, G = model.phi_x, model.adjoint_m
         K = prior.K()
         rows = self.mask.ravel()
         cols = [(F.T @ (weighted_mass(self.mesh, K[:, r]) @ G)).ravel()[rows]
                 for r in range(K.shape[1])]
         return np.stack(cols, axis=1)
 
-    def _solve_hp(self, prior, y, lam, log_data, noise_rel, cancel=None, progress=None):
+    def _solve_hp(self, prior, y, lam, log_data, noise_rel, cancel=None, progress=None,
+                  model=None):
         """HP of ``prior``'s basis on its region unknowns (:meth:`region_matrix`: no
-        nodal Jacobian), the result with the nodal yield K @ values, as
-        reconstruct() returns it."""
+        nodal Jacobian, on ``model``'s fields), the result with the nodal yield
+        K @ values, as reconstruct() returns it."""
         from FluoTomoLib.recon.partial_volume import region_unknowns
         from FluoTomoLib.recon.solver import reconstruct
 
-        res = reconstruct(self.region_matrix(prior), y, "HP", lam=lam,
+        res = reconstruct(self.region_matrix(prior, model), y, "HP", lam=lam,
                           prior=region_unknowns(prior.labels), log_data=log_data,
                           cancel=cancel, progress=progress, noise_rel=noise_rel)
         res.yield_per_mm = prior.K() @ res.yield_per_mm
@@ -643,7 +646,7 @@ class TissueModel:
                 label_mean_weights(self.mesh, labels_kji, sp, org, self.region_labels))
 
     def segmentation_shifts(self, y, method, lam, delta_mm, log_data=False, noise_rel=None,
-                            cancel=None, steps=2, progress=None):
+                            cancel=None, steps=2, progress=None, absorbing_yield=None):
         """How the regions' values move with the segmentation's boundaries: every
         region but the background eroded and dilated by 1..``steps`` times
         ``delta_mm`` [mm] (:func:`perturb_regions`), the data solved again on the
@@ -662,20 +665,37 @@ class TissueModel:
         negative yield, ``negative_regions``: how well the regions as constants
         explain the data).
 
+        ``absorbing_yield``: a nodal yield [1/mm] (the reconstruction's, after its
+        self-absorption feedback) whose dye absorption the HP solves' model then
+        includes. Without it the data of an absorbing dye, fitted by a model
+        without its absorption, preferred every correctly segmented inclusion
+        grown by about half a voxel (docs/reconstruction.md, "SP's value").
+
         ``progress(fraction, message)`` hears of each solve (one per offset, and
         the solver's iterations inside it) and of each moved segmentation's
         prior; ``cancel`` is checked between them and in the solver."""
         from fluoguide.progress import check_cancel, report, scaled
+        from FluoTomoLib.recon.self_absorption import absorbing_mua
         from FluoTomoLib.recon.solver import reconstruct
 
         offsets = [k * delta_mm for k in range(-steps, steps + 1) if k != 0]
         parts = len(offsets) + 1
+        slopes = self.optics.mua_per_yield
+        model = None
+        if absorbing_yield is not None and (slopes[0] > 0 or slopes[1] > 0):
+            report(progress, 0.0, "the model with the dye's absorption")
+            x = np.asarray(absorbing_yield, float)
+            model = self.make_model(absorbing_mua(0.0, x, 0.0, slopes[0]),
+                                    absorbing_mua(0.0, x, 0.0, slopes[1]))
+            # its factorisations and solves say what they do, and can be cancelled
+            model.progress = scaled(progress, 0.0, 1.0 / parts)
+            model.cancel = cancel
 
         def solve(k, what, prior, weights):
             check_cancel(cancel)
             part = scaled(progress, k / parts, (k + 1) / parts, what)
             if method == "HP":
-                res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part)
+                res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part, model)
             else:
                 res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
                                   region_weights=weights, noise_rel=noise_rel, cancel=cancel,
