@@ -687,9 +687,11 @@ class TissueModel:
             x = np.asarray(absorbing_yield, float)
             model = self.make_model(absorbing_mua(0.0, x, 0.0, slopes[0]),
                                     absorbing_mua(0.0, x, 0.0, slopes[1]))
-            # its factorisations and solves say what they do, and can be cancelled
-            model.progress = scaled(progress, 0.0, 1.0 / parts)
+            # its factorisations and solves say what they do (at the test's start: the
+            # bar does not move back), and can be cancelled; the fields solved now
+            model.progress = scaled(progress, 0.0, 0.0)
             model.cancel = cancel
+            _ = model.phi_x, model.adjoint_m
 
         def solve(k, what, prior, weights):
             check_cancel(cancel)
