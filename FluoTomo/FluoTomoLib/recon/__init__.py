@@ -16,6 +16,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "grids": ["interpolation_operator", "mesh_interpolation_operators", "reconstruction_mesh_pair"],
     "metrics": ["depth_profile", "peak_and_centroid"],
     "partial_volume": ["dual_cells", "node_region_fractions", "PartialVolumePrior"],
-    "self_absorption": ["absorbing_mua", "reconstruct_self_absorbing"],
+    "self_absorption": ["absorbing_mua", "absorbing_model", "reconstruct_self_absorbing"],
     "solver": ["ReconResult", "RegionPrior", "diagnose", "region_jacobian", "reconstruct"],
 })

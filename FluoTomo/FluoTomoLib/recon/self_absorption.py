@@ -60,13 +60,17 @@ def _aitken(v0, v1, v2, max_ratio=0.9):
     return np.clip(out, 0.0, None)
 
 
-def _reporting(model, progress, cancel):
-    """``model`` (a FluorescenceModel) saying what it solves and factorises, at the
-    start of its pass on ``progress`` (the solver's iterations follow), and
-    checking ``cancel`` while it factorises: a pass's model on a large mesh took
-    seconds without a word."""
+def absorbing_model(make_model, yield_nodes, mua_bg, yield_bg, mua_per_yield, progress=None,
+                    cancel=None):
+    """The model with the dye's absorption at both wavelengths
+    (:func:`absorbing_mua`; ``make_model(mua_x_nodes, mua_m_nodes)``), saying what
+    it solves and factorises at the start of ``progress``'s share (the solver's
+    iterations follow; a pass's model on a large mesh took seconds without a
+    word) and checking ``cancel`` while it factorises."""
     from fluoguide.progress import scaled
 
+    model = make_model(absorbing_mua(mua_bg[0], yield_nodes, yield_bg, mua_per_yield[0]),
+                       absorbing_mua(mua_bg[1], yield_nodes, yield_bg, mua_per_yield[1]))
     model.progress = scaled(progress, 0.0, 0.0)
     model.cancel = cancel
     return model
@@ -128,10 +132,8 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
             report(step(k + 1, f"self-absorption pass {k + 1}"), 0.0, "model with the dye's "
                    "absorption, its Jacobian")
             x = res.yield_per_mm
-            model = _reporting(
-                make_model(absorbing_mua(mua_bg[0], x, yield_bg, mua_per_yield[0]),
-                           absorbing_mua(mua_bg[1], x, yield_bg, mua_per_yield[1])),
-                step(k + 1, f"self-absorption pass {k + 1}"), cancel)
+            model = absorbing_model(make_model, x, mua_bg, yield_bg, mua_per_yield,
+                                    step(k + 1, f"self-absorption pass {k + 1}"), cancel)
             res = reconstruct(model.jacobian_yield()[mask.ravel()], y, method, lam=lam,
                               prior=prior, progress=step(k + 1, f"self-absorption pass {k + 1}"),
                               region_weights=region_weights, noise_rel=noise_rel)
@@ -161,9 +163,8 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
         report(step(k + 1, f"self-absorption pass {k + 1}"), 0.0,
                f"emission data of {K.shape[1]} regions with the dye's absorption")
         x = K @ triple[-1]
-        model = _reporting(make_model(absorbing_mua(mua_bg[0], x, yield_bg, mua_per_yield[0]),
-                                      absorbing_mua(mua_bg[1], x, yield_bg, mua_per_yield[1])),
-                           step(k + 1, f"self-absorption pass {k + 1}"), cancel)
+        model = absorbing_model(make_model, x, mua_bg, yield_bg, mua_per_yield,
+                                step(k + 1, f"self-absorption pass {k + 1}"), cancel)
         A = np.stack([model.emission_data(K[:, r])[mask] for r in range(K.shape[1])], axis=1)
         res = reconstruct(A, y, "HP", lam=lam, prior=unknowns,
                           progress=step(k + 1, f"self-absorption pass {k + 1}"),

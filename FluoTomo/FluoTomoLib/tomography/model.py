@@ -669,13 +669,14 @@ class TissueModel:
         self-absorption feedback) whose dye absorption the HP solves' model then
         includes. Without it the data of an absorbing dye, fitted by a model
         without its absorption, preferred every correctly segmented inclusion
-        grown by about half a voxel (docs/reconstruction.md, "SP's value").
+        grown by about half a voxel (docs/reconstruction.md, "The segmentation test
+        runs on the model with the dye's absorption").
 
         ``progress(fraction, message)`` hears of each solve (one per offset, and
         the solver's iterations inside it) and of each moved segmentation's
         prior; ``cancel`` is checked between them and in the solver."""
         from fluoguide.progress import check_cancel, report, scaled
-        from FluoTomoLib.recon.self_absorption import absorbing_mua
+        from FluoTomoLib.recon.self_absorption import absorbing_model
         from FluoTomoLib.recon.solver import reconstruct
 
         offsets = [k * delta_mm for k in range(-steps, steps + 1) if k != 0]
@@ -684,13 +685,10 @@ class TissueModel:
         model = None
         if absorbing_yield is not None and (slopes[0] > 0 or slopes[1] > 0):
             report(progress, 0.0, "the model with the dye's absorption")
-            x = np.asarray(absorbing_yield, float)
-            model = self.make_model(absorbing_mua(0.0, x, 0.0, slopes[0]),
-                                    absorbing_mua(0.0, x, 0.0, slopes[1]))
-            # its factorisations and solves say what they do (at the test's start: the
-            # bar does not move back), and can be cancelled; the fields solved now
-            model.progress = scaled(progress, 0.0, 0.0)
-            model.cancel = cancel
+            model = absorbing_model(self.make_model, np.asarray(absorbing_yield, float),
+                                    (0.0, 0.0), 0.0, slopes, progress, cancel)
+            # its fields solved now, reporting at the test's start (lazily, inside
+            # the first offset's share, the bar went back)
             _ = model.phi_x, model.adjoint_m
 
         def solve(k, what, prior, weights):
@@ -749,11 +747,11 @@ class TissueModel:
         region_model = {"fit": res0.diagnostics.get("fit"),
                         "negative_regions": sorted(int(lab) for lab, c in zero.items()
                                                    if not c.get("consistent_with_zero", True))}
-        return {"offsets_mm": offsets, "region_model": region_model,
-                "unmoved_excess": float((res0.residual - best) / var) if var > 0 else None,
+        excess = float((res0.residual - best) / var) if var > 0 else None
+        return {"offsets_mm": offsets, "region_model": region_model, "unmoved_excess": excess,
                 "shifts": {lab: [v[lab] - base[lab] for _, v in moved] for lab in base},
                 "kept": kept, "base": base, "best_offset_mm": best_offset,
-                "unmoved_ruled_out": bool(var > 0 and (res0.residual - best) / var > CHI2_1_95)}
+                "unmoved_ruled_out": excess is not None and excess > CHI2_1_95}
 
     def make_model(self, dye_mua_x_nodes, dye_mua_m_nodes):
         """The model with the fluorophore's absorption added (self_absorption.py

@@ -491,7 +491,8 @@ def _add_segmentation(summary, seg, seg_mm, method="HP"):
         d = seg["best_offset_mm"]
         # a warning at any fit grade: on the model with the dye's absorption the
         # test no longer rules out correct segmentations at fair fits (docs/
-        # reconstruction.md, "When the regions as constants do not explain the data")
+        # reconstruction.md, "The segmentation test runs on the model with the dye's
+        # absorption")
         summary["warnings"].append(
             f"the prior's regions fit the data better {'grown' if d > 0 else 'shrunk'} by "
             f"{abs(d):.2g} mm than as segmented: the segmentation is likely off (or the "
