@@ -801,11 +801,13 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return read_calibration(calibration)
 
     def acquireRecording(self, labelNode, optics, recording, outputFolder=None, calibration=None,
-                         spotToleranceMm=None, progress=None, cancel=None):
+                         spotToleranceMm=None, sourceFrom="spot", progress=None, cancel=None):
         """A recorded tracked laser scan turned into an acquisition: per frame the
         poses at the frame's time, the beam on the label map's surface, the laser
         spot checked against it, saturation; the usable frames' detector
-        readings as boundary fluence per watt. Written to ``outputFolder`` (with
+        readings as boundary fluence per watt, each frame's source where its
+        spot is (``sourceFrom="spot"``) or where its tracked beam meets the
+        surface (``"beam"``). Written to ``outputFolder`` (with
         the per-frame report ``frames.json``) when given.
 
         Parameters
@@ -817,6 +819,9 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             recording.json names
         spotToleranceMm : how far the spot may lie from the beam [mm]
             (default ``recording.SPOT_TOLERANCE_MM``)
+        sourceFrom : ``"spot"`` (the spot's surface point, seen with the same
+            camera pose as the frame's readings, docs/recording.md) or
+            ``"beam"``
 
         Returns
         -------
@@ -832,7 +837,7 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         acq, rows, info = acquire_recording(
             lm, optics, recording, calibration,
             SPOT_TOLERANCE_MM if spotToleranceMm is None else float(spotToleranceMm),
-            progress=progress, cancel=cancel)
+            source_from=sourceFrom, progress=progress, cancel=cancel)
         if outputFolder is not None:
             write_recorded_acquisition(outputFolder, acq, rows, info)
         return acq, rows, info

@@ -34,6 +34,7 @@ import argparse
 import errno
 import importlib
 import logging
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -191,11 +192,25 @@ def main(argv=None):
         if peak is not None:
             result.setdefault("peak_memory_gb", round(peak / 1e9, 2))
     if getattr(args, "json", False):
-        print(dumps(result))
+        text = dumps(result)
     else:
         from fluoapp.format import format_result
 
-        print(format_result(result, command_name(args)))
+        text = format_result(result, command_name(args))
+    return _print_stdout(text, rc)
+
+
+def _print_stdout(text, rc):
+    """Print the result; a reader that closed the pipe early (``fluo ... | head``)
+    ends the command quietly with exit 1, not a traceback (Python's documented
+    way: stdout pointed at /dev/null so the interpreter's final flush is quiet)."""
+    try:
+        print(text)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 1
     return rc
 
 

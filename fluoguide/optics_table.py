@@ -88,3 +88,18 @@ def icg_absorption_per_yield():
     per_conc = [(hi[i] - lo[i]) / 2.0 for i in range(5)]   # per ug/mL
     conc_per_yield = 1.0 / (ICG_QUANTUM_YIELD * per_conc[2])
     return per_conc[0] * conc_per_yield, per_conc[3] * conc_per_yield
+
+
+def without_icg(optics_by_label):
+    """Each label's optics with its ICG's absorption taken out: ``{label:
+    (mua_x_per_mm, musp_x_per_mm, mua_m_per_mm, musp_m_per_mm)}`` from dicts as
+    :func:`icg_liquid_optics` makes them (their ``yield_per_mm`` times ICG's
+    absorption per unit yield removed), the tissue a reconstruction's optics
+    describe; it adds the dye back from the yield."""
+    per_x, per_m = icg_absorption_per_yield()
+    out = {}
+    for k, o in optics_by_label.items():
+        y = float(o.get("yield_per_mm", 0.0))
+        out[k] = (float(o["mua_x_per_mm"]) - per_x * y, float(o["musp_x_per_mm"]),
+                  float(o["mua_m_per_mm"]) - per_m * y, float(o["musp_m_per_mm"]))
+    return out

@@ -8,7 +8,11 @@ Three phantoms from the thesis's experiments, each an MRML scene with
   match the analytic shapes (volume-preserving voxelisation, see voxelize.py);
 - ground truth as ``truth.json`` beside the scene and as the JSON attribute
   ``FluoGuide.Truth`` of ``CBCTLabels``: geometry, analytic and label-map
-  volumes, and optical properties per region at excitation and emission.
+  volumes, and optical properties per region at excitation and emission;
+- ``optics.json`` beside the scene: the same optics as the tomography commands
+  read them (docs/tomography-own-scene.md), without the ICG each region holds,
+  so ``fluo tomo simulate / record-scan / reconstruct`` run on the phantom
+  with ``--yield`` taken from ``truth.json``.
 
 Frame: RAS mm, the tissue's top surface at z = 0 (camera side, +S up), the
 phantom centred on x = y = 0.
@@ -51,6 +55,37 @@ class Phantom:
         vox = float(np.prod(self.spacing_mm))
         counts = np.bincount(self.labels.ravel(), minlength=max(self.region_names) + 1)
         return {int(k): float(counts[k] * vox) for k in self.region_names if k != 0}
+
+    def optics_file(self):
+        """The phantom's ``optics.json`` (a new dict): each region's
+        coefficients with its ICG's absorption taken out (the commands add
+        it back from the yield, by ICG's absorption per unit yield), the
+        names, the one refractive index and ``fluorophore`` ICG when a
+        region holds it.  Values rounded to 12 significant digits (the
+        subtraction's last bits are noise)."""
+        from fluoguide.optics_table import without_icg
+
+        def r(v):
+            return float(f"{v:.12g}")
+
+        base = without_icg(self.optics)
+        n = {float(o["n"]) for o in self.optics.values()}
+        if len(n) != 1:   # every phantom is one medium; the file holds one index
+            raise ValueError(f"phantom {self.name}: regions differ in refractive index {n}")
+        return {"n": n.pop(),
+                "excitation": {str(k): {"mua_per_mm": r(v[0]), "musp_per_mm": r(v[1])}
+                               for k, v in base.items()},
+                "emission": {str(k): {"mua_per_mm": r(v[2]), "musp_per_mm": r(v[3])}
+                             for k, v in base.items()},
+                "fluorophore": "ICG" if self.yields_per_mm() else None,
+                "names": {str(k): v for k, v in self.region_names.items() if k != 0},
+                "comment": f"{self.name} phantom: optics without the ICG of each region; "
+                           "its yields are truth.json's regions[..].optics.yield_per_mm"}
+
+    def yields_per_mm(self):
+        """True fluorescence yield eta * mua_f [1/mm] per fluorescent label."""
+        return {int(k): float(o["yield_per_mm"]) for k, o in self.optics.items()
+                if float(o["yield_per_mm"]) > 0}
 
     def truth(self):
         lab_vol = self.labelmap_volumes_mm3()
@@ -318,7 +353,8 @@ def add_phantom_to_scene(scene, phantom):
 
 
 def write_phantom(phantom, out_dir):
-    """Write ``out_dir/scene.mrml`` (+ NRRD files) and ``out_dir/truth.json``.
+    """Write ``out_dir/scene.mrml`` (+ NRRD files), ``out_dir/truth.json`` and
+    ``out_dir/optics.json`` (:meth:`Phantom.optics_file`).
 
     Everything is written into a staging folder and moved in as one journaled
     transaction (``fluoguide.atomic``): a failure or a kill leaves the old
@@ -333,6 +369,8 @@ def write_phantom(phantom, out_dir):
         add_phantom_to_scene(scene, phantom)
         mrml_io.save_scene(scene, tmp / "scene.mrml")
         (tmp / "truth.json").write_text(json.dumps(phantom.truth(), indent=2, allow_nan=False))
+        (tmp / "optics.json").write_text(json.dumps(phantom.optics_file(), indent=2,
+                                                    allow_nan=False))
     return out_dir / "scene.mrml"
 
 

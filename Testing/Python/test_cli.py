@@ -51,3 +51,19 @@ def test_corrupt_scene_exit_2(tmp_path, capsys):
     assert main(["scene", "info", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "scene.mrml" in err
+
+
+def test_a_reader_that_stops_early_gets_no_traceback(tmp_path):
+    """``fluo ... | head``: the reader closed the pipe before the result was
+    printed (here before the command started); the command ends with exit 1
+    and nothing but its own lines on stderr."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-m", "fluoapp", "phantom", "slab", "--voxel-mm", "2",
+                          "--out", str(tmp_path / "p"), "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 1, err
+    assert "Traceback" not in err and "BrokenPipe" not in err, err

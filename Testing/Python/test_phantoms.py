@@ -82,3 +82,26 @@ def test_failed_write_leaves_nothing(tmp_path):
     with pytest.raises(FluoInputError, match="not a folder"):
         write_phantom(ph, blocker)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+@pytest.mark.parametrize("name", PHANTOMS)
+def test_optics_json_plus_the_dye_of_each_yield_is_the_truth(name, tmp_path):
+    """optics.json beside the scene holds each region without its ICG; adding
+    ICG's absorption per unit yield times truth.json's yield gives back the
+    truth's coefficients (what fluo tomo simulate / reconstruct do)."""
+    from fluoguide.optics_table import icg_absorption_per_yield
+
+    ph = make_phantom(name, voxel_mm=2.0)
+    write_phantom(ph, tmp_path / "p")
+    doc = json.loads((tmp_path / "p" / "optics.json").read_text())
+    truth = json.loads((tmp_path / "p" / "truth.json").read_text())["regions"]
+    per_x, per_m = icg_absorption_per_yield()
+    assert set(doc["excitation"]) == set(doc["emission"]) == set(truth)
+    assert doc["fluorophore"] == ("ICG" if ph.yields_per_mm() else None)
+    for k, r in truth.items():
+        o, y = r["optics"], r["optics"]["yield_per_mm"]
+        assert doc["names"][k] == r["name"] and doc["n"] == o["n"]
+        assert doc["excitation"][k]["mua_per_mm"] + per_x * y == pytest.approx(o["mua_x_per_mm"])
+        assert doc["emission"][k]["mua_per_mm"] + per_m * y == pytest.approx(o["mua_m_per_mm"])
+        assert doc["excitation"][k]["musp_per_mm"] == o["musp_x_per_mm"]
+        assert doc["emission"][k]["mua_per_mm"] >= 0

@@ -24,6 +24,8 @@ def _handler(args):
         "phantom": phantom.name,
         "scene": str(scene_path),
         "truth": str(scene_path.parent / "truth.json"),
+        "optics": str(scene_path.parent / "optics.json"),
+        "yields_per_mm": {str(k): v for k, v in phantom.yields_per_mm().items()},
         "shape_kji": truth["shape_kji"],
         "voxel_mm": truth["voxel_mm"],
         "regions": {k: {"name": r["name"], "analytic_volume_mm3": r["analytic_volume_mm3"],
@@ -38,7 +40,9 @@ def register(sub):
     p = sub.add_parser(
         "phantom", help="write a digital phantom (CBCT, label map, optical truth) as an MRML scene",
         description="Write a digital phantom as DIR/scene.mrml (volumes CBCT and CBCTLabels, "
-        "NRRD files) and DIR/truth.json (geometry, region volumes, optical properties). "
+        "NRRD files), DIR/truth.json (geometry, region volumes, optical properties) and "
+        "DIR/optics.json (the optics without each region's ICG, as the fluo tomo commands "
+        "read them; the true yields are yields_per_mm in the --json output). "
         f"Phantoms: {', '.join(PHANTOMS)}.")
     p.add_argument("name", help=f"one of: {', '.join(PHANTOMS)}")
     p.add_argument("--out", required=True, help="output folder (created; files replaced)")

@@ -318,13 +318,15 @@ def _acquire(args):
     with TqdmProgress("acquire") as bar:
         acq, rows, info = logic.acquireRecording(lm, optics, args.recording, args.out,
                                                  calibration, args.spot_tolerance_mm,
-                                                 progress=bar)
+                                                 sourceFrom=args.source_from, progress=bar)
     return {"output": str(args.out), "frames": info["frames"],
             "frames_used": info["frames_used"], "frames_rejected": info["frames_rejected"],
             "rejected": [{k: r[k] for k in ("frame", "reason", "detail")} for r in rows
                          if not r["used"]],
             "sources": len(acq.sources_ras_mm), "detectors": len(acq.detectors_ras_mm),
-            "measurements": acq.n_measurements, "spot_tolerance_mm": info["spot_tolerance_mm"],
+            "measurements": acq.n_measurements, "noise_pct": info["noise_pct"],
+            "source_from": args.source_from,
+            "spot_tolerance_mm": info["spot_tolerance_mm"],
             "time_sync_tolerance_s": info["time_sync_tolerance_s"],
             "warnings": info["warnings"], "seconds": time.perf_counter() - t0}
 
@@ -518,6 +520,10 @@ def _register_acquire(tomo):
     p.add_argument("--spot-tolerance-mm", type=float, default=None,
                    help="how far the laser spot seen by the camera may lie from the tracked "
                    "beam's surface point [mm] (default 2; docs/recording.md)")
+    p.add_argument("--source-from", choices=("spot", "beam"), default="spot",
+                   help="each source's surface point: the laser spot the camera sees (the "
+                   "same camera pose as the frame's readings, so tracking and hand-eye errors "
+                   "move both together) or the tracked beam's (default spot; docs/recording.md)")
     p.add_argument("--out", required=True, help="acquisition folder to write")
     add_json_flag(p)
     p.set_defaults(func=_acquire)

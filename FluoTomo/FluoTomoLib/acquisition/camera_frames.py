@@ -119,15 +119,17 @@ def expose(radiance, gain_adu_per_radiance, offset_adu, read_noise_adu, rng):
 
 
 def detector_counts(frames, saturated, hits_reported, detectors_mm, roi_area_mm2=1.0,
-                    min_pixels=4):
+                    min_pixels=4, with_se=False):
     """(S, D) mean ROI counts of every frame at the virtual detectors, from the
     pixel-to-surface map of the *reported* camera pose; NaN where the ROI has
     fewer than ``min_pixels`` unsaturated pixels.  Also returns the (S, D)
-    number of pixels averaged."""
+    number of pixels averaged, and with ``with_se`` the (S, D) standard
+    errors of the means [ADU] (``noncontact_optodes.roi_mean_counts``)."""
     from FluoTomoLib.acquisition.noncontact_optodes import roi_mean_counts
 
     S = len(frames)
     counts = np.full((S, len(detectors_mm)), np.nan)
+    se = np.full((S, len(detectors_mm)), np.nan)
     n_pix = np.zeros((S, len(detectors_mm)), dtype=np.int64)
     pts = hits_reported.point_mm
     for s in range(S):
@@ -135,6 +137,9 @@ def detector_counts(frames, saturated, hits_reported, detectors_mm, roi_area_mm2
         if not np.any(valid):
             raise FluoInputError("every pixel of a frame is saturated or off the surface",
                                  field="frame", value=s)
-        counts[s], n_pix[s] = roi_mean_counts(frames[s], pts, valid, detectors_mm,
-                                              roi_area_mm2, min_pixels)
-    return counts, n_pix
+        out = roi_mean_counts(frames[s], pts, valid, detectors_mm, roi_area_mm2, min_pixels,
+                              with_se=with_se)
+        counts[s], n_pix[s] = out[0], out[1]
+        if with_se:
+            se[s] = out[2]
+    return (counts, n_pix, se) if with_se else (counts, n_pix)

@@ -105,7 +105,7 @@ def detector_mask(source_points_mm, detector_points_mm, exclude_mm=3.0):
 
 
 def roi_mean_counts(image, hit_points_mm, valid, detector_points_mm, roi_area_mm2=1.0,
-                    min_pixels=4):
+                    min_pixels=4, with_se=False):
     """Mean counts over the pixels whose surface hit lies in a disc ROI around each detector.
 
     Parameters
@@ -115,11 +115,15 @@ def roi_mean_counts(image, hit_points_mm, valid, detector_points_mm, roi_area_mm
     valid : (H, W) bool, pixels with a valid (visible, unsaturated) hit
     detector_points_mm : (D, 3)
     roi_area_mm2 : ROI area on the surface (thesis: about 1 mm^2)
+    with_se : also return each mean's standard error [ADU], from the pixels'
+        scatter about a plane fitted over the ROI (the light's own slope
+        across 1 mm is not noise); NaN where the ROI has no pixel to spare
 
     Returns
     -------
     mean : (D,) counts, NaN where fewer than ``min_pixels`` pixels fall in the ROI
     n_pixels : (D,) int
+    se : (D,) [ADU], only with ``with_se``
     """
     from scipy.spatial import cKDTree
 
@@ -127,16 +131,36 @@ def roi_mean_counts(image, hit_points_mm, valid, detector_points_mm, roi_area_mm
     idx = np.flatnonzero(valid.ravel())
     if len(idx) == 0:
         raise FluoInputError("no valid pixel sees the surface", field="valid")
-    tree = cKDTree(hit_points_mm.reshape(-1, 3)[idx])
+    pts = hit_points_mm.reshape(-1, 3)[idx]
+    tree = cKDTree(pts)
     vals = image.ravel()[idx].astype(float)
     groups = tree.query_ball_point(np.asarray(detector_points_mm, float), radius)
     mean = np.full(len(groups), np.nan)
+    se = np.full(len(groups), np.nan)
     count = np.zeros(len(groups), dtype=np.int64)
     for k, g in enumerate(groups):
         count[k] = len(g)
         if len(g) >= min_pixels:
             mean[k] = vals[g].mean()
-    return mean, count
+            if with_se:
+                se[k] = _plane_fit_se(pts[g], vals[g])
+    return (mean, count, se) if with_se else (mean, count)
+
+
+def _plane_fit_se(points_mm, values):
+    """Standard error of the mean of ``values`` [same units] taken at
+    ``points_mm`` (n, 3) on a surface patch: the residual scatter about the
+    best plane over the patch's own two principal directions, over sqrt(n);
+    NaN with fewer than 4 points (no degree of freedom left)."""
+    n = len(values)
+    if n < 4:
+        return np.nan
+    p = points_mm - points_mm.mean(axis=0)
+    _, _, vt = np.linalg.svd(p, full_matrices=False)
+    a = np.c_[np.ones(n), p @ vt[:2].T]
+    coef, *_ = np.linalg.lstsq(a, values, rcond=None)
+    rss = float(np.sum((values - a @ coef) ** 2))
+    return np.sqrt(rss / (n - 3) / n)
 
 
 def counts_to_boundary_fluence(counts_adu, offset_adu, gain_adu_per_radiance, robin_A,

@@ -558,7 +558,7 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
                                     laser_poses, beam_origin_tool_mm, beam_dir_tool, gain,
                                     offset_adu, laser_power_w, n_tissue=None, detector_factor=2,
                                     exclude_mm=3.0, roi_area_mm2=1.0, source=None,
-                                    boundary=None, hits=None):
+                                    boundary=None, hits=None, sources_ras=None):
     """What the software makes of a tracked laser scan seen by a tracked camera.
 
     Sources: each tracked beam cast onto the label map's tissue surface.
@@ -576,7 +576,9 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
     put) or one per frame (S, 4, 4) (a tracked camera read at each frame's
     time: each frame is mapped with its own pose); ``hits``: the frames'
     pixel casts when the caller has them already (one PixelHits, or one per
-    frame), so they are not cast twice.
+    frame), so they are not cast twice; ``sources_ras`` (S, 3): the sources'
+    surface points when the caller located them otherwise (the laser spot
+    seen in each frame), None for the beams' surface points.
     """
     from FluoTomoLib.acquisition.camera_frames import cast, detector_counts
     from FluoTomoLib.acquisition.noncontact_optodes import (counts_to_boundary_fluence,
@@ -596,6 +598,8 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
         s = int(np.flatnonzero(face < 0)[0])
         raise FluoInputError("the tracked laser beam misses the tissue surface", file=source,
                              field=f"laser_poses[{s}]")
+    if sources_ras is not None:
+        src = np.asarray(sources_ras, float).reshape(len(src), 3)
     det = virtual_detectors(src, factor=detector_factor)
     # points between sources: onto the surface along the mean beam direction
     mean_dir = d.mean(axis=0)
@@ -622,13 +626,14 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
                 else cast(caster, camera, poses))
     if isinstance(hits, (list, tuple)):          # one cast per frame
         counts = np.full((len(frames), len(det)), np.nan)
+        se = np.full((len(frames), len(det)), np.nan)
         n_pix = np.zeros((len(frames), len(det)), dtype=np.int64)
         for s, h in enumerate(hits):
-            counts[s:s + 1], n_pix[s:s + 1] = detector_counts(frames[s:s + 1],
-                                                              saturated[s:s + 1], h, det,
-                                                              roi_area_mm2)
+            counts[s:s + 1], n_pix[s:s + 1], se[s:s + 1] = detector_counts(
+                frames[s:s + 1], saturated[s:s + 1], h, det, roi_area_mm2, with_se=True)
     else:
-        counts, n_pix = detector_counts(frames, saturated, hits, det, roi_area_mm2)
+        counts, n_pix, se = detector_counts(frames, saturated, hits, det, roi_area_mm2,
+                                            with_se=True)
     lost = mask & ~np.isfinite(counts)
     if np.any(lost):
         s, dd = np.argwhere(lost)[0]
@@ -640,7 +645,21 @@ def acquisition_from_tracked_frames(labelmap, frames, saturated, camera, camera_
     y = counts_to_boundary_fluence(np.nan_to_num(counts), offset_adu, gain,
                                    robin_A(n_tissue, boundary), laser_power_w)
     return Acquisition(src, det, np.where(mask, y, 0.0), mask, "counts (tracked frames)",
-                       {"roi_counts": counts, "roi_pixels": n_pix}, source=source)
+                       {"roi_counts": counts, "roi_pixels": n_pix, "roi_se": se,
+                        "noise_from_frames_pct": frames_noise_pct(counts, se, offset_adu, mask)},
+                       source=source)
+
+
+def frames_noise_pct(counts_adu, se_adu, offset_adu, mask):
+    """The readings' relative noise as the frames show it [%]: the root mean
+    square over the used pairs of each ROI mean's standard error over its
+    signal above the offset (``roi_se``: the pixels' scatter about a plane
+    over the ROI, shot and read noise); None when no used pair has one."""
+    signal = np.asarray(counts_adu, float) - offset_adu
+    ok = np.asarray(mask, bool) & np.isfinite(se_adu) & (signal > 0)
+    if not np.any(ok):
+        return None
+    return float(100.0 * np.sqrt(np.mean((np.asarray(se_adu)[ok] / signal[ok]) ** 2)))
 
 
 def write_tracked_frames(folder, frames, laser_poses, beam_origin_tool_mm, beam_dir_tool, camera,

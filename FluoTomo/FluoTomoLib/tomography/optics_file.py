@@ -302,15 +302,12 @@ def homogeneous_optics(mua_per_mm, musp_per_mm, n, labels=(1,)):
 
 def optics_from_phantom(phantom_optics, n=None):
     """:class:`Optics` from a phantom's per-label optics dicts (fluoguide.phantoms):
-    the liquid's properties without the dye (its ``mua_f_x`` removed), ICG slopes."""
-    from fluoguide.optics_table import icg_absorption_per_yield
+    the liquid's properties without the dye (``optics_table.without_icg``), ICG slopes."""
+    from fluoguide.optics_table import icg_absorption_per_yield, without_icg
 
-    ex, em = {}, {}
-    slopes = icg_absorption_per_yield()
-    for k, o in phantom_optics.items():
-        y = float(o.get("yield_per_mm", 0.0))
-        ex[int(k)] = (float(o["mua_x_per_mm"]) - slopes[0] * y, float(o["musp_x_per_mm"]))
-        em[int(k)] = (float(o["mua_m_per_mm"]) - slopes[1] * y, float(o["musp_m_per_mm"]))
+    base = without_icg(phantom_optics)
+    ex = {int(k): (v[0], v[1]) for k, v in base.items()}
+    em = {int(k): (v[2], v[3]) for k, v in base.items()}
     first = next(iter(phantom_optics.values()))
     return Optics(float(n if n is not None else first["n"]), ex, em,
-                  tuple(float(v) for v in slopes), "ICG")
+                  tuple(float(v) for v in icg_absorption_per_yield()), "ICG")

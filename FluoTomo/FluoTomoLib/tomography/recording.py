@@ -452,14 +452,20 @@ def _surface_point_at_pixel(hits, uv):
     return np.asarray(hits.point_mm[v, u], float)
 
 
+#: Where a source's surface point comes from: the laser spot the camera sees
+#: (the same camera pose as the frame's detector readings, so a tracking or
+#: hand-eye error moves source and readings together) or the tracked beam.
+SOURCE_FROM = ("spot", "beam")
+
+
 def acquire_recording(labelmap, optics, recording, calibration=None,
                       spot_tolerance_mm=SPOT_TOLERANCE_MM, detector_factor=2, exclude_mm=3.0,
-                      roi_area_mm2=1.0, progress=None, cancel=None):
+                      roi_area_mm2=1.0, source_from="spot", progress=None, cancel=None):
     """A recorded tracked laser scan -> (Acquisition, per-frame report, info).
 
     For each frame: the laser and camera tool poses at the frame's time (the
     time-sync tolerance of recording.json), the tracked beam cast onto the
-    label map's surface (the source), the camera pose TrackerToReference @
+    label map's surface, the camera pose TrackerToReference @
     CameraToolToTracker @ CameraToCameraTool and every pixel cast onto the
     surface, the laser spot found in the frame and cast onto the surface,
     checked against the beam's point (``spot_tolerance_mm``), and the frame's
@@ -469,7 +475,12 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
     these is reported with its reason and not used; the others give the
     acquisition through ``acquisition_from_tracked_frames`` (counts scaled to
     the calibration's reference exposure and the first used frame's laser
-    power, docs/physics.md section 8.2).
+    power, docs/physics.md section 8.2).  The source is the spot's surface
+    point (``source_from="spot"``: seen with the frame's own camera pose, as
+    its readings are, so a tracking or hand-eye error moves both together
+    and the pairs' distances hold) or the beam's (``"beam"``).  The
+    acquisition states the readings' noise as the frames show it
+    (``meta["noise_pct"]``, ``acquisition_file.frames_noise_pct``).
 
     ``recording``: a folder (:func:`read_scan_recording`) or its dict;
     ``calibration``: a calibration JSON file or a scene (.mrml), or None for
@@ -493,7 +504,10 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
     tris = surf.triangles if np.linalg.det(labelmap.direction) > 0 else surf.triangles[:, ::-1]
     caster = SurfaceCaster(pts_ras, tris)
     rows, keep = [], []
-    images, sat, cams, lasers, hits_used, scale = [], [], [], [], [], []
+    if source_from not in SOURCE_FROM:
+        raise FluoInputError(f"must be one of {', '.join(SOURCE_FROM)}", field="source_from",
+                             value=source_from)
+    images, sat, cams, lasers, hits_used, scale, spots = [], [], [], [], [], [], []
     n = len(rec["frames"])
     for k, fr in enumerate(rec["frames"]):
         check_cancel(cancel)
@@ -502,7 +516,7 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
                "detail": ""}
         rows.append(row)
         kept = _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm,
-                              exclude_mm)
+                              exclude_mm, source_from)
         if kept is None:
             continue
         row["used"] = True
@@ -512,6 +526,7 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
         cams.append(kept["camera_ras"])
         lasers.append(kept["laser_ras"])
         hits_used.append(kept["hits"])
+        spots.append(kept["spot_ras"])
         scale.append((cal["reference_exposure_s"] / fr["exposure_s"]))
         row["laser_power_w"] = fr["laser_power_w"]
     used = [r for r in rows if r["used"]]
@@ -529,7 +544,11 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
         cal["beam_origin_tool_mm"], cal["beam_dir_tool"], cal["gain"], off, power,
         n_tissue=optics.n, boundary=optics.boundary, detector_factor=detector_factor,
         exclude_mm=exclude_mm, roi_area_mm2=roi_area_mm2, source=str(rec["folder"]),
-        hits=hits_used)
+        hits=hits_used, sources_ras=np.array(spots) if source_from == "spot" else None)
+    # the readings' noise as the frames show it: stated, the reconstruction
+    # grades its fit against it and bounds the model's error in its intervals
+    # (a recording has no simulation to say it)
+    acq.meta["noise_pct"] = acq.meta.get("noise_from_frames_pct")
     info = _recording_info(rows, used, n, power, spot_tolerance_mm, rec, acq, t0)
     acq.meta.update({"recording": {k: v for k, v in info.items() if k != "seconds"}})
     report(progress, 1.0, "done")
@@ -560,11 +579,13 @@ def _pose_failure(rec, st_l, st_c):
     return reason, detail
 
 
-def _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm, exclude_mm):
+def _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm, exclude_mm,
+                   source_from="spot"):
     """Check one frame: its tool poses, the tracked beam's surface point (the
     source, RAS mm) seen by the camera, the laser spot within
     ``spot_tolerance_mm`` [mm] of it, no saturation farther than ``exclude_mm``
-    [mm] from it.
+    [mm] from the source (the spot, or with ``source_from="beam"`` the beam's
+    point).
 
     A frame that fails gets its ``row``'s reason and detail and gives None; a
     used one gives {image (ADU, float), saturated, camera_ras, laser_ras, hits}.
@@ -604,11 +625,16 @@ def _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm, 
                              value=list(img.shape))
     img = img.astype(float)
     saturated = img >= cal["saturation_adu"]
-    far = hits.visible & (np.linalg.norm(hits.point_mm - src, axis=-1) > exclude_mm)
-    n_sat = int(np.sum(saturated & far))
-    sat_detail = f"{n_sat} pixels at saturation farther than {exclude_mm:g} mm from the source"
     uv = detect_spot(img)
     spot = None if uv is None else _surface_point_at_pixel(hits, uv)
+    # saturation is expected near the source: measured from where the source
+    # will be (the spot, seen with this frame's own camera pose: the beam's
+    # point carries both tools' tracking errors and a pixel of the spot's own
+    # glare could fall beyond exclude_mm from it)
+    centre = spot if (source_from == "spot" and spot is not None) else src
+    far = hits.visible & (np.linalg.norm(hits.point_mm - centre, axis=-1) > exclude_mm)
+    n_sat = int(np.sum(saturated & far))
+    sat_detail = f"{n_sat} pixels at saturation farther than {exclude_mm:g} mm from the source"
     if spot is None:         # a frame washed out by saturation has no spot either
         row["reason"], row["detail"] = (("saturated", sat_detail) if n_sat else
                                         ("spot not found",
@@ -624,7 +650,7 @@ def _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm, 
         row["reason"], row["detail"] = "saturated", sat_detail
         return None
     return {"image": img, "saturated": saturated, "camera_ras": cam_ras,
-            "laser_ras": laser_ras, "hits": hits}
+            "laser_ras": laser_ras, "hits": hits, "spot_ras": spot}
 
 
 def _recording_info(rows, used, n, power, spot_tolerance_mm, rec, acq, t0):
@@ -640,7 +666,8 @@ def _recording_info(rows, used, n, power, spot_tolerance_mm, rec, acq, t0):
     return {"frames": n, "frames_used": len(used), "frames_rejected": rejected,
             "used_frames": [r["frame"] for r in used], "laser_power_w": power,
             "spot_tolerance_mm": spot_tolerance_mm, "time_sync_tolerance_s": rec["tolerance_s"],
-            "measurements": acq.n_measurements, "seconds": time.perf_counter() - t0,
+            "measurements": acq.n_measurements, "noise_pct": acq.meta.get("noise_pct"),
+            "seconds": time.perf_counter() - t0,
             "warnings": ([f"{n - len(used)} of {n} frames not used (frames.json says why)"]
                          if len(used) < n else [])}
 
@@ -653,11 +680,14 @@ def write_recorded_acquisition(folder, acq, rows, info):
     from FluoTomoLib.tomography.acquisition_file import write_acquisition
 
     rec = {k: info[k] for k in ("frames", "frames_used", "frames_rejected", "laser_power_w",
-                                "spot_tolerance_mm", "time_sync_tolerance_s")}
+                                "spot_tolerance_mm", "time_sync_tolerance_s", "noise_pct")}
+    extra = {"comment": "from a recorded scan: boundary fluence per watt; noise_pct is the "
+                        "frames' own (each ROI mean's scatter about a plane over the ROI); "
+                        "frames.json lists every frame, used or not and why"}
+    if info.get("noise_pct") is not None:
+        extra["noise_pct"] = info["noise_pct"]
     return write_acquisition(folder, acq, extra_files={"frames.json": dumps(
-        {"frames": rows, "summary": rec})}, extra={
-        "comment": "from a recorded scan: boundary fluence per watt; frames.json lists every "
-                   "frame, used or not and why"})
+        {"frames": rows, "summary": rec})}, extra=extra)
 
 
 # ------------------------------------------------------------------ rendering a recording
