@@ -532,6 +532,39 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         mrml_io.set_json_attribute(out, "FluoTomo.Thresholds", report)
         return out, report
 
+    @staticmethod
+    def cleanSegment(mask):
+        """One thresholded segment kept as :meth:`segmentCbct` keeps each label
+        (the app's threshold tool calls this): its largest 6-connected
+        component, its holes filled (``FluoTomoLib.tomography.clean_mask``).
+        ``mask``: (K, J, I) array, nonzero inside. Returns (bool mask, info:
+        components, dropped_voxels, filled_voxels)."""
+        from FluoTomoLib.tomography import clean_mask
+
+        return clean_mask(mask)
+
+    def writeLabelMapFile(self, labelNode, outputFile):
+        """Write a label-map node (or its name) as NRRD, its origin, spacing and
+        direction kept (what :meth:`loadLabelMap` and ``fluo tomo`` read).
+        Returns the path."""
+        from pathlib import Path
+
+        from fluoguide import atomic, mrml_io
+        from fluoguide.labelmap_io import write_volume_nrrd
+
+        from fluoguide.errors import FluoInputError
+
+        if not str(outputFile).lower().endswith(".nrrd"):
+            raise FluoInputError("a label map is written as .nrrd", field="label map file",
+                                 value=str(outputFile))
+        node = (mrml_io.get_node(self.scene, labelNode, "vtkMRMLLabelMapVolumeNode")
+                if isinstance(labelNode, str) else labelNode)
+        atomic.check_writable(outputFile, "label map file")
+        geo = mrml_io.volume_geometry(node)
+        write_volume_nrrd(outputFile, mrml_io.volume_array(node), geo["spacing"], geo["origin"],
+                          geo["direction"])
+        return Path(outputFile)
+
     def segmentCbctToFile(self, cbct, thresholds, outputFile, series=None, progress=None,
                           cancel=None):
         """``fluo segment``: the label map of a CBCT (as :meth:`readCbct` takes

@@ -56,6 +56,10 @@ class TomoPanel:
         s.tomo_loaded = False
         s.tomo_has_labels = False
         # the user's own scene: a label map file, optics.json, an acquisition folder
+        # a CBCT of the user's: a volume file, a scene or a DICOM series folder
+        s.tomo_cbct_path = ""
+        s.tomo_cbct_series = ""        # SeriesInstanceUID when the folder holds several
+        s.tomo_labels_out = "labels.nrrd"
         s.tomo_own_labels = ""
         s.tomo_own_optics = ""
         s.tomo_own_acquisition = ""
@@ -67,10 +71,13 @@ class TomoPanel:
         s.tomo_plan_positions = 16
         s.tomo_plan_result = None
         self._own = None               # {"label": node id, "optics": Optics, "acquisition": ...}
+        self._user_cbct = False        # the CBCT shown is the user's (no phantom truth)
         self._mesh_node_id = None
         c = app.ctrl
         g = app.guarded
         c.tomo_load = g(self.load_phantom)
+        c.tomo_load_cbct = g(self.load_cbct)
+        c.tomo_save_labels = g(self.save_labels)
         c.tomo_threshold_segment = g(self.threshold_segment)
         c.tomo_use_segmentation = g(self.use_segmentation)
         c.tomo_build_mesh = g(self.build_mesh)
@@ -81,15 +88,17 @@ class TomoPanel:
         self._yield_node_name = None
 
     # -- actions -------------------------------------------------------------
-    def load_phantom(self):
-        s = self.app.state
-        params = {"depth_mm": float(s.tomo_depth_mm)} if s.tomo_phantom == "cylinder-tube" else {}
+    def _clear_cbct(self):
+        """Remove the CBCT, its labels, segmentations and results shown."""
         for name in ("CBCT", "CBCTLabels", "FluoTomoMeshSurface", "FluoTomoSources",
                      "FluoTomoDetectors", "FluoTomoYieldSurface"):
             mrml_io.remove_node(self.app.scene, name)
         for n in list(mrml_io.nodes(self.app.scene, "vtkMRMLSegmentationNode")):
             self.app.scene.RemoveNode(n)
-        truth = self.logic.loadPhantom(s.tomo_phantom, withLabels=False, **params)
+
+    def _cbct_shown(self):
+        """The state after a CBCT (a phantom's or the user's) is loaded and shown."""
+        s = self.app.state
         self.app.show_cbct()
         self._own = None
         self._mesh_node_id = None
@@ -100,9 +109,65 @@ class TomoPanel:
         s.tomo_segments = []
         s.tomo_regions = []
         s.tomo_result = None
+
+    def load_phantom(self):
+        s = self.app.state
+        params = {"depth_mm": float(s.tomo_depth_mm)} if s.tomo_phantom == "cylinder-tube" else {}
+        self._clear_cbct()
+        truth = self.logic.loadPhantom(s.tomo_phantom, withLabels=False, **params)
+        self._cbct_shown()
+        self._user_cbct = False
         self.app.notify(f"Loaded the {truth['phantom']} phantom CBCT "
                         f"({' x '.join(map(str, truth['shape_kji'][::-1]))} voxels). "
                         "Next: segment it by threshold.", "success")
+
+    def load_cbct(self):
+        """Load the user's CBCT: a volume file, a scene (its CBCT) or a DICOM
+        series folder in the workspace (``FluoTomoLogic.importCbct``: the
+        series by UID, slices along the normal, HU, geometry kept); read and
+        checked before anything shown is replaced."""
+        s = self.app.state
+        text = str(s.tomo_cbct_path or "").strip()
+        if not text:
+            raise FluoInputError("give the CBCT's path (a file, a scene or a DICOM folder, "
+                                 "relative to the workspace)", field="CBCT")
+        path = self.app.workspace.path(text, "CBCT", what="path")
+        if not path.exists():
+            raise FluoInputError("CBCT not found", field="CBCT", value=text)
+        series = str(s.tomo_cbct_series or "").strip() or None
+        # read under another name first: a refused series leaves the scene as it was
+        node = self.logic.importCbct(path, series, name="FluoTomoCBCTLoading")
+        self._clear_cbct()
+        node.SetName("CBCT")
+        self._cbct_shown()
+        self._user_cbct = True
+        fmt = mrml_io.get_json_attribute(node, "FluoGuide.Source", {}).get("format", "volume")
+        dims = " x ".join(map(str, mrml_io.volume_array(node).shape[::-1]))
+        self.app.notify(f"Loaded the CBCT {self.app.workspace.shown(path)} ({fmt}, {dims} "
+                        "voxels). Next: segment it by threshold, then save the label map and "
+                        "load it with optics.json and a recording (1b).", "success")
+
+    def _phantom_only(self, step):
+        """Refuse the phantom route's ``step`` on the user's own CBCT: it has no
+        simulated scan; its route is the saved label map with a recording (1b)."""
+        if self._user_cbct:
+            raise FluoInputError(f"your CBCT has no simulated scan to {step}: save its label "
+                                 "map (step 2), then load it with optics.json and your "
+                                 "recording or acquisition folder (1b)", field=step)
+
+    def save_labels(self):
+        """Write the label map made from the segmentation (``CBCTLabels``) to
+        the workspace as NRRD, for the own-scene route (1b) and ``fluo tomo``."""
+        s = self.app.state
+        if mrml_io.get_node(self.app.scene, "CBCTLabels", required=False) is None:
+            raise FluoInputError("no label map yet: use the segmentation as label map first",
+                                 field="label map")
+        path = self.app.workspace.path(s.tomo_labels_out, "label map file", writable=True)
+        self.logic.writeLabelMapFile("CBCTLabels", path)
+        shown = self.app.workspace.shown(path)
+        s.tomo_own_labels = shown
+        self.app.notify(f"Wrote the label map {shown}: give optics.json and a recording or "
+                        "acquisition folder in 1b and load your scene.", "success")
 
     def load_own(self):
         """Load the user's label map file, optics.json and acquisition folder
@@ -300,6 +365,11 @@ class TomoPanel:
             editor.remove_segment(sid)
             raise FluoInputError("no voxel of the CBCT in this HU range", field="threshold",
                                  value=(lo, hi))
+        # kept as fluo segment keeps a label: its largest component, holes filled
+        kept, info = self.logic.cleanSegment(vox)
+        if info["dropped_voxels"] or info["filled_voxels"]:
+            editor.active_segment_modifier.set_segment_labelmap(sid, kept.astype(vox.dtype))
+        n_vox = int(np.count_nonzero(kept))
         s.tomo_segments = editor.get_segment_names()
         # offer the next default segment
         names = [d[0] for d in DEFAULT_SEGMENTS]
@@ -307,7 +377,9 @@ class TomoPanel:
             nxt = DEFAULT_SEGMENTS[names.index(name) + 1]
             s.tomo_seg_name, s.tomo_seg_min, s.tomo_seg_max = nxt
         self.app.render_all()
-        self.app.notify(f"Segment '{name}': {n_vox} voxels in [{lo:g}, {hi:g}] HU", "success")
+        self.app.notify(f"Segment '{name}': {n_vox} voxels in [{lo:g}, {hi:g}] HU (the largest "
+                        f"of {info['components']} components, {info['dropped_voxels']} voxels "
+                        f"dropped, {info['filled_voxels']} filled)", "success")
 
     def use_segmentation(self):
         editor = self._editor()
@@ -341,6 +413,7 @@ class TomoPanel:
 
             self.app.start_job("mesh", job, on_done=done_own, owner="FluoTomo")
             return
+        self._phantom_only("mesh")
         job = self.logic.prepareMesh(sizeMm=size, roi=self._roi(), quality=quality)
 
         def done(mesh):
@@ -408,6 +481,7 @@ class TomoPanel:
         if s.tomo_own:
             self._reconstruct_own(method, lam)
             return
+        self._phantom_only("reconstruct")
         job = self.logic.prepareTubeReconstruction(methods=(method,), lam=lam)
 
         def done(run):
@@ -530,11 +604,26 @@ class TomoPanel:
 
     # -- UI ------------------------------------------------------------------
     def build_ui(self):
+        """The panel's steps, top to bottom: the CBCT (a phantom or the user's,
+        or a scene of one's own), planning, segmenting, the mesh, the
+        reconstruction, the display."""
+        from trame.widgets import html
+
+        html.Div("FluoTomo", classes="text-h6")
+        self._ui_cbct()
+        self._ui_own_scene()
+        self._ui_plan()
+        self._ui_segment()
+        self._ui_mesh()
+        self._ui_reconstruct()
+        self._ui_display()
+
+    def _ui_cbct(self):
+        """1: a digital phantom, or the user's CBCT (file, scene, DICOM folder)."""
         from trame.widgets import html
         from trame.widgets import vuetify3 as v
 
         busy = "job.running"
-        html.Div("FluoTomo", classes="text-h6")
         html.Div("1. CBCT", classes="text-subtitle-2 mt-2")
         v.VSelect(v_model=("tomo_phantom",), items=(["cylinder-tube", "oral-cavity", "slab"],),
                   label="Digital phantom", density="compact", hide_details=True, id="tomo-phantom")
@@ -543,7 +632,21 @@ class TomoPanel:
                      v_if="tomo_phantom === 'cylinder-tube'", id="tomo-depth")
         v.VBtn("Load phantom", click=self.app.ctrl.tomo_load, block=True, classes="mt-2",
                color="primary", disabled=(busy,), id="tomo-load")
+        v.VTextField(v_model=("tomo_cbct_path",), label="Or your CBCT in the workspace: a "
+                     "DICOM folder, .nrrd/.nii.gz or .mrml", density="compact",
+                     hide_details=True, classes="mt-2", id="tomo-cbct-path")
+        v.VTextField(v_model=("tomo_cbct_series",), label="DICOM series UID (when the folder "
+                     "holds several)", density="compact", hide_details=True, classes="mt-1",
+                     id="tomo-cbct-series")
+        v.VBtn("Load CBCT", click=self.app.ctrl.tomo_load_cbct, block=True, classes="mt-2",
+               disabled=(busy,), id="tomo-load-cbct")
 
+    def _ui_own_scene(self):
+        """1b: the user's label map, optics.json and acquisition or recording."""
+        from trame.widgets import html
+        from trame.widgets import vuetify3 as v
+
+        busy = "job.running"
         html.Div("1b. Or your own scene (files on this computer)", classes="text-subtitle-2 mt-4")
         v.VTextField(v_model=("tomo_own_labels",),
                      label="Label map in the workspace (.nrrd, .seg.nrrd)",
@@ -559,6 +662,12 @@ class TomoPanel:
                disabled=(busy,), id="tomo-own-load")
         html.Div("{{ tomo_own_info }}", classes="text-caption", id="tomo-own-info")
 
+    def _ui_plan(self):
+        """1c: the scan planned on the user's scene."""
+        from trame.widgets import html
+        from trame.widgets import vuetify3 as v
+
+        busy = "job.running"
         html.Div("1c. Plan the scan (your scene)", classes="text-subtitle-2 mt-4")
         with v.VRow(dense=True):
             with v.VCol(cols=6):
@@ -580,6 +689,12 @@ class TomoPanel:
                      v_for="r in tomo_plan_result.targets")
             html.Div("warnings: {{ tomo_plan_result.warnings }}")
 
+    def _ui_segment(self):
+        """2: threshold segments, the label map, saving it."""
+        from trame.widgets import html
+        from trame.widgets import vuetify3 as v
+
+        busy = "job.running"
         html.Div("2. Segment the CBCT", classes="text-subtitle-2 mt-4")
         with v.VRow(dense=True):
             with v.VCol(cols=4):
@@ -601,7 +716,21 @@ class TomoPanel:
                id="tomo-labels")
         html.Div("{{ tomo_regions.map(r => r.label + ': ' + r.name + ' ' + r.volume_mm3 + "
                  "' mm³').join(', ') }}", classes="text-caption", id="tomo-regions")
+        with v.VRow(dense=True, classes="mt-1"):
+            with v.VCol(cols=7):
+                v.VTextField(v_model=("tomo_labels_out",), label="Save as (.nrrd, workspace)",
+                             density="compact", hide_details=True, id="tomo-labels-out")
+            with v.VCol(cols=5):
+                v.VBtn("Save label map", click=self.app.ctrl.tomo_save_labels, block=True,
+                       disabled=("!tomo_has_labels || tomo_own || " + busy,),
+                       id="tomo-save-labels")
 
+    def _ui_mesh(self):
+        """3: the mesh."""
+        from trame.widgets import html
+        from trame.widgets import vuetify3 as v
+
+        busy = "job.running"
         html.Div("3. Mesh", classes="text-subtitle-2 mt-4")
         v.VTextField(v_model_number=("tomo_mesh_size_mm",), type="number",
                      label="Element size [mm] (structured, region-preserving)", density="compact",
@@ -616,6 +745,12 @@ class TomoPanel:
                      id="tomo-mesh-roi")
         html.Div("{{ tomo_mesh_info }}", classes="text-caption", id="tomo-mesh-info")
 
+    def _ui_reconstruct(self):
+        """4: the reconstruction, its progress and result."""
+        from trame.widgets import html
+        from trame.widgets import vuetify3 as v
+
+        busy = "job.running"
         html.Div("4. Reconstruct (phantom: simulated tracked laser scan; your scene: its "
                  "acquisition)", classes="text-subtitle-2 mt-4")
         with v.VRow(dense=True):
@@ -653,6 +788,11 @@ class TomoPanel:
             html.Div("half-maximum centroid RAS {{ tomo_own_result.centroid_ras }}; "
                      "{{ tomo_own_result.nodes }} nodes, {{ tomo_own_result.seconds }} s; "
                      "warnings: {{ tomo_own_result.warnings }}")
+
+    def _ui_display(self):
+        """5: the yield's display threshold and colour bar."""
+        from trame.widgets import html
+        from trame.widgets import vuetify3 as v
 
         html.Div("5. Display", classes="text-subtitle-2 mt-4")
         v.VSlider(v_model=("tomo_threshold",), min=0.0, max=0.95, step=0.05,

@@ -39,7 +39,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "plan": ["plan_scan", "predict_scan", "check_plan_inputs", "write_plan", "plan_document"],
     "batch": ["load_batch", "reconstruct_case", "batch_tasks", "run_batch",
               "write_case_outputs"],
-    "segment": ["parse_thresholds", "threshold_labels"],
+    "segment": ["clean_mask", "parse_thresholds", "threshold_labels"],
     "recording": ["read_scan_recording", "read_calibration", "detect_spot", "pose_at",
                   "acquire_recording", "write_recorded_acquisition", "record_scan",
                   "SPOT_TOLERANCE_MM", "TIME_SYNC_TOLERANCE_S"],

@@ -130,6 +130,28 @@ def _largest_component(mask):
     return lab == int(np.argmax(counts)), n
 
 
+def clean_mask(mask):
+    """One segment the way :func:`threshold_labels` keeps each label: the
+    largest 6-connected component of ``mask`` (K, J, I) bool, its holes filled.
+
+    Returns
+    -------
+    mask : ndarray (K, J, I) bool
+    info : dict
+        ``components`` (before keeping the largest), ``dropped_voxels``
+        (outside the largest), ``filled_voxels`` (holes filled).
+    """
+    from scipy import ndimage
+
+    mask = np.asarray(mask, bool)
+    found = int(mask.sum())
+    kept_mask, components = _largest_component(mask)
+    kept = int(kept_mask.sum())
+    filled = ndimage.binary_fill_holes(kept_mask)
+    return filled, {"components": int(components), "dropped_voxels": found - kept,
+                    "filled_voxels": int(filled.sum()) - kept}
+
+
 def threshold_labels(hu_kji, thresholds, spacing_mm=(1.0, 1.0, 1.0), field="thresholds",
                      progress=None, cancel=None):
     """Label map of a CBCT: per label its HU range, its largest connected
@@ -165,7 +187,6 @@ def threshold_labels(hu_kji, thresholds, spacing_mm=(1.0, 1.0, 1.0), field="thre
         A label whose range holds no voxel of the CBCT (naming the label and
         the range), a malformed threshold (:func:`parse_thresholds`).
     """
-    from scipy import ndimage
 
     from fluoguide.memory import check_fits
     from fluoguide.progress import check_cancel, report
@@ -187,13 +208,9 @@ def threshold_labels(hu_kji, thresholds, spacing_mm=(1.0, 1.0, 1.0), field="thre
             raise FluoInputError(f"no voxel of the CBCT in this HU range (the CBCT holds "
                                  f"{float(hu.min()):g}..{float(hu.max()):g})",
                                  field=f"{field}[{lab}]", value=(lo, hi))
-        mask, components = _largest_component(mask)
-        kept = int(mask.sum())
-        mask = ndimage.binary_fill_holes(mask)
+        mask, info = clean_mask(mask)
         labels[mask] = lab
-        out[str(lab)] = {"min_hu": lo, "max_hu": hi, "in_range_voxels": found,
-                         "components": int(components), "dropped_voxels": found - kept,
-                         "filled_voxels": int(mask.sum()) - kept}
+        out[str(lab)] = {"min_hu": lo, "max_hu": hi, "in_range_voxels": found, **info}
     vox = float(np.prod(np.asarray(spacing_mm, float)))
     for lab, row in out.items():
         row["voxels"] = int(np.count_nonzero(labels == int(lab)))
