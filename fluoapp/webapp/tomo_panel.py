@@ -632,11 +632,11 @@ class TomoPanel:
                      v_if="tomo_phantom === 'cylinder-tube'", id="tomo-depth")
         v.VBtn("Load phantom", click=self.app.ctrl.tomo_load, block=True, classes="mt-2",
                color="primary", disabled=(busy,), id="tomo-load")
-        v.VTextField(v_model=("tomo_cbct_path",), label="Or your CBCT in the workspace: a "
-                     "DICOM folder, .nrrd/.nii.gz or .mrml", density="compact",
-                     hide_details=True, classes="mt-2", id="tomo-cbct-path")
-        v.VTextField(v_model=("tomo_cbct_series",), label="DICOM series UID (when the folder "
-                     "holds several)", density="compact", hide_details=True, classes="mt-1",
+        # the workspace's CBCT: a DICOM series folder, a volume file or a scene
+        v.VTextField(v_model=("tomo_cbct_path",), label="Or your CBCT: DICOM folder or file",
+                     density="compact", hide_details=True, classes="mt-2", id="tomo-cbct-path")
+        v.VTextField(v_model=("tomo_cbct_series",), label="DICOM series UID (if several)",
+                     density="compact", hide_details=True, classes="mt-1",
                      id="tomo-cbct-series")
         v.VBtn("Load CBCT", click=self.app.ctrl.tomo_load_cbct, block=True, classes="mt-2",
                disabled=(busy,), id="tomo-load-cbct")
