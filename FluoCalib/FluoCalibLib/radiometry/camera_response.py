@@ -181,19 +181,9 @@ def _linfit(x, y):
     return float(a), float(b), r2
 
 
-def characterize(frames, bit_depth=14, saturation_limit=0.5):
-    """EMVA-1288-style characterisation of a camera from ``frames``.
-
-    Returns a dict with ``gain_adu_per_e``, ``dark_current_e_per_s``, ``bias_e``,
-    ``read_noise_e``, ``linearity_r2``, ``nonlinearity_pct``,
-    ``saturation_capacity_e``, ``dynamic_range`` (and ``_db``), optional
-    ``lens_exponent`` / ``spectral_responsivity``, plus the curves (``ptc``,
-    ``linearity``, ``dark``) for plots.
-    """
-    from fluoguide.errors import check_number
-
-    check_number("bit_depth", bit_depth, 1, 32, integer=True, what="must be 1..32 bits")
-    adc_max = float(2 ** int(bit_depth) - 1)
+def _check_frames(frames):
+    """Raise unless ``frames`` is a non-empty list of finite 2D images of one
+    size, with exposures >= 0 s (> 0 s for light frames)."""
     if not frames:
         raise FluoInputError("no frames", field="frames")
     for f in frames:
@@ -215,6 +205,12 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
         odd = next(f for f in frames if np.shape(f.image) != np.shape(frames[0].image))
         raise FluoInputError("frames differ in size", field=odd.name or "frames",
                              value=sorted(shapes))
+
+
+def _series(frames, adc_max, saturation_limit):
+    """The exposure levels of the gain/linearity series: (dark levels, dark
+    levels with a pair, light levels, unsaturated light levels with a pair);
+    raise when they cannot give the dark line or the photon-transfer curve."""
     # The gain/linearity series is the light frames of the most frequent
     # (f-number, wavelength) setting; frames at other f-numbers or wavelengths
     # (usually at other radiances) only feed the lens and spectral fits: mixed
@@ -241,8 +237,13 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
         raise FluoInputError("need light frame pairs at >= 3 unsaturated exposures for the "
                              f"photon-transfer curve (got {len(usable)})", field="light frames",
                              value=len(usable))
+    return dark, dark_pairs, light, usable
 
-    # dark signal vs exposure (ADU); its variance vs exposure for the PTC
+
+def _dark_lines(dark, dark_pairs):
+    """Dark signal vs exposure (slope [ADU/s], intercept [ADU]) and the
+    functions of exposure [s] giving the dark mean [ADU] and the dark temporal
+    variance [ADU^2] the photon-transfer curve subtracts."""
     dark_slope, dark_icpt, _ = _linfit([d.exposure_s for d in dark], [d.mean_adu for d in dark])
     dvar = [(d.exposure_s, d.var_adu2) for d in dark_pairs]
     if len(dvar) >= 2:
@@ -256,6 +257,13 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
     def dark_var(t):
         return max(dv_slope * t + dv_icpt, 0.0)
 
+    return dark_slope, dark_icpt, dark_mean, dark_var
+
+
+def _photon_transfer(usable, dark_mean, dark_var):
+    """Photon-transfer curve of the usable light levels: signal above dark mu
+    [ADU], temporal variance above dark [ADU^2], saturation signal [ADU], the
+    points fitted, the gain K [ADU/e-] and the fit's R^2."""
     mu = np.array([lv.mean_adu - dark_mean(lv.exposure_s) for lv in usable])
     var = np.array([lv.var_adu2 - dark_var(lv.exposure_s) for lv in usable])
     if np.max(mu) <= 10.0 * np.sqrt(max(dark_var(0.0), 1e-12)):
@@ -272,13 +280,12 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
         raise FluoInputError("photon-transfer slope is not positive: frames of one exposure "
                              "differ by more than noise (moving scene or flicker?)",
                              field="light frames", value=K)
-    # dark: ADU -> e-
-    dark_current = dark_slope / K
-    bias = dark_icpt / K
-    d0 = min(dark_pairs, key=lambda d: d.exposure_s)
-    read_var_e = d0.var_adu2 / K ** 2 - max(dark_current, 0.0) * d0.exposure_s
-    read_noise = float(np.sqrt(max(read_var_e, 0.0)))
-    # linearity over 5-95 % of the saturation signal
+    return mu, var, mu_sat, fit, K, ptc_r2
+
+
+def _linearity(usable, mu, mu_sat):
+    """Signal vs exposure over 5-95 % of the saturation signal: exposures [s],
+    slope [ADU/s], intercept [ADU], R^2 and nonlinearity [%]."""
     t = np.array([lv.exposure_s for lv in usable])
     lin = (mu >= 0.05 * mu_sat) & (mu <= 0.95 * mu_sat)
     if lin.sum() < 3:
@@ -286,6 +293,33 @@ def characterize(frames, bit_depth=14, saturation_limit=0.5):
     a, b, r2 = _linfit(t[lin], mu[lin])
     dev = mu[lin] - (a * t[lin] + b)
     nl = 100.0 * (abs(max(dev.max(), 0.0)) + abs(min(dev.min(), 0.0))) / mu_sat
+    return t, a, b, r2, nl
+
+
+def characterize(frames, bit_depth=14, saturation_limit=0.5):
+    """EMVA-1288-style characterisation of a camera from ``frames``.
+
+    Returns a dict with ``gain_adu_per_e``, ``dark_current_e_per_s``, ``bias_e``,
+    ``read_noise_e``, ``linearity_r2``, ``nonlinearity_pct``,
+    ``saturation_capacity_e``, ``dynamic_range`` (and ``_db``), optional
+    ``lens_exponent`` / ``spectral_responsivity``, plus the curves (``ptc``,
+    ``linearity``, ``dark``) for plots.
+    """
+    from fluoguide.errors import check_number
+
+    check_number("bit_depth", bit_depth, 1, 32, integer=True, what="must be 1..32 bits")
+    adc_max = float(2 ** int(bit_depth) - 1)
+    _check_frames(frames)
+    dark, dark_pairs, light, usable = _series(frames, adc_max, saturation_limit)
+    dark_slope, dark_icpt, dark_mean, dark_var = _dark_lines(dark, dark_pairs)
+    mu, var, mu_sat, fit, K, ptc_r2 = _photon_transfer(usable, dark_mean, dark_var)
+    # dark: ADU -> e-
+    dark_current = dark_slope / K
+    bias = dark_icpt / K
+    d0 = min(dark_pairs, key=lambda d: d.exposure_s)
+    read_var_e = d0.var_adu2 / K ** 2 - max(dark_current, 0.0) * d0.exposure_s
+    read_noise = float(np.sqrt(max(read_var_e, 0.0)))
+    t, a, b, r2, nl = _linearity(usable, mu, mu_sat)
     sat_e = mu_sat / K
     dr = sat_e / read_noise if read_noise > 0 else float("inf")
     out = {

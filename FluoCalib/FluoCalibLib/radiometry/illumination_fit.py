@@ -140,6 +140,216 @@ def _model_counts(cone, pts, normals, rd):
     return cone.forward_counts(rd, pts, normals)
 
 
+def _check_inputs(images, phantom_to_camera, rd, light_from_camera):
+    """Raise unless there is one pose per image, at least three images, a
+    positive reflectance and poses that fix the cone apex."""
+    if len(images) != len(phantom_to_camera):
+        raise FluoInputError("one phantom pose per image", field="phantom_to_camera",
+                             value=(len(images), len(phantom_to_camera)))
+    if len(images) < 3:
+        raise FluoInputError("need >= 3 images at different distances to fix the cone apex",
+                             field="images", value=len(images))
+    if not (np.isfinite(rd) and rd > 0):
+        raise FluoInputError("phantom reflectance must be > 0", field="rd", value=rd)
+    _check_plane_poses(phantom_to_camera, light_from_camera)
+
+
+def _view_pixels(k, img, T, camera, offset_adu, tau, light_from_camera, saturation_adu):
+    """Image ``k``'s pixels on the phantom plane, in the light frame [mm].
+
+    Returns (boundary points, (counts [ADU], points, normals) of the unsaturated
+    active interior, (image, points, normal, unsaturated active mask) for its
+    ratio image, number of saturated active pixels).
+    """
+    raw = np.asarray(img, float)
+    if raw.shape != (camera.height, camera.width):
+        raise FluoInputError("image size differs from the camera's", field=f"images[{k}]",
+                             value=raw.shape)
+    if not np.all(np.isfinite(raw)):
+        raise FluoInputError("image has NaN or infinite values", field=f"images[{k}]")
+    # a clipped pixel under-reports the light and would pull alpha down
+    unsat = raw < saturation_adu
+    img = raw - offset_adu
+    f, active, boundary = segment_active(img, tau)
+    pts, valid = ray_plane_points(camera, T)
+    M = np.eye(4) if light_from_camera is None else np.asarray(light_from_camera[k], float)
+    pts_l = pts @ M[:3, :3].T + M[:3, 3]
+    nrm = -np.asarray(T, float)[:3, 2]
+    nrm = nrm if nrm[2] < 0 else -nrm               # plane normal towards the camera
+    nrm_l = M[:3, :3] @ nrm
+    b = boundary & valid
+    a = active & valid & ~boundary & unsat
+    n_saturated = int((active & ~unsat).sum())
+    if b.sum() < 10:
+        raise FluoInputError("too few cone-boundary pixels (the cone fills the image?)",
+                             field=f"images[{k}]", value=int(b.sum()))
+    return (pts_l[b], (img[a], pts_l[a], np.broadcast_to(nrm_l, (int(a.sum()), 3))),
+            (img, pts_l, nrm_l, active & valid & unsat), n_saturated)
+
+
+def _read_views(images, camera, phantom_to_camera, offset_adu, tau, light_from_camera,
+                saturation_adu, progress, cancel):
+    """``_view_pixels`` of every image, reporting each: (boundary points of all
+    images [mm], per-image active pixels, per-image ratio inputs, saturated
+    active pixel count)."""
+    bnd_pts, act, per_image = [], [], []
+    n_saturated = 0
+    for k, (img, T) in enumerate(zip(images, phantom_to_camera)):
+        check_cancel(cancel)
+        report(progress, 0.3 * k / len(images), f"image {k + 1} of {len(images)}: active region")
+        b, a, view, n_sat = _view_pixels(k, img, T, camera, offset_adu, tau, light_from_camera,
+                                         saturation_adu)
+        n_saturated += n_sat
+        bnd_pts.append(b)
+        act.append(a)
+        per_image.append(view)
+    return np.concatenate(bnd_pts), act, per_image, n_saturated
+
+
+def _determined_geometry(P, progress):
+    """Optimisation 1 on the boundary points ``P`` [mm]; raise when the views
+    leave the apex undetermined.  Returns ``_fit_geometry``'s (origin, axis,
+    half-angle [deg], solution)."""
+    report(progress, 0.3, "optimisation 1: cone geometry from the boundary")
+    c, n, half, sol1 = _fit_geometry(P)
+    # identical-looking views let the apex run off to a near-cylinder; the
+    # Jacobian is then singular (measured cond ~1e9 vs 5e2-5e3 for usable sets)
+    cond = float(np.linalg.cond(sol1.jac))
+    if not (np.isfinite(cond) and cond < 1e7 and 0.5 < half < 89.5):
+        raise FluoInputError("cone apex not determined by these views (image the phantom at "
+                             "several distances or tilts)", field="phantom_to_camera",
+                             value={"half_angle_deg": half, "condition": cond})
+    return c, n, half, sol1
+
+
+def _lit_pixels(act, base, rd, half, max_pixels, edge_margin_deg):
+    """The pixels optimisation 2 fits: counts S [ADU], points X [mm] and normals
+    N well inside the cone of optimisation 1 (``base``), at most ``max_pixels``
+    of them, and the system gain [ADU] they suggest with alpha = 1, gamma = 0."""
+    S = np.concatenate([x[0] for x in act])
+    X = np.concatenate([x[1] for x in act])
+    N = np.concatenate([x[2] for x in act])
+    if len(S) > max_pixels:  # an even subsample keeps the fit fast and unbiased
+        idx = np.linspace(0, len(S) - 1, max_pixels).astype(int)
+        S, X, N = S[idx], X[idx], N[idx]
+    cone0 = IlluminationCone(**base, alpha=1.0, gamma_per_mm=0.0, system_gain_adu=1.0)
+    f0 = cone0.factors(X, N)
+    # The model drops to zero at the cone edge (to cos^alpha(Phi), ~25 % of the
+    # peak for the endoscope): a pixel just outside the refined cone would add
+    # a residual of ~sqrt(S) and make the cost jump as the axis moves, so
+    # optimisation 2 keeps clear of the edge.
+    lit = f0.lit & (f0.theta_rad < np.deg2rad(max(half - edge_margin_deg, 0.5 * half)))
+    if lit.sum() < 100:
+        raise FluoInputError("the fitted cone leaves almost no active pixel lit", field="images")
+    S, X, N = S[lit], X[lit], N[lit]
+    # Dsys starts from the ratio with alpha = 1, gamma = 0
+    g0 = float(np.median(S / (rd * f0.intensity[lit])))
+    return S, X, N, g0
+
+
+class _Radiometry:
+    """Optimisation 2's problem: the counts ``S`` [ADU] at points ``X`` [mm] with
+    normals ``N`` of a phantom of reflectance ``rd``, against a cone with the
+    origin and half-angle of ``base`` and the parameter vector
+    x = (alpha, gamma [1/mm], Dsys [ADU], axis theta, axis phi [rad]
+    [, crescent amplitude, crescent phase [rad]])."""
+
+    def __init__(self, base, rd, S, X, N):
+        self.base, self.rd, self.S, self.X, self.N = base, rd, S, X, N
+
+    # The axis is refined together with the radiometry: with alpha ~ 7 a tenth
+    # of a degree of tilt changes the intensity by ~1 % across the spot, more
+    # than the boundary alone resolves (and an unrefined tilt would be
+    # mistaken for a crescent by the asymmetric model).
+    def cone(self, x, asym=False):
+        """The IlluminationCone of x (the crescent terms only when ``asym``)."""
+        kw = dict(alpha=max(x[0], 0.0), gamma_per_mm=max(x[1], 0.0), system_gain_adu=max(x[2], 0.0))
+        if asym:
+            kw.update(asym_amplitude=float(np.clip(x[5], 0.0, 0.95)), asym_phase_rad=float(x[6]))
+        geo = dict(self.base, axis=tuple(_axis_from_angles(x[3], x[4])))
+        return IlluminationCone(**geo, **kw)
+
+    def residuals(self, x, asym=False):
+        """(model - S) / sqrt(S): shot-noise weighted residuals."""
+        m = self.cone(x, asym).forward_counts(self.rd, self.X, self.N)
+        return (m - self.S) / np.sqrt(np.maximum(self.S, 1.0))
+
+    def crescent_start(self, x):
+        """x with the crescent amplitude and phase its ratio suggests."""
+        S, X, N = self.S, self.X, self.N
+        sw = 1.0 / np.sqrt(np.maximum(S, 1.0))          # same weights as the fit
+        # first azimuthal harmonic of the ratio to the symmetric cone x:
+        # S / model - 1 ~ (theta / Phi)^2 (A cos phi + B sin phi); its phase
+        # is measured in x's azimuth basis, which cone() reproduces
+        c2 = self.cone(x)
+        fac = c2.factors(X, N)
+        e1, e2 = c2.azimuth_basis()
+        u = (X - np.asarray(c2.origin_mm)) / np.maximum(fac.distance_mm, 1e-9)[:, None]
+        az = np.arctan2(u @ e2, u @ e1)
+        w = (fac.theta_rad / np.deg2rad(c2.half_angle_deg)) ** 2
+        m2 = c2.forward_counts(self.rd, X, N)
+        design = np.stack([m2 * w * np.cos(az), m2 * w * np.sin(az)], axis=1) * sw[:, None]
+        (A, B), *_ = np.linalg.lstsq(design, (S - m2) * sw, rcond=None)
+        return np.r_[x, float(np.clip(np.hypot(A, B), 0.01, 0.9)), float(np.arctan2(B, A))]
+
+
+def _bic(sol, n_params):
+    """Bayesian information criterion of a least-squares solution."""
+    rss = float(np.sum(sol.fun ** 2))
+    nobs = len(sol.fun)
+    return nobs * np.log(rss / nobs) + n_params * np.log(nobs)
+
+
+def _fit_axisymmetric(problem, c, th0, ph0, g0, progress, cancel):
+    """Optimisation 2 from alpha = 1, the axis of optimisation 1 (``th0``,
+    ``ph0`` [rad]) and Dsys from ``g0`` [ADU] scaled to the distance from the
+    apex ``c`` [mm].  Returns (solution, lower bounds, upper bounds)."""
+    X = problem.X
+    x0 = np.array([1.0, 0.01, g0 * (1 + 0.01 * np.median(np.linalg.norm(X - c, axis=1))) ** 2,
+                   th0, ph0])
+    lo = [0, 0, 0, th0 - 0.1, ph0 - np.pi]
+    hi = [50, 5, np.inf, th0 + 0.1, ph0 + np.pi]
+    check_cancel(cancel)
+    step = "optimisation 2: alpha, gamma, system gain"
+    report(progress, 0.4, step)
+    sol2 = optimize.least_squares(_watched(problem.residuals, progress, 0.4, step, cancel), x0,
+                                  x_scale="jac", bounds=(lo, hi))
+    return sol2, lo, hi
+
+
+def _fit_crescent(problem, sol2, lo, hi, th0, ph0, progress, cancel):
+    """The crescent model's best solution from two starts."""
+    # Two starts: the symmetric fit tilts its axis to mimic a crescent (a
+    # local minimum the crescent fit can stay in), while the boundary axis
+    # of optimisation 1 is not biased by the intensity; keep the better.
+    sol3 = None
+    for i, x in enumerate((sol2.x, np.r_[sol2.x[:3], th0, ph0])):
+        check_cancel(cancel)
+        step = f"crescent model, start {i + 1} of 2"
+        report(progress, 0.6 + 0.15 * i, step)
+        s3 = optimize.least_squares(
+            _watched(lambda x: problem.residuals(x, True), progress, 0.6 + 0.15 * i, step, cancel),
+            problem.crescent_start(x), x_scale="jac",
+            bounds=(lo + [0, -2 * np.pi], hi + [0.95, 2 * np.pi]))
+        if sol3 is None or s3.cost < sol3.cost:
+            sol3 = s3
+    return sol3
+
+
+def _ratio_images(cone, rd, per_image):
+    """Measured / model per image (NaN outside the unsaturated active region)
+    and all their finite ratios pooled."""
+    ratios, all_r = [], []
+    for img, pts_l, nrm_l, act_mask in per_image:
+        model = cone.forward_counts(rd, pts_l, np.broadcast_to(nrm_l, pts_l.shape))
+        ok = act_mask & (model > 0)
+        r = np.full(img.shape, np.nan)
+        r[ok] = img[ok] / model[ok]
+        ratios.append(r)
+        all_r.append(r[ok])
+    return ratios, np.concatenate(all_r)
+
+
 def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0, tau=0.05,
                            light_from_camera=None, try_asymmetric=True, max_pixels=60000,
                            frame="Camera", saturation_adu=16383.0, edge_margin_deg=1.0,
@@ -169,163 +379,35 @@ def calibrate_illumination(images, camera, phantom_to_camera, rd, offset_adu=0.0
         ``cone`` (IlluminationCone), the JSON keys of ``fluo calib illumination``
         and ``ratio_images`` (measured / model, NaN outside the active region).
     """
-    if len(images) != len(phantom_to_camera):
-        raise FluoInputError("one phantom pose per image", field="phantom_to_camera",
-                             value=(len(images), len(phantom_to_camera)))
-    if len(images) < 3:
-        raise FluoInputError("need >= 3 images at different distances to fix the cone apex",
-                             field="images", value=len(images))
-    if not (np.isfinite(rd) and rd > 0):
-        raise FluoInputError("phantom reflectance must be > 0", field="rd", value=rd)
-    _check_plane_poses(phantom_to_camera, light_from_camera)
-    bnd_pts, act = [], []
-    per_image = []
-    n_saturated = 0
-    for k, (img, T) in enumerate(zip(images, phantom_to_camera)):
-        check_cancel(cancel)
-        report(progress, 0.3 * k / len(images), f"image {k + 1} of {len(images)}: active region")
-        raw = np.asarray(img, float)
-        if raw.shape != (camera.height, camera.width):
-            raise FluoInputError("image size differs from the camera's", field=f"images[{k}]",
-                                 value=raw.shape)
-        if not np.all(np.isfinite(raw)):
-            raise FluoInputError("image has NaN or infinite values", field=f"images[{k}]")
-        # a clipped pixel under-reports the light and would pull alpha down
-        unsat = raw < saturation_adu
-        img = raw - offset_adu
-        f, active, boundary = segment_active(img, tau)
-        pts, valid = ray_plane_points(camera, T)
-        M = np.eye(4) if light_from_camera is None else np.asarray(light_from_camera[k], float)
-        pts_l = pts @ M[:3, :3].T + M[:3, 3]
-        nrm = -np.asarray(T, float)[:3, 2]
-        nrm = nrm if nrm[2] < 0 else -nrm               # plane normal towards the camera
-        nrm_l = M[:3, :3] @ nrm
-        b = boundary & valid
-        a = active & valid & ~boundary & unsat
-        n_saturated += int((active & ~unsat).sum())
-        if b.sum() < 10:
-            raise FluoInputError("too few cone-boundary pixels (the cone fills the image?)",
-                                 field=f"images[{k}]", value=int(b.sum()))
-        bnd_pts.append(pts_l[b])
-        act.append((img[a], pts_l[a], np.broadcast_to(nrm_l, (int(a.sum()), 3))))
-        per_image.append((img, pts_l, nrm_l, active & valid & unsat))
-    P = np.concatenate(bnd_pts)
-    report(progress, 0.3, "optimisation 1: cone geometry from the boundary")
-    c, n, half, sol1 = _fit_geometry(P)
-    # identical-looking views let the apex run off to a near-cylinder; the
-    # Jacobian is then singular (measured cond ~1e9 vs 5e2-5e3 for usable sets)
-    cond = float(np.linalg.cond(sol1.jac))
-    if not (np.isfinite(cond) and cond < 1e7 and 0.5 < half < 89.5):
-        raise FluoInputError("cone apex not determined by these views (image the phantom at "
-                             "several distances or tilts)", field="phantom_to_camera",
-                             value={"half_angle_deg": half, "condition": cond})
-    S = np.concatenate([x[0] for x in act])
-    X = np.concatenate([x[1] for x in act])
-    N = np.concatenate([x[2] for x in act])
-    if len(S) > max_pixels:  # an even subsample keeps the fit fast and unbiased
-        idx = np.linspace(0, len(S) - 1, max_pixels).astype(int)
-        S, X, N = S[idx], X[idx], N[idx]
+    _check_inputs(images, phantom_to_camera, rd, light_from_camera)
+    P, act, per_image, n_saturated = _read_views(
+        images, camera, phantom_to_camera, offset_adu, tau, light_from_camera, saturation_adu,
+        progress, cancel)
+    c, n, half, sol1 = _determined_geometry(P, progress)
     base = dict(origin_mm=tuple(c), axis=tuple(n), half_angle_deg=half, frame=frame)
-    cone0 = IlluminationCone(**base, alpha=1.0, gamma_per_mm=0.0, system_gain_adu=1.0)
-    f0 = cone0.factors(X, N)
-    # The model drops to zero at the cone edge (to cos^alpha(Phi), ~25 % of the
-    # peak for the endoscope): a pixel just outside the refined cone would add
-    # a residual of ~sqrt(S) and make the cost jump as the axis moves, so
-    # optimisation 2 keeps clear of the edge.
-    lit = f0.lit & (f0.theta_rad < np.deg2rad(max(half - edge_margin_deg, 0.5 * half)))
-    if lit.sum() < 100:
-        raise FluoInputError("the fitted cone leaves almost no active pixel lit", field="images")
-    S, X, N = S[lit], X[lit], N[lit]
-    # Dsys starts from the ratio with alpha = 1, gamma = 0
-    g0 = float(np.median(S / (rd * f0.intensity[lit])))
-
+    S, X, N, g0 = _lit_pixels(act, base, rd, half, max_pixels, edge_margin_deg)
+    problem = _Radiometry(base, rd, S, X, N)
     th0, ph0 = _angles_from_axis(n)
-
-    # The axis is refined together with the radiometry: with alpha ~ 7 a tenth
-    # of a degree of tilt changes the intensity by ~1 % across the spot, more
-    # than the boundary alone resolves (and an unrefined tilt would be
-    # mistaken for a crescent by the asymmetric model).
-    def cone_of(x, asym=False):
-        kw = dict(alpha=max(x[0], 0.0), gamma_per_mm=max(x[1], 0.0), system_gain_adu=max(x[2], 0.0))
-        if asym:
-            kw.update(asym_amplitude=float(np.clip(x[5], 0.0, 0.95)), asym_phase_rad=float(x[6]))
-        geo = dict(base, axis=tuple(_axis_from_angles(x[3], x[4])))
-        return IlluminationCone(**geo, **kw)
-
-    def resid2(x, asym=False):
-        m = cone_of(x, asym).forward_counts(rd, X, N)
-        return (m - S) / np.sqrt(np.maximum(S, 1.0))    # shot-noise weights
-
-    x0 = np.array([1.0, 0.01, g0 * (1 + 0.01 * np.median(np.linalg.norm(X - c, axis=1))) ** 2,
-                   th0, ph0])
-    lo = [0, 0, 0, th0 - 0.1, ph0 - np.pi]
-    hi = [50, 5, np.inf, th0 + 0.1, ph0 + np.pi]
-    check_cancel(cancel)
-    step = "optimisation 2: alpha, gamma, system gain"
-    report(progress, 0.4, step)
-    sol2 = optimize.least_squares(_watched(resid2, progress, 0.4, step, cancel), x0,
-                                  x_scale="jac", bounds=(lo, hi))
+    sol2, lo, hi = _fit_axisymmetric(problem, c, th0, ph0, g0, progress, cancel)
     xbest, asym_best = sol2.x, False
-    rss = float(np.sum(sol2.fun ** 2))
     nobs = len(S)
-    bic_sym = nobs * np.log(rss / nobs) + 5 * np.log(nobs)
+    bic_sym = _bic(sol2, 5)
     chosen = "axisymmetric"
     bic_asym = None
     if try_asymmetric:
-        sw = 1.0 / np.sqrt(np.maximum(S, 1.0))          # same weights as the fit
-
-        def crescent_start(x):
-            # first azimuthal harmonic of the ratio to the symmetric cone x:
-            # S / model - 1 ~ (theta / Phi)^2 (A cos phi + B sin phi); its phase
-            # is measured in x's azimuth basis, which cone_of() reproduces
-            c2 = cone_of(x)
-            fac = c2.factors(X, N)
-            e1, e2 = c2.azimuth_basis()
-            u = (X - np.asarray(c2.origin_mm)) / np.maximum(fac.distance_mm, 1e-9)[:, None]
-            az = np.arctan2(u @ e2, u @ e1)
-            w = (fac.theta_rad / np.deg2rad(c2.half_angle_deg)) ** 2
-            m2 = c2.forward_counts(rd, X, N)
-            design = np.stack([m2 * w * np.cos(az), m2 * w * np.sin(az)], axis=1) * sw[:, None]
-            (A, B), *_ = np.linalg.lstsq(design, (S - m2) * sw, rcond=None)
-            return np.r_[x, float(np.clip(np.hypot(A, B), 0.01, 0.9)), float(np.arctan2(B, A))]
-
-        # Two starts: the symmetric fit tilts its axis to mimic a crescent (a
-        # local minimum the crescent fit can stay in), while the boundary axis
-        # of optimisation 1 is not biased by the intensity; keep the better.
-        sol3 = None
-        for i, x in enumerate((sol2.x, np.r_[sol2.x[:3], th0, ph0])):
-            check_cancel(cancel)
-            step = f"crescent model, start {i + 1} of 2"
-            report(progress, 0.6 + 0.15 * i, step)
-            s3 = optimize.least_squares(
-                _watched(lambda x: resid2(x, True), progress, 0.6 + 0.15 * i, step, cancel),
-                crescent_start(x), x_scale="jac",
-                bounds=(lo + [0, -2 * np.pi], hi + [0.95, 2 * np.pi]))
-            if sol3 is None or s3.cost < sol3.cost:
-                sol3 = s3
-        rss3 = float(np.sum(sol3.fun ** 2))
-        bic_asym = nobs * np.log(rss3 / nobs) + 7 * np.log(nobs)
+        sol3 = _fit_crescent(problem, sol2, lo, hi, th0, ph0, progress, cancel)
+        bic_asym = _bic(sol3, 7)
         if bic_asym < bic_sym - 10.0:
             chosen = "crescent"
             xbest, asym_best = sol3.x, True
     report(progress, 0.95, "ratio images")
-    cone = cone_of(xbest, asym_best)
+    cone = problem.cone(xbest, asym_best)
     n = cone.unit_axis
-    best = {"alpha": cone.alpha, "gamma_per_mm": cone.gamma_per_mm,
-            "system_gain_adu": cone.system_gain_adu}
-    ratios, all_r = [], []
-    for img, pts_l, nrm_l, act_mask in per_image:
-        model = cone.forward_counts(rd, pts_l, np.broadcast_to(nrm_l, pts_l.shape))
-        ok = act_mask & (model > 0)
-        r = np.full(img.shape, np.nan)
-        r[ok] = img[ok] / model[ok]
-        ratios.append(r)
-        all_r.append(r[ok])
-    all_r = np.concatenate(all_r)
+    ratios, all_r = _ratio_images(cone, rd, per_image)
     return {
         "cone": cone, "origin_mm": list(map(float, c)), "axis": list(map(float, n)),
-        "half_angle_deg": half, "alpha": float(best["alpha"]),
-        "gamma_per_mm": float(best["gamma_per_mm"]), "system_gain_adu": float(best["system_gain_adu"]),
+        "half_angle_deg": half, "alpha": float(cone.alpha),
+        "gamma_per_mm": float(cone.gamma_per_mm), "system_gain_adu": float(cone.system_gain_adu),
         "model": chosen, "bic_axisymmetric": float(bic_sym),
         "bic_crescent": None if bic_asym is None else float(bic_asym),
         "ratio_mean": float(np.mean(all_r)), "ratio_sd": float(np.std(all_r)),
