@@ -26,7 +26,7 @@ exposure where more than half the pixels saturate is reported and not used.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -275,7 +275,7 @@ def _photon_transfer(usable, dark_mean, dark_var):
     fit = mu <= 0.7 * mu_sat
     if fit.sum() < 3:
         fit = np.ones_like(mu, bool)
-    K, var0, ptc_r2 = _linfit(mu[fit], var[fit])
+    K, _, ptc_r2 = _linfit(mu[fit], var[fit])
     if not (np.isfinite(K) and K > 0):
         raise FluoInputError("photon-transfer slope is not positive: frames of one exposure "
                              "differ by more than noise (moving scene or flicker?)",

@@ -136,10 +136,6 @@ def _check_plane_poses(phantom_to_camera, light_from_camera=None, min_span_mm=5.
                              field="phantom_to_camera", value=[round(x, 1) for x in h])
 
 
-def _model_counts(cone, pts, normals, rd):
-    return cone.forward_counts(rd, pts, normals)
-
-
 def _check_inputs(images, phantom_to_camera, rd, light_from_camera):
     """Raise unless there is one pose per image, at least three images, a
     positive reflectance and poses that fix the cone apex."""
@@ -213,7 +209,8 @@ def _determined_geometry(P, progress):
     report(progress, 0.3, "optimisation 1: cone geometry from the boundary")
     c, n, half, sol1 = _fit_geometry(P)
     # identical-looking views let the apex run off to a near-cylinder; the
-    # Jacobian is then singular (measured cond ~1e9 vs 5e2-5e3 for usable sets)
+    # Jacobian is then singular (usable sets lie orders of magnitude below the
+    # limit; docs/calibration-radiometry.md)
     cond = float(np.linalg.cond(sol1.jac))
     if not (np.isfinite(cond) and cond < 1e7 and 0.5 < half < 89.5):
         raise FluoInputError("cone apex not determined by these views (image the phantom at "
