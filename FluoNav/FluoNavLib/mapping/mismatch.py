@@ -30,6 +30,8 @@ Measured per case (of the truly visible pixels; "accepted" = the corrected mask)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from fluoguide.errors import FluoInputError
@@ -85,6 +87,118 @@ def _pooled(rows):
     return out
 
 
+@dataclass(frozen=True)
+class _Bench:
+    """What every view shares: the analytic phantom the frames are made on, the
+    software's meshes ({surface source: caster}), the camera, its coupled light,
+    its radiometry, the true transport and the model-error guard's tolerance."""
+
+    geometry: dict
+    casters: dict
+    cam: object
+    cone: object
+    rc: object
+    transport: float
+    tol: float
+
+
+def _checked_tolerance(cases, n_views, binning, transport, cbct_voxel_mm, max_model_error):
+    """Refuse unusable settings in one line before any work; return the model-error
+    guard's tolerance (``flux_map.DEFAULT_MAX_MODEL_ERROR`` when None)."""
+    from FluoNavLib.mapping.flux_map import DEFAULT_MAX_MODEL_ERROR
+
+    unknown = [c for c in cases if c not in MISMATCH_CASES]
+    if unknown:
+        raise FluoInputError(f"unknown case; choose from {', '.join(MISMATCH_CASES)}",
+                             field="cases", value=unknown[0])
+    if not (isinstance(n_views, (int, np.integer)) and 1 <= n_views <= 32):
+        raise FluoInputError("must be an integer 1..32", field="n_views", value=n_views)
+    if not (isinstance(binning, (int, np.integer)) and 1 <= binning <= 64):
+        raise FluoInputError("must be an integer 1..64", field="binning", value=binning)
+    if not (np.isfinite(transport) and transport > 0):
+        raise FluoInputError("must be a finite number > 0", field="transport", value=transport)
+    if not (np.isfinite(cbct_voxel_mm) and 0.2 <= cbct_voxel_mm <= 2.0):
+        raise FluoInputError("must be within 0.2..2 mm", field="cbct_voxel_mm",
+                             value=cbct_voxel_mm)
+    tol = DEFAULT_MAX_MODEL_ERROR if max_model_error is None else float(max_model_error)
+    if not (np.isfinite(tol) and tol > 0):
+        raise FluoInputError("must be a finite number > 0", field="max_model_error", value=tol)
+    return tol
+
+
+def _software_surfaces(cases, cbct_triangles, seed, cbct_voxel_mm, cancel):
+    """The meshes extracted from the phantom's CBCT that the cases correct with
+    ({"cbct" | "labels" | "mesh-truth": caster}; the analytic "truth" needs none)."""
+    from fluoguide.progress import check_cancel
+
+    from FluoNavLib.mapping.synthetic import oral_cavity_surface
+
+    casters = {}
+    for case in cases:
+        src = MISMATCH_CASES[case][0]
+        if src != "truth" and src not in casters:
+            # the self-consistent case renders on and corrects with the label-map mesh
+            casters[src] = oral_cavity_surface(cbct_triangles, seed=seed, voxel_mm=cbct_voxel_mm,
+                                               source="cbct" if src == "cbct" else "labels")[0]
+            check_cancel(cancel)
+    return casters
+
+
+def _told_pose(pose, errors, hand_eye_error, tracking_error):
+    """The camera pose the software is told: the true pose with the case's errors."""
+    told = pose
+    if "hand-eye" in errors:
+        told = told @ hand_eye_error          # camera-to-tool error, in the camera frame
+    if "tracking" in errors:
+        told = tracking_error @ told          # tool pose error, in the tracker frame
+    return told
+
+
+def _corrected(bench, case, told, hits_true, counts, seed):
+    """One view corrected the way ``case`` does it (its surface, the pose it is told):
+    the stats without and with the model-error guard, and the two images
+    ({"guarded": (T, mask), "unguarded": (T, mask)})."""
+    from FluoNavLib.mapping.flux_map import model_error, transport_image, view_model
+    from FluoNavLib.mapping.pixel_cast import cast_camera
+    from FluoNavLib.mapping.synthetic import exact_oral_cavity_hits, render_hits
+
+    src = MISMATCH_CASES[case][0]
+    cone, rc, transport = bench.cone, bench.rc, bench.transport
+    seen = hits_true
+    S = counts - rc.offset_adu
+    if src == "mesh-truth":                   # the frame made on the software's own mesh
+        seen = hits = cast_camera(bench.casters[src], bench.cam, told)
+        S = render_hits(hits, cone, told, transport, rc, seed=seed)[0] - rc.offset_adu
+    elif src == "truth":
+        hits = exact_oral_cavity_hits(bench.cam, told, bench.geometry)
+    else:
+        hits = cast_camera(bench.casters[src], bench.cam, told)
+    vm = view_model(hits, cone, told)
+    T_hat, ok = transport_image(S, vm, cone)
+    plain = _stats(T_hat, ok, seen.visible, seen, hits, transport)
+    # the exact surface has exact normals: only its occluding rims are doubted
+    caster = None if src == "truth" else bench.casters[src]
+    trusted = ok & (model_error(hits, vm, caster) <= bench.tol)
+    T_g = np.where(trusted, T_hat, 0.0)
+    kept = _stats(T_g, trusted, seen.visible, seen, hits, transport)
+    return plain, kept, {"guarded": (T_g, trusted), "unguarded": (T_hat, ok)}
+
+
+def _settings(n_views, binning, transport, tracking, hand_eye, cbct_voxel_mm, cbct_triangles,
+              tol):
+    """The settings a result carries, so a reader knows what it was measured under."""
+    return {
+        "max_model_error": tol,
+        "views": n_views, "binning": binning, "transport_truth": transport,
+        "tracking_sd": {"translation_mm": tracking.translation_mm,
+                        "rotation_deg": tracking.rotation_deg},
+        "hand_eye_error": {"translation_mm": hand_eye.translation_mm,
+                           "rotation_deg": hand_eye.rotation_deg},
+        "truth_surface": "analytic (block faces, cavity half-ellipsoid, tongue ellipsoid)",
+        "cbct": {"voxel_mm": cbct_voxel_mm, "triangles": cbct_triangles},
+    }
+
+
 def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
                            tracking=PoseError(0.25, 0.1), hand_eye=PoseError(0.3, 0.15),
                            cbct_voxel_mm=0.8, cbct_triangles=62000, max_model_error=None,
@@ -127,54 +241,24 @@ def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
     from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
 
     from FluoNavLib.mapping.contours import miss_rate
-    from FluoNavLib.mapping.flux_map import (
-        DEFAULT_MAX_MODEL_ERROR,
-        model_error,
-        transport_image,
-        view_model,
-    )
     from FluoNavLib.mapping.kernels import prepare_kernels
-    from FluoNavLib.mapping.pixel_cast import cast_camera
     from FluoNavLib.mapping.synthetic import (
         coupled_light,
         exact_oral_cavity_hits,
         open_field_camera,
-        oral_cavity_surface,
         render_hits,
         view_poses,
     )
 
-    unknown = [c for c in cases if c not in MISMATCH_CASES]
-    if unknown:
-        raise FluoInputError(f"unknown case; choose from {', '.join(MISMATCH_CASES)}",
-                             field="cases", value=unknown[0])
-    if not (isinstance(n_views, (int, np.integer)) and 1 <= n_views <= 32):
-        raise FluoInputError("must be an integer 1..32", field="n_views", value=n_views)
-    if not (isinstance(binning, (int, np.integer)) and 1 <= binning <= 64):
-        raise FluoInputError("must be an integer 1..64", field="binning", value=binning)
-    if not (np.isfinite(transport) and transport > 0):
-        raise FluoInputError("must be a finite number > 0", field="transport", value=transport)
-    if not (np.isfinite(cbct_voxel_mm) and 0.2 <= cbct_voxel_mm <= 2.0):
-        raise FluoInputError("must be within 0.2..2 mm", field="cbct_voxel_mm",
-                             value=cbct_voxel_mm)
-    tol = DEFAULT_MAX_MODEL_ERROR if max_model_error is None else float(max_model_error)
-    if not (np.isfinite(tol) and tol > 0):
-        raise FluoInputError("must be a finite number > 0", field="max_model_error", value=tol)
-
+    tol = _checked_tolerance(cases, n_views, binning, transport, cbct_voxel_mm, max_model_error)
     prepare_kernels(progress, 0.0, cancel)      # first run: compiled, reported as it goes
     report(progress, 0.02, "the CBCT surfaces")
     geometry = make_phantom("oral-cavity", voxel_mm=cbct_voxel_mm, seed=seed).truth()["geometry"]
-    casters = {}
-    for case in cases:
-        src = MISMATCH_CASES[case][0]
-        if src != "truth" and src not in casters:
-            # the self-consistent case renders on and corrects with the label-map mesh
-            casters[src] = oral_cavity_surface(cbct_triangles, seed=seed, voxel_mm=cbct_voxel_mm,
-                                               source="cbct" if src == "cbct" else "labels")[0]
-            check_cancel(cancel)
+    casters = _software_surfaces(cases, cbct_triangles, seed, cbct_voxel_mm, cancel)
     cone = coupled_light()
     rc = RadiometricCamera(gain_adu_per_e=1.0)
     cam = open_field_camera(binning=binning)
+    bench = _Bench(geometry, casters, cam, cone, rc, transport, tol)
     rng = np.random.default_rng(seed)
     hand_eye_error = hand_eye.fixed(rng)
     true_poses = view_poses(n_views)
@@ -191,31 +275,12 @@ def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
         raw_rates.append(float(miss_rate(counts - rc.offset_adu, hits_true.visible)[0]))
         for case in cases:
             check_cancel(cancel)
-            src, errors = MISMATCH_CASES[case]
-            told = pose
-            if "hand-eye" in errors:
-                told = told @ hand_eye_error          # camera-to-tool error, in the camera frame
-            if "tracking" in errors:
-                told = tracking_errors[k] @ told      # tool pose error, in the tracker frame
-            seen = hits_true
-            S = counts - rc.offset_adu
-            if src == "mesh-truth":                   # the frame made on the software's own mesh
-                seen = hits = cast_camera(casters[src], cam, told)
-                S = render_hits(hits, cone, told, transport, rc, seed=seed + k)[0] - rc.offset_adu
-            elif src == "truth":
-                hits = exact_oral_cavity_hits(cam, told, geometry)
-            else:
-                hits = cast_camera(casters[src], cam, told)
-            vm = view_model(hits, cone, told)
-            T_hat, ok = transport_image(S, vm, cone)
-            unguarded[case].append(_stats(T_hat, ok, seen.visible, seen, hits, transport))
-            # the exact surface has exact normals: only its occluding rims are doubted
-            caster = None if src == "truth" else casters[src]
-            trusted = ok & (model_error(hits, vm, caster) <= tol)
-            T_g = np.where(trusted, T_hat, 0.0)
-            guarded[case].append(_stats(T_g, trusted, seen.visible, seen, hits, transport))
+            told = _told_pose(pose, MISMATCH_CASES[case][1], hand_eye_error, tracking_errors[k])
+            plain, kept, shown = _corrected(bench, case, told, hits_true, counts, seed + k)
+            unguarded[case].append(plain)
+            guarded[case].append(kept)
             if keep_images and k == min(1, n_views - 1):
-                images[case] = {"guarded": (T_g, trusted), "unguarded": (T_hat, ok)}
+                images[case] = shown
                 images["raw"] = (counts - rc.offset_adu, hits_true.visible)
 
     report(progress, 1.0, "mapping under mismatch done")
@@ -224,14 +289,8 @@ def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
         "cases_unguarded": {c: _pooled(unguarded[c]) for c in cases},
         "per_view": guarded,
         "miss_rate_raw_pct": raw_rates,
-        "max_model_error": tol,
-        "views": n_views, "binning": binning, "transport_truth": transport,
-        "tracking_sd": {"translation_mm": tracking.translation_mm,
-                        "rotation_deg": tracking.rotation_deg},
-        "hand_eye_error": {"translation_mm": hand_eye.translation_mm,
-                           "rotation_deg": hand_eye.rotation_deg},
-        "truth_surface": "analytic (block faces, cavity half-ellipsoid, tongue ellipsoid)",
-        "cbct": {"voxel_mm": cbct_voxel_mm, "triangles": cbct_triangles},
+        **_settings(n_views, binning, transport, tracking, hand_eye, cbct_voxel_mm,
+                    cbct_triangles, tol),
     }
     if keep_images:
         result["images"] = images

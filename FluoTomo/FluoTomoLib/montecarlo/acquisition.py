@@ -269,6 +269,110 @@ def source_task(params, scene):
             "arrays": {"phi": phi, "excitation": ex / (photons * np.pi * r ** 2)}}
 
 
+def _checked_media(labels_kji, ijk_to_ras, optics_x, optics_m, yield_per_label):
+    """The label map's geometry, the MCX property rows at excitation and emission, and
+    the yield of every label [1/mm] (index 0: air), refused in one line when unusable."""
+    geo = LabelMapGeometry(labels_kji, ijk_to_ras)
+    L = int(geo.labels_ijk.max())
+    if L < 1:
+        raise FluoInputError("the label map holds no tissue (all 0)", field="labels")
+    rows_x = _props_table(optics_x, L, "optics_x")
+    rows_m = _props_table(optics_m, L, "optics_m")
+    gamma = np.zeros(L + 1)
+    for lab, y in dict(yield_per_label).items():
+        lab = int(lab)
+        if not (1 <= lab <= L) or not np.isfinite(y) or y < 0:
+            raise FluoInputError("needs labels 1..L and yields >= 0", field=f"yield_per_label[{lab}]",
+                                 value=y)
+        gamma[lab] = float(y)
+    return geo, rows_x, rows_m, gamma
+
+
+def _checked_points(sources_ras, detectors_ras):
+    """The sources and detectors as (S, 3) and (D, 3) arrays [mm], refused when they
+    are not finite points."""
+    src = np.atleast_2d(np.asarray(sources_ras, float))
+    det = np.atleast_2d(np.asarray(detectors_ras, float))
+    for name, pts in (("sources_ras", src), ("detectors_ras", det)):
+        if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+            raise FluoInputError("needs finite (N, 3) points [mm]", field=name, value=pts.shape)
+    return src, det
+
+
+def _acquisition_tasks(geo, rows_x, rows_m, gamma, launch_s, launch_d, det, *, photons, seed,
+                       runs, g, engine_name, detector_radius_mm):
+    """Every MCX run as a task of the run engine, sharing one scene input: per repeat r
+    the detectors' runs, then the sources', seeds counting up from ``seed + r (S + D)``."""
+    import hashlib
+
+    from fluoguide.runs.tasks import Shared, Task
+
+    S, D = len(launch_s), len(launch_d)
+    packed = _pack_scene(geo, rows_x, rows_m, gamma)
+    scene_hash = hashlib.sha1(json.dumps(packed, sort_keys=True).encode()).hexdigest()[:16]
+    scene = Shared(f"Monte Carlo scene {scene_hash}", scene_input, (packed,))
+    common = {"scene": scene_hash, "photons": photons, "g": float(g), "engine": engine_name}
+    tasks = []
+    for r in range(runs):
+        base = seed + r * (S + D)
+        for d, (pos, n_in) in enumerate(launch_d):
+            tasks.append(Task(detector_task, {**common, "kind": "detector", "index": d,
+                                              "repeat": r, "seed": base + d,
+                                              "launch": [pos.tolist(), n_in.tolist()]},
+                              {"scene": scene}))
+        for s, (pos, n_in) in enumerate(launch_s):
+            tasks.append(Task(source_task, {**common, "kind": "source", "index": s, "repeat": r,
+                                            "seed": base + D + s,
+                                            "launch": [pos.tolist(), n_in.tolist()],
+                                            "detectors_ras": det.tolist(),
+                                            "detector_radius_mm": float(detector_radius_mm)},
+                              {"scene": scene}))
+    return tasks
+
+
+def _gathered(out, store, runs, S, D):
+    """The finished runs' arrays by repeat: the detectors' adjoint fluences (runs, D),
+    the sources' excitation fluences (runs, S) and excitation data (runs, S, D), and
+    the warnings they raise; a failed run raises FluoError naming it."""
+    from fluoguide.errors import FluoError
+
+    arrays_of = store.arrays if store is not None else (lambda rec: rec.get("_arrays") or {})
+    warnings = []
+    adj = np.zeros((runs, D), object)
+    phi = np.zeros((runs, S), object)
+    ex = np.zeros((runs, S, D))
+    for rec in out["records"]:
+        p = rec["params"]
+        if rec["status"] != "ok":
+            raise FluoError(f"Monte Carlo run ({p['kind']} {p['index']}, repeat {p['repeat']}, "
+                            f"seed {p['seed']}) failed: {rec['error']}")
+        a = arrays_of(rec)
+        if p["kind"] == "detector":
+            adj[p["repeat"], p["index"]] = a["adjoint"]
+        else:
+            phi[p["repeat"], p["index"]] = a["phi"]
+            ex[p["repeat"], p["index"]] = a["excitation"]
+            if rec["result"].get("exit_records_full"):
+                warnings.append("exit records hit their limit; excitation data may be low")
+    return adj, phi, ex, warnings
+
+
+def _emission(geo, gamma, phi, adj):
+    """The emission datum of every repeat and pair (runs, S, D): the sum over the
+    fluorescing voxels of yield x h^3 x excitation fluence x the detector's adjoint
+    (its C / (4 pi) already applied by detector_task)."""
+    runs, S = phi.shape
+    D = adj.shape[1]
+    yg = _fluorescing(geo, gamma)[1] * geo.h ** 3
+    em = np.zeros((runs, S, D))
+    for r in range(runs):
+        for s in range(S):
+            src_emit = yg * phi[r, s]
+            for d in range(D):
+                em[r, s, d] = float(np.sum(src_emit * adj[r, d]))
+    return em
+
+
 def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras, detectors_ras,
                          yield_per_label, photons, seed=1, runs=2, g=0.9, detector_radius_mm=1.0,
                          engine="auto", progress=None, cancel=None, executor=None, store=None,
@@ -305,11 +409,7 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
     exitance per mm^2 per unit excitation power], ``photons_per_run``, ``runs``,
     ``seeds``, ``seconds``, ``engine``, ``device``, ``warnings``, ``executor``.
     """
-    import hashlib
-
-    from fluoguide.errors import FluoError
     from fluoguide.runs.engine import run_tasks
-    from fluoguide.runs.tasks import Shared, Task
 
     photons = check_photons(photons)
     seed = check_seed(seed)
@@ -317,76 +417,22 @@ def simulate_acquisition(labels_kji, ijk_to_ras, optics_x, optics_m, sources_ras
         raise FluoInputError("must be a whole number from 1 to 100", field="runs", value=runs)
     if not (np.isfinite(detector_radius_mm) and detector_radius_mm > 0):
         raise FluoInputError("must be > 0", field="detector_radius_mm", value=detector_radius_mm)
-    geo = LabelMapGeometry(labels_kji, ijk_to_ras)
-    L = int(geo.labels_ijk.max())
-    if L < 1:
-        raise FluoInputError("the label map holds no tissue (all 0)", field="labels")
-    rows_x = _props_table(optics_x, L, "optics_x")
-    rows_m = _props_table(optics_m, L, "optics_m")
-    gamma = np.zeros(L + 1)
-    for lab, y in dict(yield_per_label).items():
-        lab = int(lab)
-        if not (1 <= lab <= L) or not np.isfinite(y) or y < 0:
-            raise FluoInputError("needs labels 1..L and yields >= 0", field=f"yield_per_label[{lab}]",
-                                 value=y)
-        gamma[lab] = float(y)
-    src = np.atleast_2d(np.asarray(sources_ras, float))
-    det = np.atleast_2d(np.asarray(detectors_ras, float))
-    for name, pts in (("sources_ras", src), ("detectors_ras", det)):
-        if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
-            raise FluoInputError("needs finite (N, 3) points [mm]", field=name, value=pts.shape)
+    geo, rows_x, rows_m, gamma = _checked_media(labels_kji, ijk_to_ras, optics_x, optics_m,
+                                                yield_per_label)
+    src, det = _checked_points(sources_ras, detectors_ras)
     launch_s = [geo.launch(p, f"sources_ras[{i}]") for i, p in enumerate(src)]
     launch_d = [geo.launch(p, f"detectors_ras[{i}]") for i, p in enumerate(det)]
     eng = load_engine(engine) if isinstance(engine, str) else engine
     S, D = len(src), len(det)
     check_seed(seed + runs * (S + D) - 1)
-    packed = _pack_scene(geo, rows_x, rows_m, gamma)
-    scene_hash = hashlib.sha1(json.dumps(packed, sort_keys=True).encode()).hexdigest()[:16]
-    scene = Shared(f"Monte Carlo scene {scene_hash}", scene_input, (packed,))
-    common = {"scene": scene_hash, "photons": photons, "g": float(g), "engine": eng.name}
-    tasks = []
-    for r in range(runs):
-        base = seed + r * (S + D)
-        for d, (pos, n_in) in enumerate(launch_d):
-            tasks.append(Task(detector_task, {**common, "kind": "detector", "index": d,
-                                              "repeat": r, "seed": base + d,
-                                              "launch": [pos.tolist(), n_in.tolist()]},
-                              {"scene": scene}))
-        for s, (pos, n_in) in enumerate(launch_s):
-            tasks.append(Task(source_task, {**common, "kind": "source", "index": s, "repeat": r,
-                                            "seed": base + D + s,
-                                            "launch": [pos.tolist(), n_in.tolist()],
-                                            "detectors_ras": det.tolist(),
-                                            "detector_radius_mm": float(detector_radius_mm)},
-                              {"scene": scene}))
+    tasks = _acquisition_tasks(geo, rows_x, rows_m, gamma, launch_s, launch_d, det,
+                               photons=photons, seed=seed, runs=runs, g=g, engine_name=eng.name,
+                               detector_radius_mm=detector_radius_mm)
     t0 = time.perf_counter()
     out = run_tasks(tasks, store=store, executor=executor, threads=threads, progress=progress,
                     cancel=cancel, label="Monte Carlo acquisition")
-    arrays_of = store.arrays if store is not None else (lambda rec: rec.get("_arrays") or {})
-    warnings = []
-    adj = np.zeros((runs, D), object)
-    phi = np.zeros((runs, S), object)
-    ex = np.zeros((runs, S, D))
-    for rec in out["records"]:
-        p = rec["params"]
-        if rec["status"] != "ok":
-            raise FluoError(f"Monte Carlo run ({p['kind']} {p['index']}, repeat {p['repeat']}, "
-                            f"seed {p['seed']}) failed: {rec['error']}")
-        a = arrays_of(rec)
-        if p["kind"] == "detector":
-            adj[p["repeat"], p["index"]] = a["adjoint"]
-        else:
-            phi[p["repeat"], p["index"]] = a["phi"]
-            ex[p["repeat"], p["index"]] = a["excitation"]
-            if rec["result"].get("exit_records_full"):
-                warnings.append("exit records hit their limit; excitation data may be low")
-    yg = _fluorescing(geo, gamma)[1] * geo.h ** 3
-    em = np.zeros((runs, S, D))
-    for r in range(runs):
-        for s in range(S):
-            src_emit = yg * phi[r, s]
-            for d in range(D):
-                em[r, s, d] = float(np.sum(src_emit * adj[r, d]))
+    adj, phi, ex, warnings = _gathered(out, store, runs, S, D)
+    em = _emission(geo, gamma, phi, adj)
     report(progress, 1.0, "Monte Carlo acquisition done")
     if runs < 2:
         warnings.append("one run per source and detector: no standard errors")
