@@ -113,61 +113,87 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
     Returns (ReconResult of the last pass with ``yield_per_mm`` nodal, list of
     the largest nodal yield after each pass).
     """
-    from fluoguide.progress import check_cancel, report, scaled
-
     method = method.upper()
     passes = (6 if method == "HP" else 1) if passes is None else int(passes)
-
-    def step(k, what):                 # pass k of 1 + passes: its share of the bar
-        share = 1.0 / (passes + 1)
-        return scaled(progress, k * share, (k + 1) * share, f"{method} {what}")
-
     if method != "HP":
-        res = reconstruct(J, y, method, lam=lam, prior=prior, progress=step(0, "first solve"),
-                          region_weights=region_weights, noise_rel=noise_rel)
-        blind = {k: v["mean_yield_per_mm"] for k, v in res.region_confidence.items()}
-        history = [float(np.max(res.yield_per_mm))]
-        for k in range(passes):
-            check_cancel(cancel)
-            report(step(k + 1, f"self-absorption pass {k + 1}"), 0.0, "model with the dye's "
-                   "absorption, its Jacobian")
-            x = res.yield_per_mm
-            model = absorbing_model(make_model, x, mua_bg, yield_bg, mua_per_yield,
-                                    step(k + 1, f"self-absorption pass {k + 1}"), cancel)
-            res = reconstruct(model.jacobian_yield()[mask.ravel()], y, method, lam=lam,
-                              prior=prior, progress=step(k + 1, f"self-absorption pass {k + 1}"),
-                              region_weights=region_weights, noise_rel=noise_rel)
-            history.append(float(np.max(res.yield_per_mm)))
-        # what the feedback still owes: its last pass moved each region by delta;
-        # a contraction q per pass leaves q / (1 - q) delta to come (q measured
-        # 0.25 for a thin tube, 0.62 for a bulk, optically thick target: the
-        # latter taken, so the intervals reach it)
-        if passes:
-            for k, c in res.region_confidence.items():
-                delta = c["mean_yield_per_mm"] - blind.get(k, c["mean_yield_per_mm"])
-                c["feedback_pending_per_mm"] = float(delta * FEEDBACK_PENDING / passes)
-        return res, history
+        return _soft_prior_feedback(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
+                                    mua_per_yield, lam, passes, cancel, progress,
+                                    region_weights, noise_rel)
+    return _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg,
+                                mua_per_yield, lam, passes, rel_tol, cancel, progress,
+                                noise_rel, region_matrix)
 
-    # HP: the unknowns are the region values v, the model's data for region r
-    # are those of the basis K[:, r]; each pass is forward solves only.
+
+def _pass_progress(progress, method, passes, k, what):
+    """Pass ``k`` of 1 + ``passes``: its share of the bar, its messages prefixed by
+    the method and ``what`` it does."""
+    from fluoguide.progress import scaled
+
+    share = 1.0 / (passes + 1)
+    return scaled(progress, k * share, (k + 1) * share, f"{method} {what}")
+
+
+def _soft_prior_feedback(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
+                         mua_per_yield, lam, passes, cancel, progress, region_weights,
+                         noise_rel):
+    """:func:`reconstruct_self_absorbing` for SP (and any method but HP): each pass
+    a new nodal Jacobian with the last result's absorption; the region rows say
+    what the feedback still owes (``feedback_pending_per_mm``)."""
+    from fluoguide.progress import check_cancel, report
+
+    res = reconstruct(J, y, method, lam=lam, prior=prior,
+                      progress=_pass_progress(progress, method, passes, 0, "first solve"),
+                      region_weights=region_weights, noise_rel=noise_rel)
+    blind = {k: v["mean_yield_per_mm"] for k, v in res.region_confidence.items()}
+    history = [float(np.max(res.yield_per_mm))]
+    for k in range(passes):
+        check_cancel(cancel)
+        step = _pass_progress(progress, method, passes, k + 1, f"self-absorption pass {k + 1}")
+        report(step, 0.0, "model with the dye's absorption, its Jacobian")
+        x = res.yield_per_mm
+        model = absorbing_model(make_model, x, mua_bg, yield_bg, mua_per_yield, step, cancel)
+        res = reconstruct(model.jacobian_yield()[mask.ravel()], y, method, lam=lam,
+                          prior=prior, progress=step, region_weights=region_weights,
+                          noise_rel=noise_rel)
+        history.append(float(np.max(res.yield_per_mm)))
+    # what the feedback still owes: its last pass moved each region by delta;
+    # a contraction q per pass leaves q / (1 - q) delta to come (q measured
+    # 0.25 for a thin tube, 0.62 for a bulk, optically thick target: the
+    # latter taken, so the intervals reach it)
+    if passes:
+        for k, c in res.region_confidence.items():
+            delta = c["mean_yield_per_mm"] - blind.get(k, c["mean_yield_per_mm"])
+            c["feedback_pending_per_mm"] = float(delta * FEEDBACK_PENDING / passes)
+    return res, history
+
+
+def _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg, mua_per_yield, lam,
+                         passes, rel_tol, cancel, progress, noise_rel, region_matrix):
+    """:func:`reconstruct_self_absorbing` for HP: the unknowns are the region values
+    v, the model's data for region r are those of the basis K[:, r], so each pass
+    is forward solves only (:func:`_region_data`); Steffensen's iteration
+    (:func:`_aitken`) to convergence, or the blind solution kept where the
+    feedback amplifies instead of contracting."""
+    from fluoguide.progress import check_cancel, report
+
     K = prior.K()
     unknowns = region_unknowns(prior.labels)
     A0 = J @ K if region_matrix is None else np.asarray(region_matrix, float)
     res = first = reconstruct(A0, y, "HP", lam=lam, prior=unknowns,
-                              progress=step(0, "first solve"), noise_rel=noise_rel)
+                              progress=_pass_progress(progress, "HP", passes, 0, "first solve"),
+                              noise_rel=noise_rel)
     values = [res.yield_per_mm.copy()]     # every state the models were built from
     triple = [values[-1]]                  # the current fixed-point sequence
-    stop = res.stop_reason
+    # the stop reason, and carried alongside what callers decide on: whether it
+    # reports a divergence, whether a warning already opens with it
+    stop, diverged, warned = res.stop_reason, res.diverged, res.stop_warned
     for k in range(passes):
         check_cancel(cancel)
-        report(step(k + 1, f"self-absorption pass {k + 1}"), 0.0,
-               f"emission data of {K.shape[1]} regions with the dye's absorption")
-        x = K @ triple[-1]
-        model = absorbing_model(make_model, x, mua_bg, yield_bg, mua_per_yield,
-                                step(k + 1, f"self-absorption pass {k + 1}"), cancel)
-        A = np.stack([model.emission_data(K[:, r])[mask] for r in range(K.shape[1])], axis=1)
-        res = reconstruct(A, y, "HP", lam=lam, prior=unknowns,
-                          progress=step(k + 1, f"self-absorption pass {k + 1}"),
+        step = _pass_progress(progress, "HP", passes, k + 1, f"self-absorption pass {k + 1}")
+        report(step, 0.0, f"emission data of {K.shape[1]} regions with the dye's absorption")
+        A = _region_data(make_model, K @ triple[-1], K, mask, mua_bg, yield_bg, mua_per_yield,
+                         step, cancel)
+        res = reconstruct(A, y, "HP", lam=lam, prior=unknowns, progress=step,
                           noise_rel=noise_rel)
         triple.append(res.yield_per_mm.copy())
         values.append(triple[-1])
@@ -175,6 +201,7 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
         if len(triple) == 2:
             if np.max(np.abs(triple[-1] - triple[-2])) <= rel_tol * scale:
                 stop = f"self-absorption converged ({k + 1} passes)"
+                diverged, warned = False, False
                 break
             continue
         # Steffensen: the feedback contracts linearly (by ~4x per pass for a
@@ -193,13 +220,22 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
             res.warnings = res.warnings + [
                 f"{stop}: the yield ignores the dye's own absorption and is low for an "
                 "absorbing target (docs/tomography.md)"]
+            diverged, warned = True, True
             break
         v_a = _aitken(*triple)
         values.append(v_a)
         if np.max(np.abs(v_a - triple[-1])) <= rel_tol * scale:
             stop = f"self-absorption converged (Aitken, {k + 1} passes)"
+            diverged, warned = False, False
             break
         triple = [v_a]
     res.yield_per_mm = K @ values[-1]
-    res.stop_reason = stop
+    res.stop_reason, res.diverged, res.stop_warned = stop, diverged, warned
     return res, [float(np.max(K @ v)) for v in values]
+
+
+def _region_data(make_model, x, K, mask, mua_bg, yield_bg, mua_per_yield, progress, cancel):
+    """(M, R) the used data of each region's basis K[:, r] in the model with the
+    absorption of the nodal yield ``x`` (:func:`absorbing_model`)."""
+    model = absorbing_model(make_model, x, mua_bg, yield_bg, mua_per_yield, progress, cancel)
+    return np.stack([model.emission_data(K[:, r])[mask] for r in range(K.shape[1])], axis=1)

@@ -40,6 +40,7 @@ data can move it (study B, 6.5 mm: -89 % instead of -1 %).
 
 from __future__ import annotations
 
+import enum
 import time
 from dataclasses import dataclass, field
 
@@ -47,6 +48,66 @@ import numpy as np
 
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel, report, scaled
+
+
+class Stop(enum.Enum):
+    """Why the iterations ended; the value is the reason's words
+    (``{:.0%}``: the relative tolerance)."""
+    MAX_ITER = "max_iter"
+    ROUNDING = "residual at rounding level"
+    CONVERGED = "residual change < {:.0%}"
+    RUNAWAY = "diverged"
+    NOT_FINITE = "diverged (not finite)"
+    ALL_ZERO = "diverged (every unknown clipped to zero)"
+
+
+class Rise(enum.Enum):
+    """What became of a run whose residual ended above its lowest value."""
+    NONE = "the residual ended at its lowest"
+    LOWEST_KEPT = "the iterate with the lowest residual kept"
+    CLIP = "left at the non-negativity clip's rise"
+
+
+@dataclass
+class StopReason:
+    """Why a run ended: the words a reader sees (``text``, the result's
+    ``stop_reason``) and, carried alongside, the facts the solver and
+    :func:`diagnose` act on, so that no decision reads the words."""
+    kind: Stop
+    text: str
+    rise: Rise = Rise.NONE
+    stalled: bool = False
+
+    @classmethod
+    def of(cls, kind, rel_tol):
+        return cls(kind, kind.value.format(rel_tol))
+
+    def __str__(self):
+        return self.text
+
+    @property
+    def diverged(self):
+        return self.kind in (Stop.RUNAWAY, Stop.NOT_FINITE, Stop.ALL_ZERO)
+
+    @property
+    def clip_fought(self):
+        """The non-negativity clip fought the steps: the residual rose at it, or
+        every unknown was clipped to zero (and the lowest iterate kept)."""
+        return self.rise is Rise.CLIP or (self.rise is Rise.LOWEST_KEPT
+                                          and self.kind is Stop.ALL_ZERO)
+
+    def lowest_kept(self, it_best):
+        self.rise = Rise.LOWEST_KEPT
+        self.text = f"{self.text}; residual rose: iteration {it_best} (lowest residual) kept"
+
+    def rose_at_clip(self, rose):
+        self.rise = Rise.CLIP
+        self.text = (f"{self.text}; residual rose {rose:.3g}x above its lowest "
+                     "(non-negativity clip)")
+
+    def stalled_by_damping(self):
+        self.stalled = True
+        self.text = f"{self.text} (stalled by the damping)"
 
 
 @dataclass
@@ -62,6 +123,11 @@ class ReconResult:
     stop_reason: str = ""
     diagnostics: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    #: the stop reason reports a divergence (the solver's, or the self-absorption
+    #: feedback's), and ``stop_warned``: one of ``warnings`` opens with the stop
+    #: reason; a caller decides on these, not on the words (not in ``summary``)
+    diverged: bool = False
+    stop_warned: bool = False
 
     @property
     def residual(self):
@@ -305,137 +371,234 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     method = str(method).upper()
     _check_inputs(J, y, method, lam, prior, log_data)
     sigma = _noise_model(y, noise_sd, noise_rel)
-
     K = prior.K() if method == "HP" else None
+    A_s, y_s, x_exp, b_exp = _exact_scaling(_unknowns_matrix(J, K, region_jacobian, prior), y,
+                                            log_data)
+    nonlinear = bool(log_data or normalise)
+    x = _start(A_s, y_s, x0, x_exp, K, prior, log_data, nonlinear)
+    x_start = x.copy()
+    if lambda_decay is None:
+        lambda_decay = 10 ** 0.25 if method == "HP" else 1.0
+    run = _Run.start(A_s, y_s, x, log_data)
+    _iterate(run, method, prior, A_s, y_s, x_start, log_data, normalise, nonneg, lam,
+             lambda_decay, max_iter, rel_tol, progress, cancel)
+    relinearise = _keep_lowest(run, nonlinear, rel_tol)
+    if relinearise and (not normalise or np.any(run.x > 0)):
+        # diagnostics and confidence at the final linearisation
+        run.system = _step_system(method, prior, run.Jm, run.x, normalise, run.lam)
+    diag, warn = diagnose(method, A_s, y_s, run.x, run.resid, run.system[4], log_data,
+                          sigma if sigma is None else np.ldexp(sigma, -b_exp), run.history,
+                          run.stop, run.it, max_iter, rel_tol, x0_given=x0 is not None,
+                          x_start=x_start, x_exp=x_exp,
+                          region_labels=prior.labels if K is not None else None,
+                          lam_final=run.lam)
+    if diag["over_regularised"]:
+        run.stop.stalled_by_damping()
+    # for the intervals: what the damped iterations kept of the start (the
+    # solver's bias at its own result), and how much of the residual the stated
+    # noise cannot explain (the model's own error, in the data's units)
+    resolution = None if relinearise else _resolution(
+        run, method, prior, K, x_start, lam, lambda_decay, progress, max_iter, cancel)
+    s_fit, excess = _model_excess(run.resid, y, sigma, log_data, b_exp, diag["residual_dof"])
+    return _result(run, method, lam, prior, K, x_exp, b_exp, diag, warn, resolution, excess,
+                   s_fit, region_weights, t0)
+
+def _unknowns_matrix(J, K, region_jacobian, prior):
+    """The data's sensitivity to the unknowns: J (NP, SP) or to each region's yield
+    (HP, :func:`_region_matrix`); refused where it is zero."""
     A = J if K is None else _region_matrix(J, K, region_jacobian, prior)
     if not np.any(A):
         raise FluoInputError("the Jacobian is zero: no detector is sensitive to any node "
                              "(detectors away from the tissue, or sources outside it)",
                              field="J")
-    # Work with A / 2^a and y / 2^b (x scaled by 2^(a-b)): exact in floating
-    # point, so results are bit for bit those of the unscaled problem, but a
-    # Jacobian in units that make J^T J underflow (1e-160) or overflow still
-    # works; log data are fitted as they are (a scale is a shift of ln y).
+    return A
+
+
+def _exact_scaling(A, y, log_data):
+    """Work with A / 2^a and y / 2^b (x scaled by 2^(a-b)): exact in floating
+    point, so results are bit for bit those of the unscaled problem, but a
+    Jacobian in units that make J^T J underflow (1e-160) or overflow still
+    works; log data are fitted as they are (a scale is a shift of ln y).
+    Returns (A_s, y_s, x_exp, b_exp): x_scaled = x * 2^x_exp, y_s = y / 2^b_exp."""
     a_exp = int(np.frexp(np.max(np.abs(A)))[1])
     b_exp = 0 if log_data else int(np.frexp(np.max(np.abs(y)))[1])
-    A_s = np.ldexp(A, -a_exp)
-    y_s = np.ldexp(y, -b_exp)
-    x_exp = a_exp - b_exp                 # x_scaled = x * 2^x_exp
+    return np.ldexp(A, -a_exp), np.ldexp(y, -b_exp), a_exp - b_exp, b_exp
+
+
+def _start(A_s, y_s, x0, x_exp, K, prior, log_data, positive):
+    """The starting unknowns in the solver's units: :func:`_initial_guess` of the
+    caller's ``x0`` [1/mm] scaled by 2^x_exp. ``positive`` (log data or a
+    normalised Jacobian): a start without a positive value is refused, as those
+    schemes cannot move from it."""
     if x0 is not None and np.ndim(x0) == 0:
         x0 = float(x0)
     if x0 is not None:
         x0 = np.ldexp(np.asarray(x0, float), x_exp)
-    nonlinear = bool(log_data or normalise)
     counts = prior.counts if K is not None else None
-    x = _initial_guess(A_s, y_s, x0, K, counts, log_data, nonlinear)
-    if nonlinear and not np.any(x > 0):
+    x = _initial_guess(A_s, y_s, x0, K, counts, log_data, positive)
+    if positive and not np.any(x > 0):
         raise FluoInputError("the starting yield must be positive for log data or a "
                              "normalised Jacobian", field="x0")
-    x_start = x.copy()
-    resid, Jm = _linearise(A_s, y_s, x, log_data)
-    history = [float(resid @ resid)]
+    return x
+
+
+@dataclass
+class _Run:
+    """The state of one run of the iterations, in the solver's rescaled units:
+    the iterate ``x``, its residual and linearisation ``Jm``, the residual sums
+    of squares so far (``history``), the lowest one's (rss, iteration, x,
+    residual, Jacobian) as ``best``, why the run ended (``stop``), its last
+    iteration ``it``, the fraction of unknowns the last step clipped, and the
+    step system (:func:`_step_system`: col, Jc, R^-1, R^-1 Jc^T, data-space
+    system) with the damping ``lam`` it was built for."""
+    x: np.ndarray
+    resid: np.ndarray
+    Jm: np.ndarray
+    history: list
+    best: tuple
+    stop: StopReason | None = None
+    it: int = 0
+    clipped: float = 0.0
+    lam: float | None = None
+    system: tuple = (None, None, None, None, None)
+
+    @classmethod
+    def start(cls, A, y, x, log_data):
+        resid, Jm = _linearise(A, y, x, log_data)
+        history = [float(resid @ resid)]
+        return cls(x, resid, Jm, history, (history[0], 0, x, resid, Jm))
+
+
+def _iterate(run, method, prior, A, y, x_start, log_data, normalise, nonneg, lam, decay,
+             max_iter, rel_tol, progress, cancel):
+    """The projected Levenberg-Marquardt iterations (the module's docstring) from
+    ``run``'s start, until a stop test (:func:`_stop_test`) ends them or
+    ``max_iter`` pass; ``run`` holds the state they leave and the
+    :class:`StopReason`. ``x_start``: the start, for the units check of a run
+    that clipped every unknown to zero."""
+    nonlinear = bool(log_data or normalise)
     # data fitted to rounding: the residual only jitters from here on (relative
     # changes of any size), so stop instead of running to max_iter
-    fitted = np.log(np.maximum(y_s, np.finfo(float).tiny)) if log_data else y_s
+    fitted = np.log(np.maximum(y, np.finfo(float).tiny)) if log_data else y
     floor = (64 * np.finfo(float).eps) ** 2 * float(np.dot(fitted, fitted))
-    stop = "max_iter"
-    clipped = 0.0
+    run.stop = StopReason.of(Stop.MAX_ITER, rel_tol)
+    history = run.history
     lam_k = float(lam)
-    if lambda_decay is None:
-        lambda_decay = 10 ** 0.25 if method == "HP" else 1.0
-    cached_lam = None
-    col = None
-    ds = None
-    best = (history[0], 0, x, resid, Jm)     # (rss, iteration, x, residual, Jacobian)
     for it in range(1, max_iter + 1):
+        run.it = it
         check_cancel(cancel)
         # J is fixed for linear data and no normalisation: refactor only when
         # lambda changes; otherwise the linearisation moves every iteration
-        if nonlinear or lam_k != cached_lam:
-            col, Jc, Rinv, RJt, ds = _step_system(method, prior, Jm, x, normalise, lam_k)
-            cached_lam = lam_k
-        step = RJt @ ds.solve(resid)
-        x_prev, resid_prev, Jm_prev = x, resid, Jm
-        x = x + (step * col if normalise else step)
+        if nonlinear or lam_k != run.lam:
+            run.system = _step_system(method, prior, run.Jm, run.x, normalise, lam_k)
+            run.lam = lam_k
+        col, _, _, RJt, ds = run.system
+        step = RJt @ ds.solve(run.resid)
+        x = run.x + (step * col if normalise else step)
         if nonneg:
             neg = x < 0
-            clipped = float(np.mean(neg))
+            run.clipped = float(np.mean(neg))
             x[neg] = 0.0
         if normalise and not np.any(x > 0):
-            # a normalised Jacobian cannot move a zero yield: the run ends here
-            ratio = _data_to_model(A_s, y_s, x_start, log_data)
+            # a normalised Jacobian cannot move a zero yield: the run ends here,
+            # at the iterate before
+            ratio = _data_to_model(A, y, x_start, log_data)
             if not (1e-3 <= ratio <= 1e3):
                 raise FluoInputError(
                     f"iteration {it} drove every unknown to zero: the data are {ratio:.3g} "
                     "times what the model predicts at the starting yield; are the data in "
                     "the Jacobian's units (boundary fluence per W of source, 1/mm^2)?",
                     field="y")
-            x, resid, Jm = x_prev, resid_prev, Jm_prev
             history.append(history[-1])
-            stop = "diverged (every unknown clipped to zero)"
-            break
-        resid, Jm = _linearise(A_s, y_s, x, log_data)
+            run.stop = StopReason.of(Stop.ALL_ZERO, rel_tol)
+            return
+        resid, Jm = _linearise(A, y, x, log_data)
         history.append(float(resid @ resid))
         report(progress, it / max_iter, f"{method} iteration {it}: residual {history[-1]:.3g}")
         if not (np.isfinite(history[-1]) and np.all(np.isfinite(x))):
-            x, resid, Jm = x_prev, resid_prev, Jm_prev
+            # the iterate before is kept
             history[-1] = history[-2]
-            stop = "diverged (not finite)"
-            break
-        if history[-1] < best[0]:
-            best = (history[-1], it, x, resid, Jm)
-        elif history[-1] > RUNAWAY * best[0]:
-            stop = "diverged"
-            break
-        if history[-1] <= floor:
-            stop = "residual at rounding level"
-            break
-        if history[-2] > 0 and abs(history[-2] - history[-1]) / history[-2] < rel_tol:
-            stop = "residual change < {:.0%}".format(rel_tol)
-            break
-        lam_k /= lambda_decay
-    rose = history[-1] / best[0] if best[0] > 0 else 1.0
-    if rose > RUNAWAY or (nonlinear and rose > 1 + rel_tol) or stop.startswith("diverged"):
-        # an under-damped log / normalised model overshoots (lambda 1e-10 ran
-        # NP to a yield of 1e64): return the iterate with the lowest residual
-        # (a step may overshoot and the next recover: only the end is judged).
-        # With linear data the residual can rise only by the non-negativity
-        # clip; that is left as it is (and warned about below)
-        _, it_best, x, resid, Jm = best
-        stop = f"{stop}; residual rose: iteration {it_best} (lowest residual) kept"
-        history.append(best[0])
-        nonlinear = True            # relinearise the diagnostics at the kept iterate
-    elif rose > 1 + rel_tol:
-        stop = f"{stop}; residual rose {rose:.3g}x above its lowest (non-negativity clip)"
-    if nonlinear and (not normalise or np.any(x > 0)):
-        # diagnostics and confidence at the final linearisation
-        col, Jc, Rinv, RJt, ds = _step_system(method, prior, Jm, x, normalise, cached_lam)
-    diag, warn = diagnose(method, A_s, y_s, x, resid, ds, log_data, sigma if sigma is None
-                          else np.ldexp(sigma, -b_exp), history, stop, it, max_iter, rel_tol,
-                          x0_given=x0 is not None, x_start=x_start, x_exp=x_exp,
-                          region_labels=prior.labels if K is not None else None,
-                          lam_final=cached_lam)
-    if diag["over_regularised"]:
-        stop = f"{stop} (stalled by the damping)"
-    # for the intervals: what the damped iterations kept of the start (the
-    # solver's bias at its own result), and how much of the residual the stated
-    # noise cannot explain (the model's own error, in the data's units)
-    resolution = None
-    if not nonlinear and ds is not None:
-        Kb = np.eye(A_s.shape[1]) if K is not None else prior.K()
-        resolution = (Kb, _unresolved(method, prior, Jm, np.column_stack([Kb, x_start]),
-                                      len(history) - 1, lam, lambda_decay,
-                                      {cached_lam: (RJt, ds)},
-                                      scaled(progress, it / max_iter, 1.0), cancel))
-    excess = s_fit = None
-    if sigma is not None:
-        s_fit = np.broadcast_to(sigma / np.abs(y) if log_data else np.ldexp(sigma, -b_exp),
-                                y.shape)
-        expected = float(np.sum(s_fit ** 2)) * max(diag["residual_dof"], 0.0) / len(y)
-        excess = float(np.sqrt(max(float(resid @ resid) - expected, 0.0)))
-    x = np.ldexp(x, -x_exp)
+            run.stop = StopReason.of(Stop.NOT_FINITE, rel_tol)
+            return
+        run.x, run.resid, run.Jm = x, resid, Jm
+        kind = _stop_test(run, floor, rel_tol)
+        if kind is not None:
+            run.stop = StopReason.of(kind, rel_tol)
+            return
+        lam_k /= decay
+
+
+def _stop_test(run, floor, rel_tol):
+    """After iteration ``run.it``: note it if its residual is the lowest so far,
+    and say which :class:`Stop` ends the run (None: go on): a residual run away
+    from its lowest, at rounding level, or changed by less than ``rel_tol``."""
+    history = run.history
+    if history[-1] < run.best[0]:
+        run.best = (history[-1], run.it, run.x, run.resid, run.Jm)
+    elif history[-1] > RUNAWAY * run.best[0]:
+        return Stop.RUNAWAY
+    if history[-1] <= floor:
+        return Stop.ROUNDING
+    if history[-2] > 0 and abs(history[-2] - history[-1]) / history[-2] < rel_tol:
+        return Stop.CONVERGED
+    return None
+
+
+def _keep_lowest(run, nonlinear, rel_tol):
+    """The end of a run whose residual rose above its lowest value. An
+    under-damped log / normalised model overshoots (lambda 1e-10 ran NP to a
+    yield of 1e64): the iterate with the lowest residual is returned (a step
+    may overshoot and the next recover: only the end is judged). With linear
+    data the residual can rise only by the non-negativity clip; that is left as
+    it is (and :func:`diagnose` warns of it). Returns whether the diagnostics
+    need the step system rebuilt at the final iterate (a nonlinear model, or
+    the lowest iterate kept)."""
+    rose = run.history[-1] / run.best[0] if run.best[0] > 0 else 1.0
+    if rose > RUNAWAY or (nonlinear and rose > 1 + rel_tol) or run.stop.diverged:
+        _, it_best, run.x, run.resid, run.Jm = run.best
+        run.stop.lowest_kept(it_best)
+        run.history.append(run.best[0])
+        return True
+    if rose > 1 + rel_tol:
+        run.stop.rose_at_clip(rose)
+    return nonlinear
+
+
+def _resolution(run, method, prior, K, x_start, lam, decay, progress, max_iter, cancel):
+    """For the intervals (:func:`_region_confidence`'s ``resolution``): the region
+    basis and what the damped iterations left unresolved of it and of the start
+    (:func:`_unresolved`: the solver's bias at its own result); None where no
+    step system was built. Linear data only: the caller passes nothing else."""
+    RJt, ds = run.system[3:]
+    if ds is None:
+        return None
+    Kb = np.eye(run.Jm.shape[1]) if K is not None else prior.K()
+    return (Kb, _unresolved(method, prior, run.Jm, np.column_stack([Kb, x_start]),
+                            len(run.history) - 1, lam, decay, {run.lam: (RJt, ds)},
+                            scaled(progress, run.it / max_iter, 1.0), cancel))
+
+
+def _model_excess(resid, y, sigma, log_data, b_exp, dof):
+    """The stated noise in the fit's units and how much of the residual it cannot
+    explain (the model's own error, in the data's units, for the intervals);
+    (None, None) without a noise model."""
+    if sigma is None:
+        return None, None
+    s_fit = np.broadcast_to(sigma / np.abs(y) if log_data else np.ldexp(sigma, -b_exp),
+                            y.shape)
+    expected = float(np.sum(s_fit ** 2)) * max(dof, 0.0) / len(y)
+    return s_fit, float(np.sqrt(max(float(resid @ resid) - expected, 0.0)))
+
+
+def _result(run, method, lam, prior, K, x_exp, b_exp, diag, warn, resolution, excess, s_fit,
+            region_weights, t0):
+    """The :class:`ReconResult` in the caller's units: the nodal yield [1/mm], each
+    region's confidence (:func:`_region_confidence`) and the residual history in
+    the data's units."""
+    col, Jc, Rinv, _, ds = run.system
+    x = np.ldexp(run.x, -x_exp)
     x_nodes = K @ x if K is not None else x
-    conf = _region_confidence(Jc, Rinv, ds, resid, prior, x_nodes, method, col,
+    conf = _region_confidence(Jc, Rinv, ds, run.resid, prior, x_nodes, method, col,
                               diag["residual_dof"], diag.get("noise_variance_fit"),
                               undetermined=diag["underdetermined"],
                               x_scale=2.0 ** (-x_exp), region_weights=region_weights,
@@ -443,9 +606,10 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
                               resolution=resolution, x_scaled=np.ldexp(x, x_exp),
                               model_excess=excess, noise_sd=s_fit)
     diag.pop("noise_variance_fit", None)
-    history = [float(np.ldexp(h, 2 * b_exp)) for h in history]    # in the data's units
-    return ReconResult(method, float(lam), x_nodes, it, history, time.perf_counter() - t0,
-                       conf, clipped, stop, diag, warn)
+    history = [float(np.ldexp(h, 2 * b_exp)) for h in run.history]    # in the data's units
+    return ReconResult(method, float(lam), x_nodes, run.it, history, time.perf_counter() - t0,
+                       conf, run.clipped, run.stop.text, diag, warn,
+                       diverged=run.stop.diverged)
 
 
 def _unresolved(method, prior, Jm, V, iterations, lam, decay, cache, progress=None,
@@ -721,7 +885,8 @@ def diagnose(method, A, y, x, resid, ds, log_data, sigma, history, stop, iterati
     Thresholds: the module constants PLAUSIBLE_YIELD_PER_MM, MISFIT_WARN,
     CHI2_WARN, STALL_FRACTION, WEAK_DAMPING, P_EFF_WARN (docs/reconstruction.md,
     "Diagnostics").  ``A``, ``y``, ``x``, ``resid`` and ``sigma`` are in the
-    solver's rescaled units (``x_exp``: x_scaled = x 2^x_exp).
+    solver's rescaled units (``x_exp``: x_scaled = x 2^x_exp).  ``stop``: the
+    run's :class:`StopReason` (its flags decide, its words are quoted).
 
     Returns (diagnostics dict, list of warning strings).
     """
@@ -903,7 +1068,7 @@ def _structure_and_units(A, y, sigma, log_data, p, nu, rss, x_exp, x0_given, x_s
 def _damping(ds, resid, rss, lam_final, noise_var_fit, M, stop, sigma, misfit, iterations,
              max_iter, history, diag, warn):
     """:func:`diagnose`'s convergence: a run the damping stalled, one that ran out of
-    iterations, one whose residual rose or diverged."""
+    iterations, one whose residual rose or diverged (from ``stop``'s flags)."""
     stalled = False
     if ds is not None and rss > 0:
         # the weak reference: 1e4 x less damping, and at most lambda 1e-4
@@ -912,8 +1077,8 @@ def _damping(ds, resid, rss, lam_final, noise_var_fit, M, stop, sigma, misfit, i
         possible = rss - weak
         floor = noise_var_fit * M if noise_var_fit is not None else 0.0
         diag["damped_step_fraction"] = float((rss - damped) / possible) if possible > 0 else 1.0
-        stalled = (stop != "residual at rounding level"
-                   and "diverged" not in stop and "residual rose" not in stop
+        stalled = (stop.kind is not Stop.ROUNDING
+                   and not stop.diverged and stop.rise is Rise.NONE
                    and possible > 0.5 * rss
                    and diag["damped_step_fraction"] < STALL_FRACTION
                    and rss > max(floor * CHI2_WARN, 0.0)
@@ -924,14 +1089,14 @@ def _damping(ds, resid, rss, lam_final, noise_var_fit, M, stop, sigma, misfit, i
                     "because the damping keeps every step small, not because the fit "
                     f"converged: a 1e4 times weaker damping would remove "
                     f"{100 * (1 - weak / rss):.0f} % of the residual; lower lambda")
-    elif stop == "max_iter":
+    elif stop.kind is Stop.MAX_ITER and stop.rise is Rise.NONE:
         last = abs(history[-2] - history[-1]) / history[-2] if history[-2] > 0 else 0.0
         warn.append(f"not converged: {max_iter} iterations, the residual still changed by "
                     f"{100 * last:.2g} % in the last one")
-    if "residual rose" in stop and "clip" in stop:
+    if stop.clip_fought:
         warn.append(f"the residual ended above its lowest value ({stop}): the non-negativity "
                     "clip fights the steps at this damping; raise lambda")
-    elif "diverged" in stop or "residual rose" in stop:
+    elif stop.diverged or stop.rise is not Rise.NONE:
         warn.append(f"diverging ({stop}): the log / normalised model's linearisation fails "
                     "at this damping, or rounding dominates the step; the iterate with the "
                     "lowest residual is returned; raise lambda")

@@ -582,9 +582,9 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
             settings, h, roi_info, notes, timings, src, det, d_src, d_det, seconds):
     """The summary and volumes of one method's solution."""
     vol = nodal_to_grid(mesh, res.yield_per_mm, lm)
-    # a diverged run says so once: the solver's own warning repeats the stop reason
-    if "diverged" in res.stop_reason and not any(w.startswith(res.stop_reason)
-                                                 for w in res.warnings):
+    # a diverged run says so once: unless a warning of the result opens with the
+    # stop reason (the self-absorption feedback's), the reason is a note of its own
+    if res.diverged and not res.stop_warned:
         notes.append(res.stop_reason)
     # the solver's own diagnostics (under-determination, fit, damping): a
     # result it warns about may be far from the truth, for the reasons given
