@@ -370,6 +370,9 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     y = np.asarray(y, float).ravel()
     method = str(method).upper()
     _check_inputs(J, y, method, lam, prior, log_data)
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise FluoInputError("max_iter must be a whole number of iterations, at least 1",
+                             field="max_iter", value=max_iter)
     sigma = _noise_model(y, noise_sd, noise_rel)
     K = prior.K() if method == "HP" else None
     A_s, y_s, x_exp, b_exp = _exact_scaling(_unknowns_matrix(J, K, region_jacobian, prior), y,

@@ -187,3 +187,10 @@ def test_new_options_explain_bad_input(problem):
         region_jacobian(J, region[:-1], prior.labels)
     with pytest.raises(FluoInputError, match="positive"):
         reconstruct(J, y, "NP", normalise=True, x0=0.0)
+
+
+@pytest.mark.parametrize("max_iter", [0, -3, 2.5, True])
+def test_no_iteration_budget_is_refused_in_one_line(max_iter):
+    J = np.eye(3)
+    with pytest.raises(FluoInputError, match="max_iter"):
+        reconstruct(J, np.ones(3), method="NP", max_iter=max_iter)
