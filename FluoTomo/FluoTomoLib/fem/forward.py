@@ -263,14 +263,6 @@ class FluorescenceModel:
         and ``element_size_needed_mm`` (the largest size that keeps every pair
         within ``target``, NaN if none does; None if every pair already is).
         """
-        from FluoTomoLib.fem.resolution import (
-            element_sizes,
-            log_error_estimate,
-            pair_sizes,
-            required_size,
-        )
-        from FluoTomoLib.optics import NEAR_SOURCE_MFP, diffusion_validity, mueff
-
         warnings_, refuse = list(self.notes), []
         report = {"target_rel_err": float(target), "estimated_rel_err": {},
                   "negative_nodes": {}, "element_size_needed_mm": None}
@@ -281,55 +273,98 @@ class FluorescenceModel:
             if w not in ("excitation", "emission"):
                 raise FluoInputError("use excitation and/or emission", field="wavelengths",
                                      value=w)
-            op = self.op_x if w == "excitation" else self.op_m
-            me = float(np.max(mueff(op.mua, op.musp)))
-            mt = float(np.max(op.mua + op.musp))
-            warnings_ += [f"{w}: {m}" for m in diffusion_validity(op.mua, op.musp)]
-            h, rho = pair_sizes(self.mesh, self.sources_mm, q_src, q_det, mueff(op.mua, op.musp))
-            worst = np.expm1(log_error_estimate(me * h, mt * h, rho / h, op.n))
-            median = np.expm1(log_error_estimate(me * h, mt * h, rho / h, op.n, worst=False))
-            over = worst > target
-            near = rho < NEAR_SOURCE_MFP / mt
-            report["estimated_rel_err"][w] = {
-                "worst_case": _finite_or_none(worst), "median_case": _finite_or_none(median),
-                "worst_case_max": _finite_or_none(np.max(worst)),
-                "median_case_max": _finite_or_none(np.max(median)),
-                "pairs": int(worst.size), "pairs_over_target": int(over.sum()),
-                "element_size_mm": h.tolist(), "mueff_h_max": float(me * h.max())}
-            if np.any(near):
-                warnings_.append(f"{w}: {int(near.sum())} pair(s) are within {NEAR_SOURCE_MFP:g} "
-                                 f"transport mean free paths ({NEAR_SOURCE_MFP / mt:.3g} mm): "
-                                 "diffusion theory itself over-predicts there")
-            if np.any(over):
-                need = required_size(me, mt, rho[over], h[over], op.n, target)
-                needed.append(float(np.min(need)) if np.all(np.isfinite(need)) else np.nan)
-                s, d = np.unravel_index(np.argmax(np.where(over, worst, -1)), worst.shape)
-                worst_txt = ("beyond the measured range" if not np.isfinite(worst[s, d])
-                             else f"up to {100 * worst[s, d]:.3g} %")
-                warnings_.append(
-                    f"{w}: {int(over.sum())} of {over.size} source-detector pairs may be off by "
-                    f"more than {100 * target:g} % ({worst_txt} for source {s} -> detector {d}, "
-                    f"rho {rho[s, d]:.3g} mm, elements ~{h[s, d]:.3g} mm there, mueff "
-                    f"{me:.3g} /mm; median case {100 * np.max(median[over]):.3g} %)")
-            if np.any(~np.isfinite(worst)):
-                refuse.append(f"{w}: elements of ~{float(np.max(h)):.3g} mm are too coarse for "
-                              f"mueff {me:.3g} /mm (mueff h = {me * float(np.max(h)):.3g}; "
-                              "measured on Kuhn cubes, the fluence goes negative from mueff h "
-                              "1.0-1.4 on, docs/fem.md)")
+            need = self._pair_errors(w, target, q_src, q_det, report, warnings_, refuse)
+            if need is not None:
+                needed.append(need)
         if needed:
-            size = float(np.nanmin(needed)) if np.any(np.isfinite(needed)) else np.nan
-            report["element_size_needed_mm"] = size
-            h_el = element_sizes(self.mesh)
-            region = self._optode_region_elements()
-            if np.isfinite(size):
-                big = region & (h_el > size)
-                warnings_.append(f"elements of at most {size:.3g} mm around the optodes and along "
-                                 f"the paths between them would keep every pair within "
-                                 f"{100 * target:g} %; {int(big.sum())} of the {int(region.sum())} "
-                                 "elements there are larger")
-            else:
-                warnings_.append("some detectors are so close to their source that no element "
-                                 "size keeps them within the target: read them with care")
+            self._size_needed(needed, target, report, warnings_)
+        self._field_signs(wavelengths, report, warnings_, refuse)
+        y = self.excitation_data()
+        if np.any(y <= 0):
+            refuse.append(f"excitation: {int(np.sum(y <= 0))} detector value(s) are zero or "
+                          "negative")
+        for op in (self.op_x, self._op_m):
+            if op is not None and getattr(op, "unconverged", None):
+                warnings_.append(f"{op.name}: {op.unconverged}")
+        report["warnings"] = warnings_
+        report["refuse"] = refuse
+        return report
+
+    def _pair_errors(self, w, target, q_src, q_det, report, warnings_, refuse):
+        """:meth:`accuracy`'s estimate for wavelength ``w`` of every source-detector
+        pair's discretisation error (into ``report["estimated_rel_err"][w]``),
+        with the diffusion validity, pairs too near their source and pairs over
+        ``target`` in ``warnings_``, and elements beyond the measured range in
+        ``refuse``.  ``q_src``, ``q_det``: the optodes on the surface [mm].
+        Returns the largest element size [mm] that keeps every pair within
+        ``target`` (NaN if none does), or None if every pair already is."""
+        from FluoTomoLib.fem.resolution import log_error_estimate, pair_sizes, required_size
+        from FluoTomoLib.optics import NEAR_SOURCE_MFP, diffusion_validity, mueff
+
+        op = self.op_x if w == "excitation" else self.op_m
+        me = float(np.max(mueff(op.mua, op.musp)))
+        mt = float(np.max(op.mua + op.musp))
+        warnings_ += [f"{w}: {m}" for m in diffusion_validity(op.mua, op.musp)]
+        h, rho = pair_sizes(self.mesh, self.sources_mm, q_src, q_det, mueff(op.mua, op.musp))
+        worst = np.expm1(log_error_estimate(me * h, mt * h, rho / h, op.n))
+        median = np.expm1(log_error_estimate(me * h, mt * h, rho / h, op.n, worst=False))
+        over = worst > target
+        near = rho < NEAR_SOURCE_MFP / mt
+        report["estimated_rel_err"][w] = {
+            "worst_case": _finite_or_none(worst), "median_case": _finite_or_none(median),
+            "worst_case_max": _finite_or_none(np.max(worst)),
+            "median_case_max": _finite_or_none(np.max(median)),
+            "pairs": int(worst.size), "pairs_over_target": int(over.sum()),
+            "element_size_mm": h.tolist(), "mueff_h_max": float(me * h.max())}
+        if np.any(near):
+            warnings_.append(f"{w}: {int(near.sum())} pair(s) are within {NEAR_SOURCE_MFP:g} "
+                             f"transport mean free paths ({NEAR_SOURCE_MFP / mt:.3g} mm): "
+                             "diffusion theory itself over-predicts there")
+        needed = None
+        if np.any(over):
+            need = required_size(me, mt, rho[over], h[over], op.n, target)
+            needed = float(np.min(need)) if np.all(np.isfinite(need)) else np.nan
+            s, d = np.unravel_index(np.argmax(np.where(over, worst, -1)), worst.shape)
+            worst_txt = ("beyond the measured range" if not np.isfinite(worst[s, d])
+                         else f"up to {100 * worst[s, d]:.3g} %")
+            warnings_.append(
+                f"{w}: {int(over.sum())} of {over.size} source-detector pairs may be off by "
+                f"more than {100 * target:g} % ({worst_txt} for source {s} -> detector {d}, "
+                f"rho {rho[s, d]:.3g} mm, elements ~{h[s, d]:.3g} mm there, mueff "
+                f"{me:.3g} /mm; median case {100 * np.max(median[over]):.3g} %)")
+        if np.any(~np.isfinite(worst)):
+            refuse.append(f"{w}: elements of ~{float(np.max(h)):.3g} mm are too coarse for "
+                          f"mueff {me:.3g} /mm (mueff h = {me * float(np.max(h)):.3g}; "
+                          "measured on Kuhn cubes, the fluence goes negative from mueff h "
+                          "1.0-1.4 on, docs/fem.md)")
+        return needed
+
+    def _size_needed(self, needed, target, report, warnings_):
+        """The element size [mm] that keeps every pair of every wavelength within
+        ``target`` (the smallest of ``needed``, NaN if none does) into
+        ``report["element_size_needed_mm"]``, and in ``warnings_`` how many of
+        the elements around the optodes are larger."""
+        from FluoTomoLib.fem.resolution import element_sizes
+
+        size = float(np.nanmin(needed)) if np.any(np.isfinite(needed)) else np.nan
+        report["element_size_needed_mm"] = size
+        h_el = element_sizes(self.mesh)
+        region = self._optode_region_elements()
+        if np.isfinite(size):
+            big = region & (h_el > size)
+            warnings_.append(f"elements of at most {size:.3g} mm around the optodes and along "
+                             f"the paths between them would keep every pair within "
+                             f"{100 * target:g} %; {int(big.sum())} of the {int(region.sum())} "
+                             "elements there are larger")
+        else:
+            warnings_.append("some detectors are so close to their source that no element "
+                             "size keeps them within the target: read them with care")
+
+    def _field_signs(self, wavelengths, report, warnings_, refuse):
+        """The solved fields' negative values (the excitation fields, and the
+        emission adjoints when ``wavelengths`` asks for "emission"; solved here if
+        not yet) into ``report["negative_nodes"]``: oscillation, refused in
+        ``refuse`` when deep enough to reach the weakest datum, else a warning."""
         # the solved fields themselves: negative values show oscillation
         fields = [("excitation", lambda: self.phi_x)]
         if "emission" in wavelengths:
@@ -354,16 +389,6 @@ class FluorescenceModel:
             elif neg:
                 warnings_.append(f"{w}: {neg} nodal values are negative (at most {-ratio:.2g} of "
                                  "the peak): the far field there is below what this mesh resolves")
-        y = self.excitation_data()
-        if np.any(y <= 0):
-            refuse.append(f"excitation: {int(np.sum(y <= 0))} detector value(s) are zero or "
-                          "negative")
-        for op in (self.op_x, self._op_m):
-            if op is not None and getattr(op, "unconverged", None):
-                warnings_.append(f"{op.name}: {op.unconverged}")
-        report["warnings"] = warnings_
-        report["refuse"] = refuse
-        return report
 
     def _optode_region_elements(self):
         """Elements within the box around the optodes, 3 decay lengths deep."""

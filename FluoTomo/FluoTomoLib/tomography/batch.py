@@ -187,11 +187,7 @@ def load_batch(path, methods=None, lam=None, accuracy=None):
         an input that does not read, an unknown method or accuracy, a target
         not in the label map, a bad truth, a duplicate name.
     """
-    from fluoguide.paths import inside
-    from fluoguide.runs.grid import MAX_TASKS, convert
-    from FluoTomoLib.tomography.acquisition_file import read_acquisition
-    from FluoTomoLib.tomography.labelmap import LabelMap
-    from FluoTomoLib.tomography.optics_file import read_optics
+    from fluoguide.runs.grid import MAX_TASKS
 
     p = Path(path)
     rows, file_defaults, where = _read_rows(p)
@@ -202,89 +198,134 @@ def load_batch(path, methods=None, lam=None, accuracy=None):
     # a row's own value, else the command line's, else the file's default
     defaults = check_settings(*(file_defaults.get(k) if v is None else v for k, v in (
         ("methods", methods), ("lambda", lam), ("accuracy", accuracy))), file=p)
-    seen_maps, seen_optics, digests, cases = {}, {}, {}, []
-    for i, row in enumerate(rows):
-        at = where(i)
-        for k in row:
-            if k not in COLUMNS:
-                raise FluoInputError(f"unknown column (expected {', '.join(COLUMNS)})", file=p,
-                                     field=f"{at}, {k}")
-        for k in REQUIRED:
-            if row.get(k) in (None, ""):
-                raise FluoInputError("missing (every case names its labels, optics and "
-                                     "acquisition)", file=p, field=f"{at}, {k}")
-
-        def path_of(key, kind):
-            # as given (beside the batch file as the user named it): the readers'
-            # messages name it so; the case records hold the resolved path
-            q = inside(p.parent, row[key], file=p, field=f"{at}, {key}", what=kind,
-                       root_name="the batch file's folder", given=True)
-            ok = q.is_dir() if kind == "folder" else q.is_file()
-            if key == "acquisition":
-                ok = q.is_dir() or (q.is_file() and q.suffix.lower() == ".json")
-            if not ok:
-                raise FluoInputError(f"{kind} not found", file=p, field=f"{at}, {key}",
-                                     value=str(row[key]))
-            return q
-
-        def loaded(key, read, q):
-            try:
-                return read(q)
-            except FluoInputError as exc:
-                raise FluoInputError(str(exc), file=p, field=f"{at}, {key}") from None
-
-        lab_path = path_of("labels", "file")
-        opt_path = path_of("optics", "file")
-        acq_path = path_of("acquisition", "folder")
-        if lab_path not in seen_maps:
-            lm = loaded("labels", LabelMap.from_file, lab_path)
-            seen_maps = {lab_path: (lm, lm.labels, lm.default_target())}   # the last map only
-        lm, labels, default_target = seen_maps[lab_path]
-        if opt_path not in seen_optics:
-            seen_optics[opt_path] = loaded("optics", read_optics, opt_path)
-        optics = seen_optics[opt_path]
-        try:
-            optics.check_labels(labels)
-        except FluoInputError as exc:
-            raise FluoInputError(str(exc), file=p, field=f"{at}, optics") from None
-        loaded("acquisition", lambda q: read_acquisition(q, labelmap=lm, optics=optics),
-               acq_path)
-        m, lam_i, acc = check_settings(row.get("methods", ",".join(defaults[0])),
-                                       row.get("lambda", defaults[1]),
-                                       row.get("accuracy", defaults[2]), file=p, where=f"{at}, ")
-        if row.get("target") is not None:
-            target = convert(row["target"], f"{at}, target", int, p)
-            if target not in labels:
-                raise FluoInputError(f"target label is not in the label map (labels {labels})",
-                                     file=p, field=f"{at}, target", value=target)
-        elif default_target is None:
-            raise FluoInputError("the label map has one tissue label: name the target label "
-                                 "to grade", file=p, field=f"{at}, target")
-        else:
-            target = int(default_target)
-        truth = None
-        if row.get("truth") is not None:
-            truth = convert(row["truth"], f"{at}, truth", float, p)
-            if not 0 < truth < 1e3:
-                raise FluoInputError("the true yield is a positive number [1/mm]", file=p,
-                                     field=f"{at}, truth", value=truth)
-        name = row.get("name")
-        if name is not None and not _NAME.match(str(name)):
-            raise FluoInputError("a case name is 1-64 letters, digits, '.', '_' or '-' (it "
-                                 "names a folder)", file=p, field=f"{at}, name", value=name)
-        # an acquisition.json names its data files inside its folder: hash the folder
-        hashed = (lab_path, opt_path, acq_path.parent if acq_path.is_file() else acq_path)
-        for q in hashed:
-            if q not in digests:
-                digests[q] = _digest(q)
-        sha = hashlib.sha1("".join(digests[q] for q in hashed).encode()).hexdigest()[:16]
-        lab_abs, opt_abs, acq_abs = (q.resolve() for q in (lab_path, opt_path, acq_path))
-        cases.append({"name": None if name is None else str(name), "_derived": _derived(
-            lab_abs, acq_abs), "_at": at, "labels": str(lab_abs), "optics": str(opt_abs),
-            "acquisition": str(acq_abs), "methods": ",".join(m), "lambda": lam_i,
-            "accuracy": acc, "target": target, "truth": truth, "inputs_sha1": sha})
+    seen_maps, seen_optics, digests = {}, {}, {}
+    cases = [_batch_case(p, row, where(i), defaults, seen_maps, seen_optics, digests)
+             for i, row in enumerate(rows)]
     _name_cases(cases, p)
     return cases
+
+
+def _batch_case(p, row, at, defaults, seen_maps, seen_optics, digests):
+    """One row of batch file ``p`` (named ``at`` in messages) checked, its inputs
+    read, as the case's task-parameter dict (:func:`load_batch`'s, plus ``_derived``
+    and ``_at`` for :func:`_name_cases`).  ``defaults``: the (methods, lambda,
+    accuracy) of a row that leaves them empty; ``seen_maps``, ``seen_optics``,
+    ``digests``: what earlier rows read and hashed, updated."""
+    from fluoguide.runs.grid import convert
+
+    _check_columns(p, row, at)
+    lab_path = _case_path(p, row, at, "labels", "file")
+    opt_path = _case_path(p, row, at, "optics", "file")
+    acq_path = _case_path(p, row, at, "acquisition", "folder")
+    labels, default_target = _read_case_inputs(p, at, lab_path, opt_path, acq_path, seen_maps,
+                                               seen_optics)
+    m, lam_i, acc = check_settings(row.get("methods", ",".join(defaults[0])),
+                                   row.get("lambda", defaults[1]),
+                                   row.get("accuracy", defaults[2]), file=p, where=f"{at}, ")
+    target = _case_target(p, row, at, labels, default_target)
+    truth = None
+    if row.get("truth") is not None:
+        truth = convert(row["truth"], f"{at}, truth", float, p)
+        if not 0 < truth < 1e3:
+            raise FluoInputError("the true yield is a positive number [1/mm]", file=p,
+                                 field=f"{at}, truth", value=truth)
+    name = row.get("name")
+    if name is not None and not _NAME.match(str(name)):
+        raise FluoInputError("a case name is 1-64 letters, digits, '.', '_' or '-' (it "
+                             "names a folder)", file=p, field=f"{at}, name", value=name)
+    # an acquisition.json names its data files inside its folder: hash the folder
+    hashed = (lab_path, opt_path, acq_path.parent if acq_path.is_file() else acq_path)
+    for q in hashed:
+        if q not in digests:
+            digests[q] = _digest(q)
+    sha = hashlib.sha1("".join(digests[q] for q in hashed).encode()).hexdigest()[:16]
+    lab_abs, opt_abs, acq_abs = (q.resolve() for q in (lab_path, opt_path, acq_path))
+    return {"name": None if name is None else str(name), "_derived": _derived(
+        lab_abs, acq_abs), "_at": at, "labels": str(lab_abs), "optics": str(opt_abs),
+        "acquisition": str(acq_abs), "methods": ",".join(m), "lambda": lam_i,
+        "accuracy": acc, "target": target, "truth": truth, "inputs_sha1": sha}
+
+
+def _check_columns(p, row, at):
+    """Refuse a row with a column not in COLUMNS or one of REQUIRED empty."""
+    for k in row:
+        if k not in COLUMNS:
+            raise FluoInputError(f"unknown column (expected {', '.join(COLUMNS)})", file=p,
+                                 field=f"{at}, {k}")
+    for k in REQUIRED:
+        if row.get(k) in (None, ""):
+            raise FluoInputError("missing (every case names its labels, optics and "
+                                 "acquisition)", file=p, field=f"{at}, {k}")
+
+
+def _case_path(p, row, at, key, kind):
+    """The path in column ``key`` of a row, inside the batch file's folder and there
+    (``kind`` "file" or "folder"; an acquisition: a folder or a .json file)."""
+    from fluoguide.paths import inside
+
+    # as given (beside the batch file as the user named it): the readers'
+    # messages name it so; the case records hold the resolved path
+    q = inside(p.parent, row[key], file=p, field=f"{at}, {key}", what=kind,
+               root_name="the batch file's folder", given=True)
+    ok = q.is_dir() if kind == "folder" else q.is_file()
+    if key == "acquisition":
+        ok = q.is_dir() or (q.is_file() and q.suffix.lower() == ".json")
+    if not ok:
+        raise FluoInputError(f"{kind} not found", file=p, field=f"{at}, {key}",
+                             value=str(row[key]))
+    return q
+
+
+def _case_read(p, at, key, read, q):
+    """``read(q)``, its FluoInputError naming the batch file, the row and ``key``."""
+    try:
+        return read(q)
+    except FluoInputError as exc:
+        raise FluoInputError(str(exc), file=p, field=f"{at}, {key}") from None
+
+
+def _read_case_inputs(p, at, lab_path, opt_path, acq_path, seen_maps, seen_optics):
+    """A row's label map, optics and acquisition read and checked against each
+    other (a label map or optics read by an earlier row is not read again: the
+    maps kept in ``seen_maps``, the optics in ``seen_optics``).  Returns (the
+    label map's labels, its default target)."""
+    from FluoTomoLib.tomography.acquisition_file import read_acquisition
+    from FluoTomoLib.tomography.labelmap import LabelMap
+    from FluoTomoLib.tomography.optics_file import read_optics
+
+    if lab_path not in seen_maps:
+        lm = _case_read(p, at, "labels", LabelMap.from_file, lab_path)
+        seen_maps.clear()                                   # the last map only
+        seen_maps[lab_path] = (lm, lm.labels, lm.default_target())
+    lm, labels, default_target = seen_maps[lab_path]
+    if opt_path not in seen_optics:
+        seen_optics[opt_path] = _case_read(p, at, "optics", read_optics, opt_path)
+    optics = seen_optics[opt_path]
+    try:
+        optics.check_labels(labels)
+    except FluoInputError as exc:
+        raise FluoInputError(str(exc), file=p, field=f"{at}, optics") from None
+    _case_read(p, at, "acquisition", lambda q: read_acquisition(q, labelmap=lm, optics=optics),
+               acq_path)
+    return labels, default_target
+
+
+def _case_target(p, row, at, labels, default_target):
+    """The label a row grades: its own (in ``labels``), else the label map's default
+    (refused when the map has one tissue label)."""
+    from fluoguide.runs.grid import convert
+
+    if row.get("target") is not None:
+        target = convert(row["target"], f"{at}, target", int, p)
+        if target not in labels:
+            raise FluoInputError(f"target label is not in the label map (labels {labels})",
+                                 file=p, field=f"{at}, target", value=target)
+    elif default_target is None:
+        raise FluoInputError("the label map has one tissue label: name the target label "
+                             "to grade", file=p, field=f"{at}, target")
+    else:
+        target = int(default_target)
+    return target
 
 
 def _derived(lab_path, acq_path):

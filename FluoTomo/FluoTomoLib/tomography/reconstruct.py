@@ -119,9 +119,7 @@ def labelmap_mesh(lm, optics, src, det, mask, target, settings, grading=False, r
     from FluoTomoLib.tomography.model import graded_reconstruction_mesh, reconstruction_mesh
     from FluoTomoLib.tomography.roi import choose_roi, roi_from_ras
 
-    if grading not in (False, True, None, "grid", "bisection"):
-        raise FluoInputError("grading must be none, grid or bisection", field="grading",
-                             value=grading)
+    _check_grading(grading)
     timings = {} if timings is None else timings
     notes = []
     h, mfp = cap_at_burial(settings["recon_mm"], optics, lm.labels)
@@ -234,17 +232,87 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     """:func:`reconstruct_labelmap` for several methods on one model (one mesh,
     one Jacobian).  Returns {method: result}."""
     from FluoTomoLib.fem.kernels import prepare_kernels
-    from FluoTomoLib.tomography.accuracy import accuracy_settings, cap_at_burial
-    from FluoTomoLib.tomography.coverage import scan_coverage
+    from FluoTomoLib.tomography.accuracy import cap_at_burial
 
+    _check_grading(grading)
+    t_all = time.perf_counter()
+    timings = {}
+    methods, lam, target, settings, seg_mm, noise_pct, noise_from = _checked_request(
+        lm, optics, acquisition, methods, lam, target, accuracy, size_mm, refine_factor,
+        truncation_pct, data_model, noise_pct, segmentation_mm)
+    # the compiled kernels before the first step that needs them: their first-run
+    # compilation (~11 s) is reported as it goes, not hidden inside a step
+    prepare_kernels(progress, 0.0, cancel)
+    notes = []          # warnings: what may make the result wrong
+    remarks = []        # notes: what was done differently from the request, harmlessly
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        src, det, d_src, d_det = _optodes_on_surface(lm, acquisition, max_offset_mm, notes,
+                                                     progress)
+        check_cancel(cancel)
+        cut_info, coverage = _what_the_scan_sees(lm, optics, acquisition, src, det, noise_pct,
+                                                 notes, progress, cancel)
+        h = cap_at_burial(settings["recon_mm"], optics, lm.labels)[0]
+        if h < settings["recon_mm"]:
+            remarks.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
+                           f"(asked for {settings['recon_mm']:g} mm)")
+        mesh, roi_info = _model_mesh(lm, optics, acquisition, src, det, target, settings,
+                                     grading, roi_ras, mesh, timings, notes, progress, cancel)
+        nodal_j = _check_jacobian_memory(acquisition, mesh, methods, h)
+        check_cancel(cancel)
+        tm, prior_volumes, forward_err = _tissue_model(lm, optics, acquisition, mesh, src, det,
+                                                       nodal_j, timings, notes, progress)
+        y = acquisition.y()
+        noise_rel = None if noise_pct is None else noise_pct / 100
+        solved = _solve_methods(tm, y, methods, lam, self_absorption, data_model, noise_rel,
+                                progress, cancel)
+        shifts = None
+        if seg_mm > 0:
+            shifts = _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption,
+                                          data_model, noise_rel, progress, cancel)
+    for text in _once(str(w.message) for w in caught):
+        if text not in notes:
+            notes.append(text)
+    t_common = time.perf_counter() - t_all - sum(r.seconds for r, _ in solved.values())
+    out = {}
+    for method, (res, passes) in solved.items():
+        out[method] = _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam,
+                              target, data_model, settings, h, roi_info, list(notes),
+                              dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
+                              t_common + res.seconds)
+        _add_run_summary(out[method]["summary"], method, settings, remarks, cut_info, coverage,
+                         noise_pct, noise_from, shifts, seg_mm, prior_volumes, forward_err)
+    report(progress, 1.0, "done")
+    return out
+
+
+def _check_grading(grading):
+    """Refuse a mesh grading that :func:`labelmap_mesh` does not know."""
     if grading not in (False, True, None, "grid", "bisection"):
         raise FluoInputError("grading must be none, grid or bisection", field="grading",
                              value=grading)
-    from FluoTomoLib.tomography.model import TissueModel, check_prior_volumes
-    from FluoTomoLib.tomography.roi import label_map_cut
 
-    t_all = time.perf_counter()
-    timings = {}
+
+def _checked_request(lm, optics, acquisition, methods, lam, target, accuracy, size_mm,
+                     refine_factor, truncation_pct, data_model, noise_pct, segmentation_mm):
+    """A reconstruction's request checked and completed before anything is computed.
+
+    Returns
+    -------
+    (methods upper-case, lambda (10 when None), target label (the label map's
+    default when None), accuracy settings, segmentation accuracy [mm], noise [%]
+    or None, where the noise came from ("given" or "acquisition"))
+
+    Raises
+    ------
+    FluoInputError
+        Naming the field and value, for a segmentation accuracy outside 0..5 mm, a
+        noise outside 0..100 %, an unknown method, lambda or data model, a bad
+        accuracy level, optics missing a label, a target not in the label map, or
+        data that the log model cannot take.
+    """
+    from FluoTomoLib.tomography.accuracy import accuracy_settings
+
     methods = [str(m).upper() for m in methods]
     seg_mm = 0.5 * float(np.max(lm.spacing_mm)) if segmentation_mm is None \
         else float(segmentation_mm)
@@ -279,126 +347,160 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                              field="target", value=int(target))
     if data_model == "log":
         acquisition.check_for_log()
-    # the compiled kernels before the first step that needs them: their first-run
-    # compilation (~11 s) is reported as it goes, not hidden inside a step
-    prepare_kernels(progress, 0.0, cancel)
-    notes = []          # warnings: what may make the result wrong
-    remarks = []        # notes: what was done differently from the request, harmlessly
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        report(progress, 0.01, "optodes onto the tissue surface")
-        src, d_src = place_on_surface(lm, acquisition.sources_ras_mm, "sources", max_offset_mm,
-                                      acquisition.file_of("sources"))
-        det, d_det = place_on_surface(lm, acquisition.detectors_ras_mm, "detectors",
-                                      max_offset_mm, acquisition.file_of("detectors"))
-        moved = float(max(d_src.max(), d_det.max()))
-        if moved > 0.5:
-            notes.append(f"optodes were moved up to {moved:.2f} mm onto the tissue surface")
-        check_cancel(cancel)
-        cut_info = label_map_cut(lm, optics, src, det, acquisition.mask, cancel=cancel)
-        notes.extend(cut_info.pop("warnings"))
-        # what the scan sees of each region, said before anything is solved
-        coverage = scan_coverage(lm, optics, lm.to_ras(src), lm.to_ras(det), acquisition.mask,
-                                 1.0 if noise_pct is None else noise_pct)
-        for text in coverage["warnings"]:
-            report(progress, 0.02, text)
-        notes.extend(coverage.pop("warnings"))
-        h = cap_at_burial(settings["recon_mm"], optics, lm.labels)[0]
-        if h < settings["recon_mm"]:
-            remarks.append(f"elements near the optodes are {h:.2g} mm, the sources' burial depth "
-                           f"(asked for {settings['recon_mm']:g} mm)")
-        if mesh is None:
-            mesh, roi_info, mesh_notes = labelmap_mesh(
-                lm, optics, src, det, acquisition.mask, target, settings, grading, roi_ras,
-                timings, progress, cancel)
-            notes.extend(mesh_notes)
-        else:
-            roi_info = {"chosen": "the mesh given", "truncation_max_pct": None}
-            if mesh.meta.get("frame") not in (None, "local"):
-                raise FluoInputError("the mesh is not in the label map's frame", field="mesh")
-        notes.extend(mesh.meta.get("warnings", []))
-        # HP alone never builds the nodal Jacobian (TissueModel.region_matrix)
-        nodal_j = any(m != "HP" for m in methods)
-        one_j = acquisition.n_measurements * mesh.n_nodes * 8.0
-        n_bytes = one_j * _JACOBIAN_COPIES if nodal_j else 0.0
-        if n_bytes > MAX_JACOBIAN_BYTES:
-            raise FluoInputError(f"{acquisition.n_measurements} measurements x {mesh.n_nodes} "
-                                 f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
-                                 "larger element size or fewer pairs", field="size_mm",
-                                 value=h)
-        from FluoTomoLib.tomography.simulate import RECON_BYTES_PER_NODE, check_fem_memory
+    return methods, lam, target, settings, seg_mm, noise_pct, noise_from
 
-        # and what this machine has left, for the method that needs the most
-        copies = max(_PEAK_JACOBIAN_COPIES[m] for m in methods)
-        check_fem_memory(mesh.n_nodes, one_j * copies, h, per_node=RECON_BYTES_PER_NODE)
+
+def _optodes_on_surface(lm, acquisition, max_offset_mm, notes, progress):
+    """The acquisition's sources and detectors moved onto the tissue surface
+    (local mm) with each one's distance moved [mm]; a warning in ``notes`` when
+    any moved more than 0.5 mm.  Returns (src, det, d_src, d_det)."""
+    report(progress, 0.01, "optodes onto the tissue surface")
+    src, d_src = place_on_surface(lm, acquisition.sources_ras_mm, "sources", max_offset_mm,
+                                  acquisition.file_of("sources"))
+    det, d_det = place_on_surface(lm, acquisition.detectors_ras_mm, "detectors",
+                                  max_offset_mm, acquisition.file_of("detectors"))
+    moved = float(max(d_src.max(), d_det.max()))
+    if moved > 0.5:
+        notes.append(f"optodes were moved up to {moved:.2f} mm onto the tissue surface")
+    return src, det, d_src, d_det
+
+
+def _what_the_scan_sees(lm, optics, acquisition, src, det, noise_pct, notes, progress, cancel):
+    """Where the label map cuts the tissue short, and what the scan sees of each
+    region, said before anything is solved: their warnings go into ``notes``
+    (the coverage's also reported as they are found).  Returns (cut_info,
+    coverage), each without its warnings."""
+    from FluoTomoLib.tomography.coverage import scan_coverage
+    from FluoTomoLib.tomography.roi import label_map_cut
+
+    cut_info = label_map_cut(lm, optics, src, det, acquisition.mask, cancel=cancel)
+    notes.extend(cut_info.pop("warnings"))
+    coverage = scan_coverage(lm, optics, lm.to_ras(src), lm.to_ras(det), acquisition.mask,
+                             1.0 if noise_pct is None else noise_pct)
+    for text in coverage["warnings"]:
+        report(progress, 0.02, text)
+    notes.extend(coverage.pop("warnings"))
+    return cut_info, coverage
+
+
+def _model_mesh(lm, optics, acquisition, src, det, target, settings, grading, roi_ras, mesh,
+                timings, notes, progress, cancel):
+    """The reconstruction mesh: the one given (refused unless in the label map's
+    frame) or one built by :func:`labelmap_mesh`; its warnings go into ``notes``.
+    Returns (mesh, roi_info)."""
+    if mesh is None:
+        mesh, roi_info, mesh_notes = labelmap_mesh(
+            lm, optics, src, det, acquisition.mask, target, settings, grading, roi_ras,
+            timings, progress, cancel)
+        notes.extend(mesh_notes)
+    else:
+        roi_info = {"chosen": "the mesh given", "truncation_max_pct": None}
+        if mesh.meta.get("frame") not in (None, "local"):
+            raise FluoInputError("the mesh is not in the label map's frame", field="mesh")
+    notes.extend(mesh.meta.get("warnings", []))
+    return mesh, roi_info
+
+
+def _check_jacobian_memory(acquisition, mesh, methods, h):
+    """Refuse a reconstruction whose Jacobians exceed MAX_JACOBIAN_BYTES or what
+    this machine has left (``h``: the element size near the optodes [mm], named
+    in the message).  Returns whether the nodal Jacobian is built at all."""
+    from FluoTomoLib.tomography.simulate import RECON_BYTES_PER_NODE, check_fem_memory
+
+    # HP alone never builds the nodal Jacobian (TissueModel.region_matrix)
+    nodal_j = any(m != "HP" for m in methods)
+    one_j = acquisition.n_measurements * mesh.n_nodes * 8.0
+    n_bytes = one_j * _JACOBIAN_COPIES if nodal_j else 0.0
+    if n_bytes > MAX_JACOBIAN_BYTES:
+        raise FluoInputError(f"{acquisition.n_measurements} measurements x {mesh.n_nodes} "
+                             f"nodes need {n_bytes / 1e9:.1f} GB: use accuracy 'fast', a "
+                             "larger element size or fewer pairs", field="size_mm",
+                             value=h)
+    # and what this machine has left, for the method that needs the most
+    copies = max(_PEAK_JACOBIAN_COPIES[m] for m in methods)
+    check_fem_memory(mesh.n_nodes, one_j * copies, h, per_node=RECON_BYTES_PER_NODE)
+    return nodal_j
+
+
+def _tissue_model(lm, optics, acquisition, mesh, src, det, nodal_j, timings, notes, progress):
+    """The model on the mesh (its Jacobian, progress 0.3-0.6), the priors' volumes
+    against the label map's (their warnings into ``notes``) and the mesh's own
+    error in the data.  Returns (TissueModel, prior_volumes, forward_err)."""
+    from FluoTomoLib.tomography.model import TissueModel, check_prior_volumes
+
+    report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
+                          f"{acquisition.n_measurements} measurements)")
+    tm = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det,
+                     acquisition.mask, source_normals=lm.surface().closest(src)[1],
+                     timings=timings, cut_facets=lm.cut_facets(mesh),
+                     progress=scaled(progress, 0.3, 0.6, "Jacobian"),
+                     nodal_jacobian=nodal_j)
+    report(progress, 0.6, "the priors' volumes and the mesh's own error in the data")
+    prior_volumes, prior_notes = check_prior_volumes(
+        tm.prior, mesh, mesh.meta.get("labelmap_volumes_mm3", {}))
+    forward_err = _forward_error(tm, acquisition.mask)
+    notes.extend(prior_notes)
+    return tm, prior_volumes, forward_err
+
+
+def _solve_methods(tm, y, methods, lam, self_absorption, data_model, noise_rel, progress,
+                   cancel):
+    """Each method solved on the one model, in order, sharing progress 0.6-0.98.
+    Returns {method: (result, passes)}."""
+    solved = {}
+    for i, method in enumerate(methods):
         check_cancel(cancel)
-        report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
-                              f"{acquisition.n_measurements} measurements)")
-        tm = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det,
-                         acquisition.mask, source_normals=lm.surface().closest(src)[1],
-                         timings=timings, cut_facets=lm.cut_facets(mesh),
-                         progress=scaled(progress, 0.3, 0.6, "Jacobian"),
-                         nodal_jacobian=nodal_j)
-        report(progress, 0.6, "the priors' volumes and the mesh's own error in the data")
-        prior_volumes, prior_notes = check_prior_volumes(
-            tm.prior, mesh, mesh.meta.get("labelmap_volumes_mm3", {}))
-        forward_err = _forward_error(tm, acquisition.mask)
-        notes.extend(prior_notes)
-        y = acquisition.y()
-        solved, shifts = {}, None
-        for i, method in enumerate(methods):
-            check_cancel(cancel)
-            part = scaled(progress, 0.6 + 0.38 * i / len(methods),
-                          0.6 + 0.38 * (i + 1) / len(methods), f"reconstruction {method}")
-            report(part, 0.0, "start")
-            noise_rel = None if noise_pct is None else noise_pct / 100
-            solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
-                                      cancel, progress=part, noise_rel=noise_rel)
-        if seg_mm > 0:
-            # HP's region values with the boundaries moved (a few region unknowns:
-            # cheap), their relative change carried over to every method (NP and
-            # SP re-solved cost 3 of their solves each; their region means over a
-            # moved label move like HP's values, the data pinning the same total)
-            # on the model with the dye's absorption as the reconstruction found it
-            # (HP's where it ran, else a method that fed it back), as the data hold it
-            fed = [m for m in ("HP", *methods) if m in solved and m in (self_absorption or ())]
-            report(progress, 0.985, f"segmentation moved by +-{seg_mm:.2g} mm")
-            shifts = tm.segmentation_shifts(
-                y, "HP", lam, seg_mm, data_model == "log", noise_rel, cancel,
-                progress=scaled(progress, 0.985, 0.999, f"segmentation moved by "
-                                f"+-{seg_mm:.2g} mm"),
-                absorbing_yield=solved[fed[0]][0].yield_per_mm
-                if fed and data_model != "log" else None)
-    for text in _once(str(w.message) for w in caught):
-        if text not in notes:
-            notes.append(text)
-    t_common = time.perf_counter() - t_all - sum(r.seconds for r, _ in solved.values())
-    out = {}
-    for method, (res, passes) in solved.items():
-        out[method] = _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam,
-                              target, data_model, settings, h, roi_info, list(notes),
-                              dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
-                              t_common + res.seconds)
-        out[method]["summary"]["label_map_cut"] = cut_info
-        out[method]["summary"]["scan_coverage"] = coverage
-        out[method]["summary"]["noise"] = {
-            "pct": noise_pct, "source": None if noise_pct is None else noise_from,
-            "note": "one SD per measurement [%], tested against the fit" if noise_pct
-            is not None else "not stated: the fit is judged from its own residual"}
-        out[method]["summary"]["notes"] = list(remarks) + _fit_notes(out[method]["summary"],
-                                                                      settings)
-        if noise_pct is None:
-            # a note, not a warning: every tracked-frames acquisition (the demo's cases)
-            # lacks a statement, and its fit is still judged (MISFIT_WARN)
-            out[method]["summary"]["notes"].append(
-                "the data's noise is not stated (acquisition.json's noise_pct, or "
-                "--noise-pct): the 95 % intervals count the whole misfit as noise and leave "
-                "out a bound for the model's own error")
-        _add_segmentation(out[method]["summary"], shifts, seg_mm, method)
-        _add_prior_volume(out[method]["summary"], prior_volumes, method)
-        _add_forward_error(out[method]["summary"], forward_err)
-    report(progress, 1.0, "done")
-    return out
+        part = scaled(progress, 0.6 + 0.38 * i / len(methods),
+                      0.6 + 0.38 * (i + 1) / len(methods), f"reconstruction {method}")
+        report(part, 0.0, "start")
+        solved[method] = tm.solve(y, method, lam, self_absorption, data_model == "log",
+                                  cancel, progress=part, noise_rel=noise_rel)
+    return solved
+
+
+def _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption, data_model,
+                         noise_rel, progress, cancel):
+    """HP's region values with the segmentation's boundaries moved by +-``seg_mm``
+    (``TissueModel.segmentation_shifts``, progress 0.985-0.999)."""
+    # HP's region values with the boundaries moved (a few region unknowns:
+    # cheap), their relative change carried over to every method (NP and
+    # SP re-solved cost 3 of their solves each; their region means over a
+    # moved label move like HP's values, the data pinning the same total)
+    # on the model with the dye's absorption as the reconstruction found it
+    # (HP's where it ran, else a method that fed it back), as the data hold it
+    fed = [m for m in ("HP", *methods) if m in solved and m in (self_absorption or ())]
+    report(progress, 0.985, f"segmentation moved by +-{seg_mm:.2g} mm")
+    return tm.segmentation_shifts(
+        y, "HP", lam, seg_mm, data_model == "log", noise_rel, cancel,
+        progress=scaled(progress, 0.985, 0.999, f"segmentation moved by "
+                        f"+-{seg_mm:.2g} mm"),
+        absorbing_yield=solved[fed[0]][0].yield_per_mm
+        if fed and data_model != "log" else None)
+
+
+def _add_run_summary(summary, method, settings, remarks, cut_info, coverage, noise_pct,
+                     noise_from, shifts, seg_mm, prior_volumes, forward_err):
+    """What the run found before and beside the solve, into one method's summary:
+    the label map's cut, the scan's coverage, the noise and where it came from,
+    the notes, and the segmentation's, priors' and forward model's parts of the
+    intervals."""
+    summary["label_map_cut"] = cut_info
+    summary["scan_coverage"] = coverage
+    summary["noise"] = {
+        "pct": noise_pct, "source": None if noise_pct is None else noise_from,
+        "note": "one SD per measurement [%], tested against the fit" if noise_pct
+        is not None else "not stated: the fit is judged from its own residual"}
+    summary["notes"] = list(remarks) + _fit_notes(summary, settings)
+    if noise_pct is None:
+        # a note, not a warning: every tracked-frames acquisition (the demo's cases)
+        # lacks a statement, and its fit is still judged (MISFIT_WARN)
+        summary["notes"].append(
+            "the data's noise is not stated (acquisition.json's noise_pct, or "
+            "--noise-pct): the 95 % intervals count the whole misfit as noise and leave "
+            "out a bound for the model's own error")
+    _add_segmentation(summary, shifts, seg_mm, method)
+    _add_prior_volume(summary, prior_volumes, method)
+    _add_forward_error(summary, forward_err)
 
 
 def _widen(ci, down, up):
