@@ -327,6 +327,8 @@ def _checked_request(lm, optics, acquisition, methods, lam, target, accuracy, si
         raise FluoInputError("the data's relative noise must be within 0..100 % (one SD per "
                              "measurement; 0 is no noise model: leave it out)",
                              field="noise_pct", value=noise_pct)
+    if not methods:
+        raise FluoInputError("no method asked for: give NP, SP or HP", field="method", value=[])
     for m in methods:
         if m not in ("NP", "SP", "HP"):
             raise FluoInputError("method must be NP, SP or HP", field="method", value=m)

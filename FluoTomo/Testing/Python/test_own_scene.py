@@ -317,3 +317,13 @@ def test_monte_carlo_engine_agrees_with_the_fem_engine():
     se = np.array(info["photon_noise_pct"]["max"]) / 100
     rel = np.abs(fem.clean / mc.clean - 1)
     assert np.all(rel <= 0.12 + 2.5 * se), (rel, se)
+
+
+@pytest.mark.parametrize("methods, needle", [((), "no method"), (("HP", "XP"), "NP, SP or HP")])
+def test_a_request_without_a_known_method_is_refused_before_any_work(methods, needle):
+    from FluoTomoLib.tomography import reconstruct_labelmap_methods
+
+    sc = small_scene()
+    with pytest.raises(FluoInputError, match=needle):
+        reconstruct_labelmap_methods(_lm(sc), optics_from_dict(ellipsoid_inclusion_optics()),
+                                     _acq(), methods=methods)
