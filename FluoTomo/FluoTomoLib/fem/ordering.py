@@ -45,7 +45,10 @@ def _full_adjacency(indptr, indices, n):
 
 @njit(cache=True)
 def _nested_dissection(x, start, adj, leaf):
-    n, dim = x.shape
+    """Elimination order (node indices, int64) of the graph ``start``/``adj``
+    (CSR, symmetric) with nodes at ``x`` (N, d) [mm]: segments above ``leaf`` nodes
+    are split in two halves and a separator, halves first, separator last."""
+    n = x.shape[0]
     idx = np.arange(n)
     order = np.empty(n, np.int64)
     side = np.zeros(n, np.int8)          # 1: right half of the segment being split
@@ -61,101 +64,17 @@ def _nested_dissection(x, start, adj, leaf):
     while top > 0:
         top -= 1
         lo, hi = stack[top, 0], stack[top, 1]
-        m = hi - lo
-        if m <= leaf:
+        if hi - lo <= leaf:
             for t in range(lo, hi):
                 order[t] = idx[t]
             continue
         stamp += 1
         for t in range(lo, hi):
             seg[idx[t]] = stamp
-        # the axis whose median cut crosses the fewest nodes
-        best_cut, ax = n + 1, 0
-        for a in range(dim):
-            for t in range(lo, hi):
-                coord[t - lo] = x[idx[t], a]
-            med = np.median(coord[:m])
-            nl = 0
-            for t in range(lo, hi):
-                if coord[t - lo] <= med:
-                    side[idx[t]] = 0
-                    nl += 1
-                else:
-                    side[idx[t]] = 1
-            if nl == m or nl == 0:
-                continue
-            cut = 0
-            for t in range(lo, hi):
-                v = idx[t]
-                if side[v] == 0:
-                    for p in range(start[v], start[v + 1]):
-                        u = adj[p]
-                        if seg[u] == stamp and side[u] == 1:
-                            cut += 1
-                            break
-            if cut < best_cut:
-                best_cut, ax = cut, a
-        for t in range(lo, hi):
-            side[idx[t]] = 0
-            coord[t - lo] = x[idx[t], ax]
-        med = np.median(coord[:m])
-        nl = 0
-        for t in range(lo, hi):
-            if coord[t - lo] <= med:
-                nl += 1
-        if nl == m or nl == 0:           # all on the median: split by position
-            srt = np.argsort(coord[:m])
-            for t in range(m):
-                side[idx[lo + srt[t]]] = 0 if t < m // 2 else 1
-        else:
-            for t in range(lo, hi):
-                side[idx[t]] = 0 if coord[t - lo] <= med else 1
-        nL, nR = 0, 0
-        for t in range(lo, hi):
-            v = idx[t]
-            if side[v] == 1:
-                nR += 1
-        # the cut's nodes on each side; the smaller set is the separator
-        cutL = np.zeros(m, np.bool_)
-        cutR = np.zeros(m, np.bool_)
-        nCL, nCR = 0, 0
-        for t in range(lo, hi):
-            v = idx[t]
-            sv = side[v]
-            for p in range(start[v], start[v + 1]):
-                u = adj[p]
-                if seg[u] == stamp and side[u] != sv:
-                    if sv == 0:
-                        cutL[t - lo] = True
-                        nCL += 1
-                    else:
-                        cutR[t - lo] = True
-                        nCR += 1
-                    break
-        sep_flag = cutL if nCL <= nCR else cutR
-        if nCL > nCR:
-            nR -= nCR
-        # partition idx[lo:hi] into left | right | separator
-        for t in range(lo, hi):
-            v = idx[t]
-            if side[v] == 0 and not sep_flag[t - lo]:
-                buf[lo + nL] = v
-                nL += 1
-        pr = lo + nL
-        for t in range(lo, hi):
-            v = idx[t]
-            if side[v] == 1 and not sep_flag[t - lo]:
-                buf[pr] = v
-                pr += 1
-        ps = pr
-        for t in range(lo, hi):
-            if sep_flag[t - lo]:
-                buf[ps] = idx[t]
-                ps += 1
-        for t in range(lo, hi):
-            idx[t] = buf[t]
-            side[buf[t]] = 0
-            seg[buf[t]] = -1
+        ax = _fewest_cut_axis(x, idx, lo, hi, start, adj, seg, stamp, side, coord)
+        _split_at_median(x, idx, lo, hi, ax, side, coord)
+        sep_flag, nR = _separator(idx, lo, hi, start, adj, seg, stamp, side)
+        nL = _partition(idx, lo, hi, side, seg, sep_flag, buf)
         sep0 = lo + nL + nR
         for t in range(sep0, hi):          # separator last
             order[t] = idx[t]
@@ -166,6 +85,124 @@ def _nested_dissection(x, start, adj, leaf):
             stack[top, 0], stack[top, 1] = lo + nL, sep0
             top += 1
     return order
+
+
+@njit(cache=True)
+def _fewest_cut_axis(x, idx, lo, hi, start, adj, seg, stamp, side, coord):
+    """The axis whose median cut of the segment idx[lo:hi] (its nodes stamped
+    ``stamp`` in ``seg``) leaves the fewest left nodes with a neighbour on the
+    right; 0 when no axis splits it.  Leaves ``side`` and ``coord`` as scratch."""
+    m = hi - lo
+    best_cut, ax = x.shape[0] + 1, 0
+    for a in range(x.shape[1]):
+        for t in range(lo, hi):
+            coord[t - lo] = x[idx[t], a]
+        med = np.median(coord[:m])
+        nl = 0
+        for t in range(lo, hi):
+            if coord[t - lo] <= med:
+                side[idx[t]] = 0
+                nl += 1
+            else:
+                side[idx[t]] = 1
+        if nl == m or nl == 0:
+            continue
+        cut = 0
+        for t in range(lo, hi):
+            v = idx[t]
+            if side[v] == 0:
+                for p in range(start[v], start[v + 1]):
+                    u = adj[p]
+                    if seg[u] == stamp and side[u] == 1:
+                        cut += 1
+                        break
+        if cut < best_cut:
+            best_cut, ax = cut, a
+    return ax
+
+
+@njit(cache=True)
+def _split_at_median(x, idx, lo, hi, ax, side, coord):
+    """``side`` of the segment idx[lo:hi]: 0 up to the median of axis ``ax``, 1
+    above it; when every node lies on the median, the halves by sorted position."""
+    m = hi - lo
+    for t in range(lo, hi):
+        side[idx[t]] = 0
+        coord[t - lo] = x[idx[t], ax]
+    med = np.median(coord[:m])
+    nl = 0
+    for t in range(lo, hi):
+        if coord[t - lo] <= med:
+            nl += 1
+    if nl == m or nl == 0:           # all on the median: split by position
+        srt = np.argsort(coord[:m])
+        for t in range(m):
+            side[idx[lo + srt[t]]] = 0 if t < m // 2 else 1
+    else:
+        for t in range(lo, hi):
+            side[idx[t]] = 0 if coord[t - lo] <= med else 1
+
+
+@njit(cache=True)
+def _separator(idx, lo, hi, start, adj, seg, stamp, side):
+    """The separator of the split segment idx[lo:hi]: of the nodes with an edge
+    across the cut, those on the side with fewer.  Returns (flag per segment
+    position, nodes of the right half that are not in the separator)."""
+    m = hi - lo
+    nR = 0
+    for t in range(lo, hi):
+        v = idx[t]
+        if side[v] == 1:
+            nR += 1
+    # the cut's nodes on each side; the smaller set is the separator
+    cutL = np.zeros(m, np.bool_)
+    cutR = np.zeros(m, np.bool_)
+    nCL, nCR = 0, 0
+    for t in range(lo, hi):
+        v = idx[t]
+        sv = side[v]
+        for p in range(start[v], start[v + 1]):
+            u = adj[p]
+            if seg[u] == stamp and side[u] != sv:
+                if sv == 0:
+                    cutL[t - lo] = True
+                    nCL += 1
+                else:
+                    cutR[t - lo] = True
+                    nCR += 1
+                break
+    sep_flag = cutL if nCL <= nCR else cutR
+    if nCL > nCR:
+        nR -= nCR
+    return sep_flag, nR
+
+
+@njit(cache=True)
+def _partition(idx, lo, hi, side, seg, sep_flag, buf):
+    """Reorder idx[lo:hi] into left | right | separator (each in its old order)
+    and clear the segment's ``side`` and ``seg`` marks; returns the left's size."""
+    nL = 0
+    for t in range(lo, hi):
+        v = idx[t]
+        if side[v] == 0 and not sep_flag[t - lo]:
+            buf[lo + nL] = v
+            nL += 1
+    pr = lo + nL
+    for t in range(lo, hi):
+        v = idx[t]
+        if side[v] == 1 and not sep_flag[t - lo]:
+            buf[pr] = v
+            pr += 1
+    ps = pr
+    for t in range(lo, hi):
+        if sep_flag[t - lo]:
+            buf[ps] = idx[t]
+            ps += 1
+    for t in range(lo, hi):
+        idx[t] = buf[t]
+        side[buf[t]] = 0
+        seg[buf[t]] = -1
+    return nL
 
 
 def geometric_nested_dissection(nodes_mm, indptr, indices, leaf=32):

@@ -471,43 +471,10 @@ def mesh_labelmap_quality(labels_kji, spacing_mm, origin_mm, size_mm, roi=None, 
 
     t0 = time.perf_counter()
     timing = {}
-    labels, spacing, origin, d = _check_geometry(labels_kji, spacing_mm, origin_mm, direction)
-    if not (np.isfinite(size_mm) and size_mm > 0):
-        raise FluoInputError("element size must be > 0", field="size_mm", value=size_mm)
-    if threads is not None:
-        # fTetWild spins forever on a negative thread count
-        check_number("threads", threads, 1, 1024, integer=True)
-    if roi is not None:
-        labels, origin = _crop_to_roi(labels, spacing, origin, d, roi)
-    else:
-        labels = labels.copy()
-    if not np.any(labels > 0):
-        raise FluoInputError("label map is empty (no non-zero label)" +
-                             (" inside the roi" if roi is not None else ""), field="labels")
-    labels = labels.astype(np.int32 if labels.max() > 32767 else np.int16)
-    merged = _merge_tiny_regions(labels, min_region_voxels)
-    if not np.any(labels > 0):
-        raise FluoInputError(f"every region is smaller than min_region_voxels="
-                             f"{min_region_voxels} voxels", field="labels")
+    labels, spacing, origin, d, merged = _prepared_labels(
+        labels_kji, spacing_mm, origin_mm, direction, roi, size_mm, threads, min_region_voxels)
     ref = labelmap_volumes(labels, spacing)
-    nz = np.argwhere(labels > 0)
-    extent_mm = (nz.max(axis=0) - nz.min(axis=0) + 1)[::-1] * spacing
-    if np.max(extent_mm) < 2 * size_mm:
-        raise FluoInputError(f"the tissue ({np.max(extent_mm):.3g} mm across) is smaller than "
-                             "two elements: choose a smaller size", field="size_mm",
-                             value=size_mm)
-    # fTetWild meshes the padded bounding box: ~12 tets per size^3 there
-    box_tets = np.prod(extent_mm * 1.15 + 2 * size_mm) * 12.0 / size_mm ** 3
-    if refine is None and box_tets > MAX_BOX_TETS:
-        raise FluoInputError(f"about {box_tets:.3g} tetrahedra in the meshing box: choose a "
-                             "larger element size or an roi (or --fast)", field="size_mm",
-                             value=size_mm)
-    from fluoguide.memory import check_fits
-
-    check_fits(QUALITY_BYTES_PER_BOX_TET * box_tets + QUALITY_BYTES_PER_VOXEL * labels.size,
-               f"the quality mesh ({box_tets / 1e6:.1f} million tetrahedra in fTetWild's box "
-               f"at {size_mm:g} mm)", "choose a larger element size or an roi (or --fast)",
-               field="size_mm", value=size_mm)
+    _check_box_size(labels, spacing, size_mm, refine)
     spec = _parse_refine(refine, size_mm)
     timing["labels_s"] = time.perf_counter() - t0
     check_cancel(cancel)
@@ -529,42 +496,19 @@ def mesh_labelmap_quality(labels_kji, spacing_mm, origin_mm, size_mm, roi=None, 
 
     report(progress, 0.15, "tetrahedralising (fTetWild)")
     t = time.perf_counter()
-    kw = {}
-    if spec is not None:
-        bg_v, bg_t, bg_val = _sizing_field(spec, lo - 2 * size_mm, hi + 2 * size_mm, size_mm)
-        kw = {"bg_vertices": bg_v, "bg_tets": bg_t, "bg_values": bg_val}
     n_threads = threads or len(os.sched_getaffinity(0))
-    try:
-        v, tets = pytetwild.tetrahedralize(
-            pts, tri.astype(np.int32), edge_length_abs=float(size_mm), epsilon=eps / diag,
-            stop_energy=float(stop_energy), num_opt_iter=int(optimize_iterations),
-            num_threads=int(n_threads), disable_filtering=True, quiet=True, **kw)
-    except (RuntimeError, ValueError) as exc:
-        from fluoguide.library_errors import scrub
-
-        # its text may carry the library's source files: scrubbed, one line
-        raise FluoInputError(f"fTetWild failed ({scrub(exc, limit=160)})",
-                             field="labels") from None
+    v, tets = _tetrahedralize(pytetwild, pts, tri, spec, (lo, hi), size_mm, eps / diag,
+                              stop_energy, optimize_iterations, n_threads)
     timing["tetwild_s"] = time.perf_counter() - t
     check_cancel(cancel)
 
     report(progress, 0.85, "labelling regions")
     t = time.perf_counter()
-    tets = np.asarray(tets, dtype=np.int64)
-    v = np.asarray(v, float)
     # the output surface lies within eps of the decimated surface, which lies
     # within eps/2 of the smooth one: 2 eps, with margin for rounding
     tol = 2.0 * eps + 1e-6 * diag
-    region, stats = _assign_regions(v, tets, fine_pts, fine_tri, tol, labels, spacing, origin, d)
-    if stats["min_purity_large_components"] < 0.9:
-        raise FluoInputError("region labelling failed: a mesh piece mixes labels "
-                             f"({100 * stats['min_purity_large_components']:.0f} % pure); try a "
-                             "smaller epsilon or size", field="labels")
-    tissue = region > 0
-    if not tissue.any():
-        raise FluoInputError("no tissue left after meshing: choose a smaller size",
-                             field="size_mm", value=size_mm)
-    mesh = Mesh(v, tets, region, name=name).keep_elements(tissue)[0].oriented()
+    mesh, stats = _region_mesh(v, tets, (fine_pts, fine_tri), tol,
+                               (labels, spacing, origin, d), size_mm, name)
     mesh, peeled = _peel_boundary_slivers(mesh, sliver_deg)
     timing["regions_s"] = time.perf_counter() - t
     lost = sorted(set(ref) - set(mesh.regions.tolist()))
@@ -582,3 +526,105 @@ def mesh_labelmap_quality(labels_kji, spacing_mm, origin_mm, size_mm, roi=None, 
         "threads": int(n_threads), **stats})
     report(progress, 1.0, "mesh done")
     return mesh
+
+
+def _prepared_labels(labels_kji, spacing_mm, origin_mm, direction, roi, size_mm, threads,
+                     min_region_voxels):
+    """The label map made ready for its surfaces: checked, cropped to the roi (a
+    copy either way), as int16 (int32 for labels above 32767), with the pieces
+    smaller than ``min_region_voxels`` merged into their surroundings.
+
+    Returns (labels, spacing [mm], origin [mm], direction, merged voxels per label);
+    refuses an empty map (or roi), a size that is not > 0 [mm] and a thread
+    count outside 1..1024.
+    """
+    labels, spacing, origin, d = _check_geometry(labels_kji, spacing_mm, origin_mm, direction)
+    if not (np.isfinite(size_mm) and size_mm > 0):
+        raise FluoInputError("element size must be > 0", field="size_mm", value=size_mm)
+    if threads is not None:
+        # fTetWild spins forever on a negative thread count
+        check_number("threads", threads, 1, 1024, integer=True)
+    if roi is not None:
+        labels, origin = _crop_to_roi(labels, spacing, origin, d, roi)
+    else:
+        labels = labels.copy()
+    if not np.any(labels > 0):
+        raise FluoInputError("label map is empty (no non-zero label)" +
+                             (" inside the roi" if roi is not None else ""), field="labels")
+    labels = labels.astype(np.int32 if labels.max() > 32767 else np.int16)
+    merged = _merge_tiny_regions(labels, min_region_voxels)
+    if not np.any(labels > 0):
+        raise FluoInputError(f"every region is smaller than min_region_voxels="
+                             f"{min_region_voxels} voxels", field="labels")
+    return labels, spacing, origin, d, merged
+
+
+def _check_box_size(labels, spacing, size_mm, refine):
+    """Refuse a size [mm] the tissue is less than two elements across, and (before
+    fTetWild starts) a meshing box of more than MAX_BOX_TETS tetrahedra (unless
+    refined: the sizing field decides there) or one that would not fit in memory."""
+    nz = np.argwhere(labels > 0)
+    extent_mm = (nz.max(axis=0) - nz.min(axis=0) + 1)[::-1] * spacing
+    if np.max(extent_mm) < 2 * size_mm:
+        raise FluoInputError(f"the tissue ({np.max(extent_mm):.3g} mm across) is smaller than "
+                             "two elements: choose a smaller size", field="size_mm",
+                             value=size_mm)
+    # fTetWild meshes the padded bounding box: ~12 tets per size^3 there
+    box_tets = np.prod(extent_mm * 1.15 + 2 * size_mm) * 12.0 / size_mm ** 3
+    if refine is None and box_tets > MAX_BOX_TETS:
+        raise FluoInputError(f"about {box_tets:.3g} tetrahedra in the meshing box: choose a "
+                             "larger element size or an roi (or --fast)", field="size_mm",
+                             value=size_mm)
+    from fluoguide.memory import check_fits
+
+    check_fits(QUALITY_BYTES_PER_BOX_TET * box_tets + QUALITY_BYTES_PER_VOXEL * labels.size,
+               f"the quality mesh ({box_tets / 1e6:.1f} million tetrahedra in fTetWild's box "
+               f"at {size_mm:g} mm)", "choose a larger element size or an roi (or --fast)",
+               field="size_mm", value=size_mm)
+
+
+def _tetrahedralize(pytetwild, pts, tri, spec, bounds, size_mm, epsilon_rel, stop_energy,
+                    optimize_iterations, n_threads):
+    """fTetWild's tetrahedra of the surface (pts [mm], tri) at edge length
+    ``size_mm`` (a sizing field over ``bounds`` = (lo, hi) [mm] plus two elements
+    when ``spec`` refines), within ``epsilon_rel`` (of the surface's bounding-box
+    diagonal).  Returns (vertices [mm] as float, tets as int64); its failure is a
+    FluoInputError."""
+    kw = {}
+    if spec is not None:
+        lo, hi = bounds
+        bg_v, bg_t, bg_val = _sizing_field(spec, lo - 2 * size_mm, hi + 2 * size_mm, size_mm)
+        kw = {"bg_vertices": bg_v, "bg_tets": bg_t, "bg_values": bg_val}
+    try:
+        v, tets = pytetwild.tetrahedralize(
+            pts, tri.astype(np.int32), edge_length_abs=float(size_mm), epsilon=epsilon_rel,
+            stop_energy=float(stop_energy), num_opt_iter=int(optimize_iterations),
+            num_threads=int(n_threads), disable_filtering=True, quiet=True, **kw)
+    except (RuntimeError, ValueError) as exc:
+        from fluoguide.library_errors import scrub
+
+        # its text may carry the library's source files: scrubbed, one line
+        raise FluoInputError(f"fTetWild failed ({scrub(exc, limit=160)})",
+                             field="labels") from None
+    return np.asarray(v, float), np.asarray(tets, dtype=np.int64)
+
+
+def _region_mesh(v, tets, surface, tol_mm, labelmap, size_mm, name):
+    """The oriented Mesh of fTetWild's tissue tetrahedra, each labelled by the
+    piece of the tet graph it lies in (``_assign_regions``: pieces cut by the
+    faces within ``tol_mm`` of ``surface`` = (points [mm], triangles), labelled
+    from ``labelmap`` = (labels, spacing, origin, direction)); the air dropped.
+
+    Returns (mesh, labelling statistics); refuses pieces that mix labels and a
+    mesh with no tissue left.
+    """
+    region, stats = _assign_regions(v, tets, surface[0], surface[1], tol_mm, *labelmap)
+    if stats["min_purity_large_components"] < 0.9:
+        raise FluoInputError("region labelling failed: a mesh piece mixes labels "
+                             f"({100 * stats['min_purity_large_components']:.0f} % pure); try a "
+                             "smaller epsilon or size", field="labels")
+    tissue = region > 0
+    if not tissue.any():
+        raise FluoInputError("no tissue left after meshing: choose a smaller size",
+                             field="size_mm", value=size_mm)
+    return Mesh(v, tets, region, name=name).keep_elements(tissue)[0].oriented(), stats

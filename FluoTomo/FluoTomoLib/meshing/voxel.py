@@ -417,6 +417,47 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     MeshFidelityWarning).
     """
     t0 = time.perf_counter()
+    labels, spacing, origin = _checked_labelmap(labels_kji, spacing_mm, origin_mm)
+    labels, spacing, origin, rotate = _voxel_frame(labels, spacing, origin, direction,
+                                                   ras_boxes=(roi, anchor_mm, refine, edges_mm))
+    if not (np.isfinite(size_mm) and size_mm > 0):
+        raise FluoInputError("element size must be > 0", field="size_mm", value=size_mm)
+    extent_lo = origin - 0.5 * spacing
+    extent_hi = origin + spacing * (np.array(labels.shape[::-1]) - 0.5)
+    roi = _checked_roi(roi, extent_lo, extent_hi, size_mm)
+    report(progress, 0.1, "resampling labels")
+    anchor_mm, refine = _checked_grid_options(anchor_mm, refine, edges_mm)
+    edges = grid_edges(roi, size_mm, anchor_mm, refine, edges_mm)
+    n_cells = int(np.prod([len(e) - 1 for e in edges]))
+    if n_cells > MAX_CELLS:
+        raise FluoInputError(f"{n_cells:.3g} cells: choose a larger element size, a smaller roi "
+                             "or a narrower refinement", field="size_mm", value=size_mm)
+    _check_memory(labels, spacing, extent_lo, roi, n_cells, size_mm)
+    cell, edges, volumes, partial = _cell_labels(labels, spacing, origin, roi, edges)
+    check_cancel(cancel)
+    report(progress, 0.4, "building tetrahedra")
+    tets, region = _cells_to_tets(cell, edges, partial, labels, spacing, origin)
+    if len(tets) == 0:
+        raise FluoInputError("no tissue inside the roi at this element size", field="roi",
+                             value=roi.tolist())
+    mesh = _grid_mesh(tets, region, edges, rotate, name)
+    mesh.meta["seconds"] = time.perf_counter() - t0
+    # "structured" (grid) meshes get the geometric ordering; a rotated grid's
+    # planes are not coordinate planes, so it keeps METIS
+    mesh.meta["method"] = "structured" if rotate is None else "structured-rotated"
+    mesh.meta["size_mm"] = float(size_mm)
+    if rotate is None:
+        mesh.meta["roi"] = roi.tolist()
+        if anchor_mm is not None or refine is not None or edges_mm is not None:
+            mesh.meta["edges_mm"] = [e.tolist() for e in edges]   # the grid lines (non-uniform)
+    _record_fidelity(mesh, volumes)
+    report(progress, 1.0, "mesh done")
+    return mesh
+
+
+def _checked_labelmap(labels_kji, spacing_mm, origin_mm):
+    """The label map, spacing and origin as arrays, refused unless 3D, non-empty
+    and non-negative with three positive spacings [mm] and a finite origin [mm]."""
     labels = np.asarray(labels_kji)
     if labels.ndim != 3:
         raise FluoInputError("label map must be 3D", field="labels", value=labels.shape)
@@ -433,23 +474,35 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     if origin.shape != (3,) or not np.all(np.isfinite(origin)):
         raise FluoInputError("origin must be three finite numbers (mm)", field="origin",
                              value=np.ravel(origin).tolist())
-    rotate = None
-    if direction is not None:
-        d = check_direction(direction)
-        if signed_permutation(d):
-            labels, spacing, origin = axis_aligned_labelmap(labels, spacing, origin, d)
-        else:
-            if (roi is not None or anchor_mm is not None or refine is not None
-                    or edges_mm is not None):
-                raise FluoInputError("roi, anchor and refinement are RAS boxes: they need a "
-                                     "label map whose axes run along RAS (this one is oblique)",
-                                     field="direction", value=np.round(d, 6).tolist())
-            rotate = (origin, d)                 # mesh on the voxel axes, then rotate
-            origin = np.zeros(3)
-    if not (np.isfinite(size_mm) and size_mm > 0):
-        raise FluoInputError("element size must be > 0", field="size_mm", value=size_mm)
-    extent_lo = origin - 0.5 * spacing
-    extent_hi = origin + spacing * (np.array(labels.shape[::-1]) - 0.5)
+    return labels, spacing, origin
+
+
+def _voxel_frame(labels, spacing, origin, direction, ras_boxes):
+    """The frame the grid is built in: (labels, spacing, origin, rotate).
+
+    A label map whose axes run along RAS is re-indexed into RAS (``rotate`` is
+    None); an oblique one keeps its voxel axes with the origin at 0, and
+    ``rotate`` = (origin [mm], direction) takes the nodes into RAS afterwards.
+    ``ras_boxes`` (roi, anchor, refine, edges) must then all be None: they are
+    given in RAS.
+    """
+    if direction is None:
+        return labels, spacing, origin, None
+    d = check_direction(direction)
+    if signed_permutation(d):
+        labels, spacing, origin = axis_aligned_labelmap(labels, spacing, origin, d)
+        return labels, spacing, origin, None
+    if any(b is not None for b in ras_boxes):
+        raise FluoInputError("roi, anchor and refinement are RAS boxes: they need a "
+                             "label map whose axes run along RAS (this one is oblique)",
+                             field="direction", value=np.round(d, 6).tolist())
+    return labels, spacing, np.zeros(3), (origin, d)   # mesh on the voxel axes, then rotate
+
+
+def _checked_roi(roi, extent_lo, extent_hi, size_mm):
+    """The roi (x0, x1, y0, y1, z0, z1) [mm] clipped to the label map's extent
+    (default: all of it), refused when it misses the map, is narrower than one
+    cell of ``size_mm`` or would hold too many cells to build."""
     if roi is None:
         roi = (extent_lo[0], extent_hi[0], extent_lo[1], extent_hi[1], extent_lo[2], extent_hi[2])
     roi = np.asarray(roi, float)
@@ -469,7 +522,14 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
     if n_est > 3e6:           # before building edges that would not fit either
         raise FluoInputError(f"about {n_est:.3g} cells: choose a larger element size or a "
                              "smaller roi", field="size_mm", value=size_mm)
-    report(progress, 0.1, "resampling labels")
+    return roi
+
+
+def _checked_grid_options(anchor_mm, refine, edges_mm):
+    """(anchor_mm as an array or None, refine as a list or None), refused unless
+    the anchor is a finite point, ``refine`` three entries of None, a band
+    (a_mm, b_mm, size_mm) or a list of bands, and ``edges_mm`` three entries of
+    None or increasing finite coordinates [mm]."""
     if anchor_mm is not None:
         anchor_mm = np.asarray(anchor_mm, float)
         if anchor_mm.shape != (3,) or not np.all(np.isfinite(anchor_mm)):
@@ -499,38 +559,20 @@ def mesh_labelmap_structured(labels_kji, spacing_mm, origin_mm, size_mm, roi=Non
                                      for e in edges_mm):
             raise FluoInputError("edges must be three entries of None or increasing finite "
                                  "coordinates", field="edges_mm")
-    edges = grid_edges(roi, size_mm, anchor_mm, refine, edges_mm)
-    n_cells = int(np.prod([len(e) - 1 for e in edges]))
-    if n_cells > MAX_CELLS:
-        raise FluoInputError(f"{n_cells:.3g} cells: choose a larger element size, a smaller roi "
-                             "or a narrower refinement", field="size_mm", value=size_mm)
-    _check_memory(labels, spacing, extent_lo, roi, n_cells, size_mm)
-    cell, edges, volumes, partial = _cell_labels(labels, spacing, origin, roi, edges)
-    check_cancel(cancel)
-    report(progress, 0.4, "building tetrahedra")
-    tets, region = _cells_to_tets(cell, edges, partial, labels, spacing, origin)
-    if len(tets) == 0:
-        raise FluoInputError("no tissue inside the roi at this element size", field="roi",
-                             value=roi.tolist())
+    return anchor_mm, refine
+
+
+def _grid_mesh(tets, region, edges, rotate, name):
+    """The oriented Mesh of the tetrahedra ``tets`` (indices into the grid nodes
+    of ``edges`` [mm], z fastest), keeping only the nodes they use; the nodes
+    are rotated into RAS when ``rotate`` = (origin [mm], direction) is given."""
     used, inverse = np.unique(tets, return_inverse=True)
     X, Y, Z = np.meshgrid(*edges, indexing="ij")
     all_nodes = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
     nodes = all_nodes[used]
     if rotate is not None:
         nodes = rotate[0] + nodes @ rotate[1].T
-    mesh = Mesh(nodes, inverse.reshape(-1, 4), region, name=name).oriented()
-    mesh.meta["seconds"] = time.perf_counter() - t0
-    # "structured" (grid) meshes get the geometric ordering; a rotated grid's
-    # planes are not coordinate planes, so it keeps METIS
-    mesh.meta["method"] = "structured" if rotate is None else "structured-rotated"
-    mesh.meta["size_mm"] = float(size_mm)
-    if rotate is None:
-        mesh.meta["roi"] = roi.tolist()
-        if anchor_mm is not None or refine is not None or edges_mm is not None:
-            mesh.meta["edges_mm"] = [e.tolist() for e in edges]   # the grid lines (non-uniform)
-    _record_fidelity(mesh, volumes)
-    report(progress, 1.0, "mesh done")
-    return mesh
+    return Mesh(nodes, inverse.reshape(-1, 4), region, name=name).oriented()
 
 
 def _cells_to_tets(cell, edges, partial, labels_kji, spacing, origin):
