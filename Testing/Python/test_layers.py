@@ -366,3 +366,22 @@ def test_public_names_of_each_subpackage_resolve():
             pkg = importlib.import_module(".".join((top,) + rel))
             for name in getattr(pkg, "__all__", []):
                 assert getattr(pkg, name) is not None, f"{pkg.__name__}.{name}"
+
+
+#: the longest function a reader is asked to hold, ``def`` to its last line,
+#: docstring included (issue #30)
+MAX_FUNCTION_LINES = 120
+
+
+def test_no_function_is_longer_than_a_reader_can_hold():
+    files = [p for root in SOURCES.values() for p in sorted(root.rglob("*.py"))]
+    files += list(MODULE_FILES.values())
+    long = []
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, (f"split by concept (at most {MAX_FUNCTION_LINES} lines):\n"
+                      + "\n".join(long))
