@@ -272,7 +272,8 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
     - :meth:`prepareMapFrames` / :meth:`storeMappedFrames` (:meth:`mapFrames`)
 
     :meth:`prepareFrameCorrection` is for a live stream: a callable that
-    corrects frame after frame on a worker thread.
+    corrects frame after frame on a worker thread; :meth:`streamPhantomFrames`
+    is the web app's stream, through the tracker's own loop (:meth:`trackFor`).
     """
 
     PARAMETERS = {
@@ -354,7 +355,8 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             node = mrml_io.set_transform(self.scene, "CameraToolToTracker", np.eye(4), parent=parent)
         return node
 
-    def connectTracker(self, source, address=None, cameraToolNode=None, **options):
+    def connectTracker(self, source, address=None, cameraToolNode=None, phantomCamera=False,
+                       **options):
         """Open a pose source and keep it until :meth:`disconnect`.
 
         Parameters
@@ -364,11 +366,21 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         cameraToolNode : vtkMRMLLinearTransformNode, optional
             Where the camera tool's pose goes (default ``CameraToolToTracker``);
             OpenIGTLink messages update the nodes of their own device names.
+        phantomCamera : bool
+            With ``ndi-sim``: the simulator's one tool is a camera circling
+            120 mm above the oral-cavity phantom
+            (``FluoNavLib.mapping.synthetic.stream_camera_tool``), the tracker of
+            :meth:`streamPhantomFrames`.
         options : passed to the session (``inject_faults``, ``seed``, ``tools``,
             ``sim_tools``, ``rate_hz``, ``speed``)
         """
         from FluoNavLib.devices.tracker import open_tracker
 
+        if phantomCamera:
+            from FluoNavLib.mapping.synthetic import stream_camera_tool
+
+            options.setdefault("sim_tools", [stream_camera_tool()])
+            options.setdefault("roms", [b"camera tool" * 4])
         self.disconnect()
         self.tracker = open_tracker(source, address, scene=self.scene, **options)
         self.toolNodes = {"CameraToolToTracker": cameraToolNode}
@@ -416,17 +428,43 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
             self.applyPoses(poses)
         return poses
 
-    def trackFor(self, seconds, applyPoses=True):
-        """Track for ``seconds`` (a recording: to its end when None) and return
-        the session's account (``fluo track`` prints it); the last poses are in
-        the transform nodes when ``applyPoses``."""
+    def trackFor(self, seconds, applyPoses=True, onPoses=None, stop=None):
+        """Run the open source's live-tracking loop (``TrackerSession.track``, the
+        one loop ``fluo track`` and the web app's stream run).
+
+        Parameters
+        ----------
+        seconds : float or None
+            How long [s] (a recording: to its end when None).
+        applyPoses : bool
+            Write the last poses into the transform nodes at the end (on the
+            scene's thread only; False on a worker thread).
+        onPoses : callable, optional
+            ``onPoses(poses, tHost)`` per new tracker frame: ``{tool: 4x4 or
+            None}`` and the host time [s]; it runs inside the loop, so a slow one
+            slows the polling (the tracker's account still counts every frame).
+        stop : callable, optional
+            ``stop() -> bool``, asked before each read: true ends the loop early
+            (no error when no frame came).
+
+        Returns
+        -------
+        dict
+            The session's account (``fluo track`` prints it).
+        """
         from fluoguide.errors import FluoInputError
 
         if self.tracker is None:
             raise FluoInputError("no tracker connected", field="tracker")
         last = {}
-        out = self.tracker.track(seconds, on_poses=lambda poses, t: last.update(
-            {k: v for k, v in poses.items() if v is not None}) if applyPoses else None)
+
+        def on_poses(poses, t):
+            if applyPoses:
+                last.update({k: v for k, v in poses.items() if v is not None})
+            if onPoses is not None:
+                onPoses(poses, t)
+
+        out = self.tracker.track(seconds, on_poses=on_poses, stop=stop)
         if applyPoses and last and self.tracker.source != "igtl":
             self.applyPoses(last)
         return out
@@ -714,6 +752,108 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         correct.context = ctx
         return correct
+
+    def streamPhantomFrames(self, seconds, onFrame, progress=None, cancel=None, binning=8,
+                            triangles=20000, transport=0.3, contourFraction=0.4,
+                            firstFrameWaitS=120.0):
+        """Live corrected frames of the oral-cavity phantom at the tracked camera's
+        pose, for a worker thread: the open tracker's loop (:meth:`trackFor`)
+        calls ``onFrame`` with each corrected frame.
+
+        The simulated operating room (surface, calibrations:
+        :meth:`makeSyntheticAcquisition` without views) lives in a scene of its
+        own, and this logic's scene is not touched (the caller shows the camera
+        pose on the scene's thread, :meth:`applyPoses`). Each tracker frame with
+        a camera-tool pose (:meth:`connectTracker` with ``phantomCamera``) is
+        rendered from the tool's position looking into the cavity (homogeneous
+        tissue, noise seeded by the frame's index), corrected
+        (:meth:`prepareFrameCorrection`) and classified (:meth:`classifyContours`);
+        a frame with no pixel on the surface is skipped.
+
+        Parameters
+        ----------
+        seconds : float
+            Streaming time [s], counted from the first corrected frame (the
+            first also starts the caller's display: slow on a busy machine).
+        onFrame : callable
+            ``onFrame(frame)``, ``frame`` a dict: ``index`` (0, 1, ...),
+            ``result`` (FrameResult), ``contours`` (:meth:`classifyContours`),
+            ``cameraPose`` (CameraToWorld 4x4, mm), ``trackerFrame`` (the
+            device's frame number).
+        progress, cancel : optional
+            The job's reporter and cancel token; a cancel (Stop) ends the stream
+            normally, with its account.
+        binning, triangles : int
+            The room's camera binning and surface triangles.
+        transport : float
+            The tissue's optical transport T (dimensionless).
+        contourFraction : float
+            The contour level (fraction of the frame's maximum).
+        firstFrameWaitS : float
+            How long [s] the first frame may take (kernels, first plot) before
+            ``seconds`` start.
+
+        Returns
+        -------
+        dict
+            ``frames`` (corrected frames shown), ``tracker_frames`` and
+            ``lost_unreported`` (the tracker's account; 0 when every gap was
+            reported), ``stopped`` (ended by the cancel).
+        """
+        import time
+
+        from fluoguide import mrml_io
+        from fluoguide.errors import FluoCancelled, FluoInputError
+        from fluoguide.progress import report
+        from FluoNavLib.mapping.synthetic import look_at_cavity, render_view
+
+        seconds = self.checkSeconds(seconds, field="seconds")
+        if self.tracker is None:
+            raise FluoInputError("no tracker connected", field="tracker")
+        report(progress, 0.0, "building the simulated operating room")
+        room = type(self)(mrml_io.new_scene())      # touched by this thread only
+        room.makeSyntheticAcquisition(views=0, binning=binning, triangles=triangles,
+                                      transport=transport)
+        correct = room.prepareFrameCorrection()
+        ctx = correct.context
+        # the ray caster's kernels compile here on a first run, reported as they
+        # go, not silently inside the first frame
+        try:
+            room.prepareKernels(progress, 0.0, cancel)
+        except FluoCancelled:
+            pass            # Stop meanwhile: the loop ends the stream normally
+        run = {"shown": 0, "t_end": None, "stopped": False}
+
+        def stop():
+            if cancel is not None and cancel.cancelled:
+                run["stopped"] = True           # Stop ends a live stream; it is no failure
+                return True
+            return run["t_end"] is not None and time.monotonic() >= run["t_end"]
+
+        def on_poses(poses, t_host):
+            tool = (poses or {}).get("CameraToolToTracker")
+            if tool is None:
+                return
+            shown = run["shown"]
+            pose = look_at_cavity(tool[:3, 3])
+            counts, _, _ = render_view(ctx.caster, ctx.camera, pose, ctx.cone, transport,
+                                       ctx.radiometric, seed=shown)
+            r = correct(counts, pose, index=shown)
+            if not r.mapped.any():
+                return
+            onFrame({"index": shown, "result": r,
+                     "contours": self.classifyContours(r, contourFraction), "cameraPose": pose,
+                     "trackerFrame": getattr(self.tracker, "last_frame", None)})
+            if not shown:
+                run["t_end"] = time.monotonic() + seconds
+            run["shown"] = shown + 1
+            report(progress, 1 - (run["t_end"] - time.monotonic()) / seconds,
+                   f"frame {shown + 1}")
+
+        account = self.trackFor(seconds + firstFrameWaitS, applyPoses=False, onPoses=on_poses,
+                                stop=stop)
+        return {"frames": run["shown"], "tracker_frames": account.get("frames"),
+                "lost_unreported": account.get("lost_unreported"), "stopped": run["stopped"]}
 
     def prepareCorrectFrame(self, frame, cameraPose=None, surfaceModelNode=None,
                             calibration=None, maxModelError="default"):

@@ -213,14 +213,7 @@ APP_LIB_IMPORTS = {
 
 # Debt still to move behind the logic classes (issue #30), file by file: what
 # these files import today. Shrink it; never grow it.
-APP_LIB_DEBT = {
-    # the web app's tracked stream: its own frame loop
-    "fluoapp/webapp/nav_panel.py": {
-        "FluoCalibLib.geometry": {"transforms"},
-        "FluoNavLib.devices.ndi_simulator": {"SimTool"},
-        "FluoNavLib.mapping.synthetic": {"render_view"},
-    },
-}
+APP_LIB_DEBT = {}
 
 LIBS = ("FluoCalibLib", "FluoNavLib", "FluoTomoLib")
 

@@ -9,7 +9,7 @@ import queue
 import numpy as np
 
 from fluoguide import mrml_io
-from fluoguide.errors import FluoCancelled, FluoInputError
+from fluoguide.errors import FluoInputError
 
 __all__ = ["NavPanel"]
 
@@ -70,101 +70,50 @@ class NavPanel:
         self.app.notify(s.nav_surface_info, "success")
 
     def stream(self):
-        """Track with the simulated NDI tracker (``FluoNavLogic.connectTracker``) and
-        correct frames of the oral-cavity phantom rendered at the tracked pose
-        (``prepareFrameCorrection``, ``classifyContours``), as a background job.
+        """Track with the simulated NDI tracker (``FluoNavLogic.connectTracker``)
+        and show the oral-cavity phantom's frames rendered at the tracked pose and
+        corrected (``FluoNavLogic.streamPhantomFrames``: the tracker's own loop),
+        as a background job.
 
-        The simulated operating room (surface, calibrations) lives in a scene of
-        its own, so the app's scene keeps the user's data; the app's scene gets
-        the tracked camera (``CameraToolToTracker``, ``FluoNavCamera``).  It runs for
+        The simulated operating room lives in a scene of its own, so the app's
+        scene keeps the user's data; the app's scene gets the tracked camera
+        (``CameraToolToTracker``, ``FluoNavCamera``). It runs for
         ``nav_seconds`` from its first frame or until Stop: stopping a stream ends
         it normally, with its summary."""
-        from fluoguide.slicer_compat import import_module_file
-
-        from FluoCalibLib.geometry import transforms as tf
-        from FluoNavLib.devices.ndi_simulator import SimTool
-        from FluoNavLib.mapping.synthetic import render_view
-
         from fluoguide.errors import check_number
 
         seconds = check_number("seconds", float(self.app.state.nav_seconds or 0), 0.0, 3600.0,
                                lo_open=True)
         frames = self._frames
-        FluoNavLogic = import_module_file("FluoNav").FluoNavLogic
-        # the simulated camera tool circles 120 mm above the cavity
-        tool = SimTool("CameraTool", centre_mm=(0.0, 0.0, 100.0), amplitude_mm=(25.0, 25.0, 5.0),
-                       period_s=(6.0, 6.0, 9.0), noise_mm=0.05)
-        session = self.logic.connectTracker("ndi-sim", sim_tools=[tool],
-                                            roms=[b"camera tool" * 4])
-        classify = self.logic.classifyContours
+        self.logic.connectTracker("ndi-sim", phantomCamera=True)
         self.app.state.nav_frames_shown = 0     # counts this stream's frames
 
-        def work(progress, cancel):
-            import time
-
-            shown = 0
-            stopped = False
+        def show(frame):
+            r, c = frame["result"], frame["contours"]
+            raw, cor = c["miss_rate_raw_pct"], c["miss_rate_corrected_pct"]
+            item = {"raw": _image_url(r.counts - r.offset_adu, r.hits.visible,
+                                      c["raw_contour"], f"raw (miss {raw:.1f} %)"),
+                    "corrected": _image_url(r.transport, r.mapped, c["corrected_contour"],
+                                            f"corrected T (miss {cor:.1f} %)"),
+                    "frame": frame["trackerFrame"], "pose": frame["cameraPose"].tolist(),
+                    "miss_raw": round(raw, 1), "miss_corrected": round(cor, 1)}
             try:
-                progress(0.0, "building the simulated operating room")
-                # a scene of its own, touched by this thread only
-                room = FluoNavLogic(mrml_io.new_scene())
-                room.makeSyntheticAcquisition(views=0, binning=8, triangles=20000)
-                correct = room.prepareFrameCorrection()
-                ctx = correct.context
-                # the ray caster's kernels compile here on a first run, reported as
-                # they go, not silently inside the first frame
-                try:
-                    room.prepareKernels(progress, 0.0, cancel)
-                except FluoCancelled:
-                    pass            # Stop meanwhile: the loop below ends the stream normally
-                # the stream runs ``seconds`` from its first frame (the first one also
-                # starts the plotting: slow on a busy machine)
-                t_end = time.monotonic() + seconds + 120.0
-                while time.monotonic() < t_end:
-                    if cancel is not None and cancel.cancelled:
-                        stopped = True      # Stop ends a live stream; it is no failure
-                        break
-                    poses = session.poll()
-                    pose_tool = None if poses is None else poses.get("CameraToolToTracker")
-                    if pose_tool is None:
-                        continue
-                    # the camera looks at the cavity from the tracked position
-                    pose = tf.look_at(pose_tool[:3, 3], [0.0, 0.0, -20.0], up=(0.0, 1.0, 0.0))
-                    counts, _, _ = render_view(ctx.caster, ctx.camera, pose, ctx.cone, 0.3,
-                                               ctx.radiometric, seed=shown)
-                    r = correct(counts, pose, index=shown)
-                    if not r.mapped.any():
-                        continue
-                    c = classify(r)
-                    raw, cor = c["miss_rate_raw_pct"], c["miss_rate_corrected_pct"]
-                    item = {"raw": _image_url(r.counts - r.offset_adu, r.hits.visible,
-                                              c["raw_contour"], f"raw (miss {raw:.1f} %)"),
-                            "corrected": _image_url(r.transport, r.mapped, c["corrected_contour"],
-                                                    f"corrected T (miss {cor:.1f} %)"),
-                            "frame": session.last_frame, "pose": pose.tolist(),
-                            "miss_raw": round(raw, 1), "miss_corrected": round(cor, 1)}
-                    try:
-                        frames.put_nowait(item)
-                    except queue.Full:
-                        pass          # the UI is behind: drop
-                    if not shown:
-                        t_end = time.monotonic() + seconds
-                    shown += 1
-                    progress(min(1.0, 1 - (t_end - time.monotonic()) / seconds), f"frame {shown}")
-                stats = session.client.stats
+                frames.put_nowait(item)
+            except queue.Full:
+                pass          # the UI is behind: drop
+
+        def work(progress, cancel):
+            try:
+                return self.logic.streamPhantomFrames(seconds, show, progress, cancel)
             finally:
-                session.close()
-            return {"frames": shown, "tracker_frames": stats.frames,
-                    "lost_unreported": stats.lost_unreported(), "stopped": stopped}
+                self.logic.disconnect()     # on an error or cancel too
 
         def done(result):
-            self.logic.disconnect()
             how = "Stream stopped after" if result["stopped"] else "Streamed"
             self.app.notify(f"{how} {result['frames']} corrected frames from "
                             f"{result['tracker_frames']} tracker frames (unreported losses: "
                             f"{result['lost_unreported']})", "success")
 
-        # on an error or cancel the job's own ``finally`` closed the session
         self.app.start_job("tracked stream", work, on_done=done, owner="FluoNav")
 
     def on_poll(self):

@@ -262,8 +262,9 @@ class IGTLReceiver:
         except FluoInputError:  # a voxel type or shape MRML cannot hold: the device's fault
             return None
 
-    def receive(self, seconds):
-        """Apply messages for ``seconds`` (ends on time whatever the server does).
+    def receive(self, seconds, stop=None):
+        """Apply messages for ``seconds`` [s] (ends on time whatever the server
+        does), or until ``stop()`` is true (asked between reads).
 
         Returns
         -------
@@ -275,8 +276,8 @@ class IGTLReceiver:
         ------
         FluoDeviceError
             The server sent no message that reached the scene within ``seconds``
-            (or closed the connection before one did); the message says what
-            arrived instead.
+            (or closed the connection before one did) and ``stop`` did not end
+            it; the message says what arrived instead.
         """
         seconds = float(seconds)
         if not np.isfinite(seconds) or seconds <= 0 or seconds > 86400:
@@ -284,9 +285,13 @@ class IGTLReceiver:
                                  value=seconds)
         t0 = time.monotonic()
         t_end = t0 + seconds
+        stopped = False
         while time.monotonic() < t_end and not self.closed_by_peer:
+            if stop is not None and stop():
+                stopped = True
+                break
             self.poll(budget_s=max(0.0, min(0.1, t_end - time.monotonic())))
-        if not self.received:
+        if not self.received and not stopped:
             # nothing reached the scene: a peer failure, not an empty success
             self._device_error(self._nothing_usable(time.monotonic() - t0))
         return {"received": dict(self.received), "lost": dict(self.lost),

@@ -387,12 +387,13 @@ class NDIClient:
                 time.sleep(0.2)
         return False
 
-    def track(self, seconds, on_frame=None, rate_hz=60.0):
-        """Poll for ``seconds``; ``on_frame(reply, t_host)`` for each new frame."""
+    def track(self, seconds, on_frame=None, rate_hz=60.0, stop=None):
+        """Poll for ``seconds`` [s], or until ``stop()`` is true (asked before each
+        poll); ``on_frame(reply, t_host)`` for each new frame."""
         t_end = time.monotonic() + float(seconds)
         failures = 0
         period = 1.0 / (2.0 * rate_hz)       # poll at twice the frame rate: no frame skipped
-        while time.monotonic() < t_end:
+        while time.monotonic() < t_end and not (stop is not None and stop()):
             t0 = time.monotonic()
             try:
                 reply = self.poll()

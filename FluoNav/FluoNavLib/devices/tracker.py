@@ -4,9 +4,11 @@ the simulator on a pseudo-terminal), an OpenIGTLink server, a recording.
 A :class:`TrackerSession` is opened by :func:`open_tracker`; ``poll()`` gives
 the newest poses ``{tool: 4x4 or None}`` (None: the tool is missing),
 ``track(seconds)`` runs for a while and returns the session's account of every
-frame (the numbers ``fluo track`` prints), ``close()`` ends it. The FluoNav
-logic writes polled poses into transform nodes (``CameraToolToTracker``); the
-Slicer widget polls on a timer, the CLI tracks for a fixed time.
+frame (the numbers ``fluo track`` prints), ``close()`` ends it. ``track`` is the
+one live-tracking loop: ``fluo track`` runs it for a fixed time, the web app's
+stream (``FluoNavLogic.streamPhantomFrames``) with a callback per frame until it
+stops it. The FluoNav logic writes polled poses into transform nodes
+(``CameraToolToTracker``); the Slicer widget polls on a timer.
 
 Bad input (no port, a malformed address, a duration that is not finite) is a
 FluoInputError; a device that answers nothing usable is a FluoDeviceError.
@@ -58,8 +60,9 @@ class TrackerSession(abc.ABC):
         """The latest poses {tool name: 4x4 or None}, or None when nothing new."""
 
     @abc.abstractmethod
-    def track(self, seconds, on_poses=None):
-        """Track for ``seconds``; ``on_poses(poses)`` per frame; returns the statistics."""
+    def track(self, seconds, on_poses=None, stop=None):
+        """Track for ``seconds`` [s] or until ``stop()`` is true (asked before each
+        read); ``on_poses(poses, t_host)`` per frame; returns the statistics."""
 
     def close(self):
         pass
@@ -136,6 +139,9 @@ class NDITracker(TrackerSession):
                 f"{st.duplicate_replies}, recoveries {st.recovered}")
 
     def _poses(self, reply):
+        """``{tool: 4x4 or None}`` of a new frame; notes its device frame number."""
+        frames = [p.frame for p in reply.tools.values() if p.frame is not None]
+        self.last_frame = max(frames) if frames else self.last_frame
         poses = {}
         for k, name in enumerate(self.tool_names):
             p = reply.tools.get(k + 1)
@@ -163,30 +169,39 @@ class NDITracker(TrackerSession):
             return None
         if reply is None:
             return None
-        frames = [p.frame for p in reply.tools.values() if p.frame is not None]
-        self.last_frame = max(frames) if frames else self.last_frame
         return self._poses(reply)
 
-    def track(self, seconds, on_poses=None):
-        """Track for ``seconds``; ``on_poses(poses, t_host)`` per new frame.
+    def track(self, seconds, on_poses=None, stop=None):
+        """Track for ``seconds`` [s] or until ``stop()`` is true (asked before each
+        poll); ``on_poses(poses, t_host)`` per new frame (``last_frame`` is its
+        device frame number meanwhile).
 
         Returns the account of ``fluo track``: frames, rate, reported gaps and
         faults, ``lost_unreported`` (computed, must be 0), simulator counters.
-        Raises FluoDeviceError when the tracker delivered no frame at all.
+        Raises FluoDeviceError when the tracker delivered no frame at all (unless
+        ``stop`` ended the run).
         """
         from FluoNavLib.devices.ndi_protocol import NDIProtocolError
 
         seconds = check_seconds(seconds)
         callback = None if on_poses is None else (lambda reply, t: on_poses(self._poses(reply), t))
+        stopped = []
+
+        def halt():
+            if stop is not None and stop():
+                stopped.append(True)
+                return True
+            return False
+
         t0 = time.monotonic()
         try:
-            stats = self.client.track(seconds, on_frame=callback)
+            stats = self.client.track(seconds, on_frame=callback, stop=halt)
         except NDIProtocolError as exc:
             # failures in a row and every recovery attempt failed: one device error
             raise FluoDeviceError(f"tracker on {self.port}: {exc}, and it did not recover "
                                   f"({self._faults()})") from None
         elapsed = time.monotonic() - t0
-        if stats.frames == 0:
+        if stats.frames == 0 and not stopped:
             # a tracker that answered nothing usable is a failed run, not an empty success
             raise FluoDeviceError(
                 f"tracker on {self.port} delivered no frames in {elapsed:.1f} s "
@@ -239,9 +254,11 @@ class IGTLTracker(TrackerSession):
                 poses[name] = mrml_io.transform_matrix(node)
         return poses or None
 
-    def track(self, seconds, on_poses=None):
+    def track(self, seconds, on_poses=None, stop=None):
+        """Apply messages for ``seconds`` [s] or until ``stop()`` is true; the
+        messages update their nodes themselves (``on_poses`` is not called)."""
         seconds = check_seconds(seconds)
-        out = self.receiver.receive(seconds)
+        out = self.receiver.receive(seconds, stop=stop)
         out["seconds"] = seconds
         return out
 
@@ -280,12 +297,17 @@ class ReplayTracker(TrackerSession):
         self.last_image, self.last_info = image, info
         return self._valid(info, poses)
 
-    def track(self, seconds=None, on_poses=None):
-        """Play to the end (or for ``seconds``): frames and frames with a valid pose."""
+    def track(self, seconds=None, on_poses=None, stop=None):
+        """Play to the end (or for ``seconds`` [s], or until ``stop()`` is true):
+        frames and frames with a valid pose."""
         t_end = None if seconds is None else time.monotonic() + check_seconds(seconds)
         n = valid = 0
         t0 = time.monotonic()
-        for _, info, poses in self._frames:
+        while not (stop is not None and stop()):    # asked before a frame is taken
+            item = next(self._frames, None)
+            if item is None:
+                break
+            _, info, poses = item
             n += 1
             valid += bool(info["pose_valid"])
             if on_poses is not None:

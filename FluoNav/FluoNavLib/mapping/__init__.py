@@ -31,5 +31,5 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "rasterize": ["RayGrid", "raster_cast"],
     "scene": ["SURFACE_NODE", "TRANSPORT_NODE", "RAW_NODE", "FLUX_NODE", "MAPPING_KEY", "write_surface_flux", "write_frame_images", "point_means"],
     "surface": ["surface_from_cbct", "surface_from_cbct_node", "surface_from_labelmap", "surface_from_labelmap_node"],
-    "synthetic": ["oral_cavity_surface", "open_field_camera", "coupled_light", "view_poses", "render_view", "render_hits", "exact_oral_cavity_hits", "PoseError", "tracked_acquisition"],
+    "synthetic": ["oral_cavity_surface", "open_field_camera", "coupled_light", "view_poses", "look_at_cavity", "stream_camera_tool", "render_view", "render_hits", "exact_oral_cavity_hits", "PoseError", "tracked_acquisition"],
 })

@@ -7,7 +7,7 @@ Frames that grade the software are rendered on the phantom's analytic surface
 (:func:`exact_oral_cavity_hits`) from the true poses, while the software gets
 a CBCT-derived mesh and tracked poses with errors (:func:`tracked_acquisition`,
 ``mismatch.py``); :func:`render_view` renders on a given mesh (speed tests,
-the live view).
+the live stream: :func:`stream_camera_tool`, :func:`look_at_cavity`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from FluoNavLib.mapping.flux_map import forward_image, view_model
 from FluoNavLib.mapping.pixel_cast import PixelHits, SurfaceCaster, cast_camera
 
 __all__ = ["oral_cavity_surface", "open_field_camera", "coupled_light", "view_poses",
-           "render_view", "render_hits", "exact_oral_cavity_hits", "PoseError",
+           "look_at_cavity", "stream_camera_tool", "render_view", "render_hits", "exact_oral_cavity_hits", "PoseError",
            "tracked_acquisition"]
 
 
@@ -114,8 +114,25 @@ def view_poses(n=4, distance_mm=120.0, centre=(0.0, 0.0, -20.0)):
         tilt = 0.0 if k == 0 else np.deg2rad(15.0)
         eye = np.asarray(centre) + distance_mm * np.array([np.sin(tilt) * np.cos(az),
                                                            np.sin(tilt) * np.sin(az), np.cos(tilt)])
-        poses.append(tf.look_at(eye, centre, up=(0.0, 1.0, 0.0)))
+        poses.append(look_at_cavity(eye, centre))
     return poses
+
+
+def look_at_cavity(eye_mm, centre=(0.0, 0.0, -20.0)):
+    """CameraToWorld (4x4, mm) of a camera at ``eye_mm`` [mm] looking at the
+    cavity's ``centre`` [mm], image up along +y (how every view here is aimed)."""
+    return tf.look_at(eye_mm, centre, up=(0.0, 1.0, 0.0))
+
+
+def stream_camera_tool(name="CameraTool", noise_mm=0.05):
+    """The simulated tracker's camera tool of a live stream over the phantom
+    (``ndi_simulator.SimTool``, tracker frame = phantom frame, mm): a Lissajous
+    path 120 mm above the cavity's centre, +-25 mm in x and y (periods 6 s) and
+    +-5 mm in z (9 s), with ``noise_mm`` [mm] tracking noise (SD per axis)."""
+    from FluoNavLib.devices.ndi_simulator import SimTool
+
+    return SimTool(name, centre_mm=(0.0, 0.0, 100.0), amplitude_mm=(25.0, 25.0, 5.0),
+                   period_s=(6.0, 6.0, 9.0), noise_mm=noise_mm)
 
 
 def render_view(caster, camera, camera_to_world, cone, transport=0.3, radiometric=None, seed=0):

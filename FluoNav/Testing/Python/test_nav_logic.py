@@ -1,5 +1,5 @@
 """FluoNavLogic's calls on their own: point data of the mapped surface, tracker
-sessions (replay, bad sources), input checks of correctFrame, and old scenes
+sessions (replay, bad sources, the tracking loop's callback and stop), input checks of correctFrame, and old scenes
 whose hand-eye node has the old name."""
 
 import numpy as np
@@ -119,6 +119,30 @@ def test_replay_through_the_logic_puts_the_recorded_poses_in_the_scene(tmp_path)
                                   poses[4])
     assert logic.posesApplied == 4
     assert logic.importRecording(tmp_path / "rec") == 5
+
+
+def test_the_tracking_loop_hands_on_each_frame_and_stops_when_asked():
+    # the one live-tracking loop (fluo track, the web app's stream): a callback per
+    # frame, and a stop the caller decides (the stream's Stop and its time window)
+    from FluoNav import FluoNavLogic
+
+    logic = FluoNavLogic(mrml_io.new_scene())
+    logic.connectTracker("ndi-sim", phantomCamera=True)
+    seen = []
+    try:
+        out = logic.trackFor(60.0, applyPoses=False,
+                             onPoses=lambda poses, t: seen.append(
+                                 (poses["CameraToolToTracker"], logic.tracker.last_frame)),
+                             stop=lambda: len(seen) >= 5)
+        stopped_at_once = logic.trackFor(60.0, stop=lambda: True)   # no frame: no error
+    finally:
+        logic.disconnect()
+    assert len(seen) == 5 and out["frames"] == 5 and out["lost_unreported"] == 0
+    # the phantom camera circles 120 mm above the cavity (z 100 +- 5 mm)
+    assert all(abs(pose[2, 3] - 100.0) < 6.0 for pose, _ in seen)
+    assert [f for _, f in seen] == sorted({f for _, f in seen})       # device frame numbers
+    assert stopped_at_once["frames"] == 5
+    assert mrml_io.get_node(logic.scene, "CameraToolToTracker", required=False) is None
 
 
 @pytest.mark.parametrize("source, address, needle", [
