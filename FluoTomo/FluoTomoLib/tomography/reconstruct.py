@@ -268,8 +268,10 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                 progress, cancel)
         shifts = None
         if seg_mm > 0:
+            t_seg = time.perf_counter()
             shifts = _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption,
                                           data_model, noise_rel, progress, cancel)
+            timings["segmentation_test"] = time.perf_counter() - t_seg
     for text in _once(str(w.message) for w in caught):
         if text not in notes:
             notes.append(text)
