@@ -549,17 +549,12 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         Returns the path."""
         from pathlib import Path
 
-        from fluoguide import atomic, mrml_io
+        from fluoguide import mrml_io
         from fluoguide.labelmap_io import write_volume_nrrd
 
-        from fluoguide.errors import FluoInputError
-
-        if not str(outputFile).lower().endswith(".nrrd"):
-            raise FluoInputError("a label map is written as .nrrd", field="label map file",
-                                 value=str(outputFile))
+        _check_labelmap_output(outputFile, "label map file")
         node = (mrml_io.get_node(self.scene, labelNode, "vtkMRMLLabelMapVolumeNode")
                 if isinstance(labelNode, str) else labelNode)
-        atomic.check_writable(outputFile, "label map file")
         geo = mrml_io.volume_geometry(node)
         write_volume_nrrd(outputFile, mrml_io.volume_array(node), geo["spacing"], geo["origin"],
                           geo["direction"])
@@ -572,15 +567,10 @@ class FluoTomoLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         gzip; on the CBCT's grid: same origin, spacing and direction) in one
         step after every check. Returns the summary (per label: voxels,
         volume_mm3, components, dropped_voxels, filled_voxels)."""
-        from fluoguide import atomic
-        from fluoguide.errors import FluoInputError
         from fluoguide.labelmap_io import write_volume_nrrd
         from FluoTomoLib.tomography import parse_thresholds, threshold_labels
 
-        if not str(outputFile).endswith(".nrrd"):
-            raise FluoInputError("the label map is written as NRRD: name it .nrrd", field="--out",
-                                 value=str(outputFile))
-        atomic.check_writable(outputFile, field="--out")
+        _check_labelmap_output(outputFile, "--out")
         entries = parse_thresholds(thresholds)              # refused before the CBCT is read
         arr, spacing, origin, direction, source = self.readCbct(cbct, series)
         labels, report = threshold_labels(arr, entries, spacing, progress=progress, cancel=cancel)
@@ -1842,6 +1832,18 @@ def _segment_array(scene, segmentationNode, segmentId, referenceVolume):
         scene.RemoveNode(tmp)
 
 
+def _check_labelmap_output(outputFile, field):
+    """Refuse, before any work, a label-map output that is not a writable
+    ``.nrrd`` file name (``fluo segment``'s ``--out``, the app's saved map)."""
+    from fluoguide import atomic
+    from fluoguide.errors import FluoInputError
+
+    if not str(outputFile).endswith(".nrrd"):
+        raise FluoInputError("the label map is written as NRRD: name it .nrrd", field=field,
+                             value=str(outputFile))
+    atomic.check_writable(outputFile, field=field)
+
+
 class FluoTomoTest(ScriptedLoadableModuleTest):
     """The module's workflow through the logic calls on synthetic data with
     known truth. Runs in Slicer's self-test and under pytest (a unittest.TestCase).
@@ -1927,3 +1929,4 @@ class FluoTomoTest(ScriptedLoadableModuleTest):
             analytic = region["analytic_volume_mm3"]
             self.assertLess(abs(volumes[int(label)] - analytic) / analytic, 0.02)
         self.delayDisplay("FluoTomo phantom test passed")
+

@@ -55,11 +55,11 @@ class TomoPanel:
         s.tomo_colorbar = {"min": 0.0, "max": 1.0, "gradient": ""}
         s.tomo_loaded = False
         s.tomo_has_labels = False
-        # the user's own scene: a label map file, optics.json, an acquisition folder
         # a CBCT of the user's: a volume file, a scene or a DICOM series folder
         s.tomo_cbct_path = ""
         s.tomo_cbct_series = ""        # SeriesInstanceUID when the folder holds several
         s.tomo_labels_out = "labels.nrrd"
+        # the user's own scene: a label map file, optics.json, an acquisition folder
         s.tomo_own_labels = ""
         s.tomo_own_optics = ""
         s.tomo_own_acquisition = ""
@@ -71,7 +71,6 @@ class TomoPanel:
         s.tomo_plan_positions = 16
         s.tomo_plan_result = None
         self._own = None               # {"label": node id, "optics": Optics, "acquisition": ...}
-        self._user_cbct = False        # the CBCT shown is the user's (no phantom truth)
         self._mesh_node_id = None
         c = app.ctrl
         g = app.guarded
@@ -116,7 +115,6 @@ class TomoPanel:
         self._clear_cbct()
         truth = self.logic.loadPhantom(s.tomo_phantom, withLabels=False, **params)
         self._cbct_shown()
-        self._user_cbct = False
         self.app.notify(f"Loaded the {truth['phantom']} phantom CBCT "
                         f"({' x '.join(map(str, truth['shape_kji'][::-1]))} voxels). "
                         "Next: segment it by threshold.", "success")
@@ -140,7 +138,6 @@ class TomoPanel:
         self._clear_cbct()
         node.SetName("CBCT")
         self._cbct_shown()
-        self._user_cbct = True
         fmt = mrml_io.get_json_attribute(node, "FluoGuide.Source", {}).get("format", "volume")
         dims = " x ".join(map(str, mrml_io.volume_array(node).shape[::-1]))
         self.app.notify(f"Loaded the CBCT {self.app.workspace.shown(path)} ({fmt}, {dims} "
@@ -148,9 +145,11 @@ class TomoPanel:
                         "load it with optics.json and a recording (1b).", "success")
 
     def _phantom_only(self, step):
-        """Refuse the phantom route's ``step`` on the user's own CBCT: it has no
-        simulated scan; its route is the saved label map with a recording (1b)."""
-        if self._user_cbct:
+        """Refuse the phantom route's ``step`` on a CBCT without a phantom's truth
+        (the user's): it has no simulated scan; its route is the saved label map
+        with a recording (1b)."""
+        cbct = mrml_io.get_node(self.app.scene, "CBCT", required=False)
+        if cbct is not None and not mrml_io.get_json_attribute(cbct, "FluoGuide.Truth"):
             raise FluoInputError(f"your CBCT has no simulated scan to {step}: save its label "
                                  "map (step 2), then load it with optics.json and your "
                                  "recording or acquisition folder (1b)", field=step)

@@ -498,15 +498,15 @@ def acquire_recording(labelmap, optics, recording, calibration=None,
     if not (np.isfinite(spot_tolerance_mm) and 0 < spot_tolerance_mm <= 50):
         raise FluoInputError("must be a distance within (0, 50] mm", field="spot_tolerance_mm",
                              value=spot_tolerance_mm)
+    if source_from not in SOURCE_FROM:
+        raise FluoInputError(f"must be one of {', '.join(SOURCE_FROM)}", field="source_from",
+                             value=source_from)
     camera = cal["camera"]
     surf = labelmap.surface()
     pts_ras = labelmap.to_ras(surf.points)
     tris = surf.triangles if np.linalg.det(labelmap.direction) > 0 else surf.triangles[:, ::-1]
     caster = SurfaceCaster(pts_ras, tris)
     rows, keep = [], []
-    if source_from not in SOURCE_FROM:
-        raise FluoInputError(f"must be one of {', '.join(SOURCE_FROM)}", field="source_from",
-                             value=source_from)
     images, sat, cams, lasers, hits_used, scale, spots = [], [], [], [], [], [], []
     n = len(rec["frames"])
     for k, fr in enumerate(rec["frames"]):
@@ -581,14 +581,14 @@ def _pose_failure(rec, st_l, st_c):
 
 def _examine_frame(fr, row, rec, cal, caster, pts_ras, tris, spot_tolerance_mm, exclude_mm,
                    source_from="spot"):
-    """Check one frame: its tool poses, the tracked beam's surface point (the
-    source, RAS mm) seen by the camera, the laser spot within
-    ``spot_tolerance_mm`` [mm] of it, no saturation farther than ``exclude_mm``
-    [mm] from the source (the spot, or with ``source_from="beam"`` the beam's
-    point).
+    """Check one frame: its tool poses, the tracked beam's surface point (RAS
+    mm) seen by the camera, the laser spot within ``spot_tolerance_mm`` [mm] of
+    it, no saturation farther than ``exclude_mm`` [mm] from the source (the
+    spot, or with ``source_from="beam"`` the beam's point).
 
     A frame that fails gets its ``row``'s reason and detail and gives None; a
-    used one gives {image (ADU, float), saturated, camera_ras, laser_ras, hits}.
+    used one gives {image (ADU, float), saturated, camera_ras, laser_ras, hits,
+    spot_ras (the spot's surface point, RAS mm)}.
     ``row`` also gets ``spot_to_beam_mm`` once the spot is found.
     """
     from fluoguide.images import read_image
