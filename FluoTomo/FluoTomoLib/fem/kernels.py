@@ -32,7 +32,7 @@ def _examples():
     from FluoTomoLib.fem import assembly_kernels as ak
     from FluoTomoLib.fem import jacobian_kernels as jk
     from FluoTomoLib.fem import locate, ordering
-    from FluoTomoLib.meshing import mesh
+    from FluoTomoLib.meshing import mesh, voxel
 
     f2 = np.zeros((1, 3))                   # float64 (N, d), C order
     f1 = np.zeros(1)
@@ -45,6 +45,9 @@ def _examples():
         (mesh._signed_measures, (f2, i64_2)),
         (mesh._facet_codes, (i64_2, n)),
         (locate._scan_locate, (f2, i64_2, f2, 1e-9)),
+        (locate._first_containing, (f2, i64_2, f2, i64_2, 1e-9)),
+        (locate._grid_locate, (f2, i64_2, f1, f1, i64_1, np.zeros(1, bool), 1e-9)),
+        (voxel.cell_region_shares, (np.zeros((1, 1, 1), np.int32), f1, f1, f2, f2, n, n)),
         (ak.element_gradients, (f2, i32_2)),
         (jk.node_elements, (i32_2, n)),
         (ak.upper_pattern, (i32_2, n, i64_1, i32_1)),

@@ -123,38 +123,60 @@ class PointLocator:
         """:meth:`locate` of a batch of points, by the nearest centroids (k, then
         16 k of them); -1 where neither holds the point."""
         n = len(pts)
-        elem = np.full(n, -1, dtype=np.int64)
-        bary = np.full((n, self.mesh.dim + 1), np.nan)
+        pts = np.ascontiguousarray(pts, dtype=float)
         _, cand = self.tree.query(pts, k=self.k)
-        cand = cand.reshape(n, -1)
-        todo = np.ones(n, bool)
-        for c in range(cand.shape[1]):
-            idx = np.flatnonzero(todo)
-            if len(idx) == 0:
-                break
-            lam = barycentric(self.mesh, cand[idx, c], pts[idx])
-            inside = np.all(lam >= -tol, axis=1)
-            hit = idx[inside]
-            elem[hit] = cand[hit, c]
-            bary[hit] = lam[inside]
-            todo[hit] = False
+        elem, bary = _first_containing(self._nodes(), self._elements(), pts,
+                                       np.ascontiguousarray(cand.reshape(n, -1), np.int64), tol)
         # a graded mesh's large elements: their centroids lie beyond the nearest
         # k small ones; more candidates, a sixteenth of the batch at a time
         wide = int(min(16 * self.k, self.mesh.n_elements))
-        left = np.flatnonzero(todo)
+        left = np.flatnonzero(elem < 0)
         for b in range(0, len(left) if wide > self.k else 0, LOCATE_BATCH // 16):
             idx = left[b:b + LOCATE_BATCH // 16]
             _, more = self.tree.query(pts[idx], k=wide)
-            more = more.reshape(len(idx), -1)[:, self.k:]
-            for c in range(more.shape[1]):
-                if len(idx) == 0:
-                    break
-                lam = barycentric(self.mesh, more[:, c], pts[idx])
-                inside = np.all(lam >= -tol, axis=1)
-                elem[idx[inside]] = more[inside, c]
-                bary[idx[inside]] = lam[inside]
-                idx, more = idx[~inside], more[~inside]
+            more = np.ascontiguousarray(more.reshape(len(idx), -1)[:, self.k:], np.int64)
+            elem[idx], bary[idx] = _first_containing(self._nodes(), self._elements(),
+                                                     np.ascontiguousarray(pts[idx]), more, tol)
         return elem, bary
+
+    def _nodes(self):
+        """The mesh's nodes as the compiled search takes them (float64, C order)."""
+        return np.ascontiguousarray(self.mesh.nodes_mm, dtype=float)
+
+    def _elements(self):
+        """The mesh's elements as the compiled search takes them (int64, C order)."""
+        return np.ascontiguousarray(self.mesh.elements, dtype=np.int64)
+
+    def grid_interpolation_matrix(self, origin_mm, spacing_mm, shape_kji, select=None):
+        """Sparse (P, N) P1 interpolation weights at the points of a regular grid:
+        point (i, j, k) at ``origin_mm + (i, j, k) * spacing_mm`` (mesh frame
+        [mm], axis-aligned), in C order of ``shape_kji`` (i fastest), only where
+        ``select`` (a bool array of that shape; None: every point) holds, rows in
+        that order; a point outside the mesh gets an empty row.
+
+        Each element visits the grid points in its bounding box (a compiled
+        loop): for a voxel grid this is the :meth:`locate` result (the lowest
+        element holding a point on a shared face, as the scan takes it) at a
+        fraction of the candidate search's cost."""
+        import scipy.sparse as sp
+
+        shape_kji = tuple(int(v) for v in shape_kji)
+        sel = (np.ones(shape_kji, bool) if select is None
+               else np.asarray(select, bool).reshape(shape_kji)).ravel()
+        if self.mesh.dim != 3:
+            k, j, i = np.indices(shape_kji)
+            pts = (np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1)[sel] * spacing_mm
+                   + origin_mm)
+            return self.interpolation_matrix(pts, outside="zero")
+        elem, bary = _grid_locate(self._nodes(), self._elements(),
+                                  np.ascontiguousarray(origin_mm, float).reshape(3),
+                                  np.ascontiguousarray(spacing_mm, float).reshape(3),
+                                  np.array(shape_kji[::-1], np.int64), sel, 1e-9)
+        elem, bary = elem[sel], bary[sel]
+        rows = np.repeat(np.arange(len(elem)), 4)
+        cols = self.mesh.elements[np.maximum(elem, 0)].ravel()
+        vals = np.where(elem[:, None] >= 0, bary, 0.0).ravel()
+        return sp.csr_matrix((vals, (rows, cols)), shape=(len(elem), self.mesh.n_nodes))
 
     def interpolation_matrix(self, points, outside="error", what="point"):
         """Sparse (P, N) matrix of P1 interpolation weights at the points."""
@@ -232,6 +254,121 @@ def _scan_locate(nodes, el, pts, tol):
                 for a in range(nl):
                     bary[p, a] = lam[a]
                 left -= 1
+    return elem, bary
+
+
+@njit(cache=True, nogil=True)
+def _barycentric_into(nodes, el, e, p, lam, T, r):
+    """``lam`` <- barycentric coordinates of point ``p`` in element ``e`` (the
+    system T lam[1:] = p - x0 solved by Gaussian elimination with partial
+    pivoting, as LAPACK's gesv does); False when T is singular."""
+    d = T.shape[0]
+    for x in range(d):
+        for k in range(d):
+            T[x, k] = nodes[el[e, k + 1], x] - nodes[el[e, 0], x]
+        r[x] = p[x] - nodes[el[e, 0], x]
+    for c in range(d):
+        piv = c
+        for x in range(c + 1, d):
+            if abs(T[x, c]) > abs(T[piv, c]):
+                piv = x
+        if T[piv, c] == 0.0:
+            return False
+        if piv != c:
+            for k in range(d):
+                T[c, k], T[piv, k] = T[piv, k], T[c, k]
+            r[c], r[piv] = r[piv], r[c]
+        for x in range(c + 1, d):
+            f = T[x, c] / T[c, c]
+            for k in range(c, d):
+                T[x, k] -= f * T[c, k]
+            r[x] -= f * r[c]
+    s = 0.0
+    for c in range(d - 1, -1, -1):
+        v = r[c]
+        for k in range(c + 1, d):
+            v -= T[c, k] * lam[k + 1]
+        lam[c + 1] = v / T[c, c]
+        s += lam[c + 1]
+    lam[0] = 1.0 - s
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _first_containing(nodes, el, pts, cand, tol):
+    """For each point, the first of its candidate elements (a row of ``cand``)
+    that holds it (every barycentric coordinate >= -tol) and its barycentric
+    coordinates; -1 and NaN where none does."""
+    P, C = cand.shape
+    nl = el.shape[1]
+    d = nl - 1
+    elem = np.full(P, -1, np.int64)
+    bary = np.full((P, nl), np.nan)
+    T = np.empty((d, d))
+    r = np.empty(d)
+    lam = np.empty(nl)
+    for p in range(P):
+        for c in range(C):
+            e = cand[p, c]
+            if not _barycentric_into(nodes, el, e, pts[p], lam, T, r):
+                continue
+            ok = True
+            for a in range(nl):
+                if lam[a] < -tol:
+                    ok = False
+                    break
+            if ok:
+                elem[p] = e
+                for a in range(nl):
+                    bary[p, a] = lam[a]
+                break
+    return elem, bary
+
+
+@njit(cache=True, nogil=True)
+def _grid_locate(nodes, el, origin, spacing, shape_ijk, select, tol):
+    """:meth:`PointLocator.grid_interpolation_matrix`'s search: every element
+    checks the selected grid points in its bounding box (padded as
+    :func:`_scan_locate` pads it); the lowest element holding a point is its
+    element. Returns (elem (P,), bary (P, 4)) over the whole grid, C order."""
+    ni, nj, nk = shape_ijk[0], shape_ijk[1], shape_ijk[2]
+    P = ni * nj * nk
+    elem = np.full(P, -1, np.int64)
+    bary = np.full((P, 4), np.nan)
+    T = np.empty((3, 3))
+    r = np.empty(3)
+    lam = np.empty(4)
+    p = np.empty(3)
+    first = np.empty(3, np.int64)
+    last = np.empty(3, np.int64)
+    for e in range(el.shape[0]):
+        for x in range(3):
+            lo = nodes[el[e, 0], x]
+            hi = lo
+            for a in range(1, 4):
+                v = nodes[el[e, a], x]
+                lo = min(lo, v)
+                hi = max(hi, v)
+            pad = 1e-9 * (hi - lo) + 1e-12
+            first[x] = max(int(np.ceil((lo - pad - origin[x]) / spacing[x])), 0)
+            last[x] = min(int(np.floor((hi + pad - origin[x]) / spacing[x])),
+                          shape_ijk[x] - 1)
+        for k in range(first[2], last[2] + 1):
+            for j in range(first[1], last[1] + 1):
+                for i in range(first[0], last[0] + 1):
+                    q = (k * nj + j) * ni + i
+                    if elem[q] >= 0 or not select[q]:
+                        continue
+                    p[0] = origin[0] + i * spacing[0]
+                    p[1] = origin[1] + j * spacing[1]
+                    p[2] = origin[2] + k * spacing[2]
+                    if not _barycentric_into(nodes, el, e, p, lam, T, r):
+                        continue
+                    if lam[0] >= -tol and lam[1] >= -tol and lam[2] >= -tol \
+                            and lam[3] >= -tol:
+                        elem[q] = e
+                        for a in range(4):
+                            bary[q, a] = lam[a]
     return elem, bary
 
 

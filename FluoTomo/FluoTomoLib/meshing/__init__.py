@@ -22,6 +22,6 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "structured": ["graded_axis", "optode_axis", "rectangle_mesh", "kuhn_paths", "box_mesh", "slab_mesh"],
     "to_file": ["optode_edges", "mesh_to_file"],
     "tetwild": ["labelmap_volumes", "labelmap_surface", "decimate_surface", "mesh_labelmap_quality"],
-    "voxel": ["mesh_labelmap_structured", "labelmap_region_volumes", "node_labels_from_labelmap", "nodal_volumes", "node_regions_volume_preserving", "region_centroid_mm", "target_refinement"],
+    "voxel": ["mesh_labelmap_structured", "labelmap_region_volumes", "node_labels_from_labelmap", "nodal_volumes", "node_regions_volume_preserving", "region_centroid_mm", "target_refinement", "cell_region_shares"],
     "vtu_io": ["to_vtk", "from_vtk", "write_vtu", "read_vtu", "read_mesh", "boundary_polydata"],
 })

@@ -18,6 +18,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from numba import njit
 
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel, report
@@ -766,4 +767,47 @@ def target_refinement(labels_kji, spacing_mm, origin_mm, roi, size_mm, margin_mm
             out.append((lo[a] - margin_mm, hi[a] + margin_mm, float(size_mm)))
         else:
             out.append(None)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _axis_sample(lo, hi, frac, origin, spacing, n):
+    """The two voxel indices on one axis around the point ``lo + frac (hi - lo)``
+    [mm] and the second one's trilinear weight, the grid's edge value held
+    beyond it."""
+    x = min(max((lo + frac * (hi - lo) - origin) / spacing, 0.0), n - 1.0)
+    i0 = min(int(np.floor(x)), n - 1)
+    return i0, min(i0 + 1, n - 1), x - i0
+
+
+@njit(cache=True, nogil=True)
+def cell_region_shares(sub_col, origin_kji, spacing_kji, cell_lo_kji, cell_hi_kji, samples, n_cols):
+    """(P, n_cols) each cell's share of every column's region: the mean over a
+    ``samples``^3 midpoint grid on the box [cell_lo, cell_hi] (mm, k-j-i order)
+    of the regions' indicators interpolated trilinearly between voxel centres,
+    the grid's edge values held beyond it (what ``scipy.ndimage.map_coordinates``
+    of order 1, mode "nearest", gives for each indicator, here all in one pass);
+    ``sub_col`` (K, J, I): each voxel's column, -1 for none."""
+    P = cell_lo_kji.shape[0]
+    out = np.zeros((P, n_cols))
+    nk, nj, ni = sub_col.shape
+    w = 1.0 / samples ** 3
+    for p in range(P):
+        for a in range(samples):
+            k0, k1, tk = _axis_sample(cell_lo_kji[p, 0], cell_hi_kji[p, 0], (a + 0.5) / samples,
+                                      origin_kji[0], spacing_kji[0], nk)
+            for b in range(samples):
+                j0, j1, tj = _axis_sample(cell_lo_kji[p, 1], cell_hi_kji[p, 1],
+                                          (b + 0.5) / samples, origin_kji[1], spacing_kji[1], nj)
+                for c in range(samples):
+                    i0, i1, ti = _axis_sample(cell_lo_kji[p, 2], cell_hi_kji[p, 2],
+                                              (c + 0.5) / samples, origin_kji[2],
+                                              spacing_kji[2], ni)
+                    for q in range(8):
+                        kk, wk = (k1, tk) if q & 4 else (k0, 1.0 - tk)
+                        jj, wj = (j1, tj) if q & 2 else (j0, 1.0 - tj)
+                        ii, wi = (i1, ti) if q & 1 else (i0, 1.0 - ti)
+                        v = sub_col[kk, jj, ii]
+                        if v >= 0:
+                            out[p, v] += w * wk * wj * wi
     return out

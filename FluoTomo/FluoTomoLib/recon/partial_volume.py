@@ -23,6 +23,7 @@ import numpy as np
 
 from fluoguide.errors import FluoInputError
 
+from FluoTomoLib.meshing.voxel import cell_region_shares
 from FluoTomoLib.recon.solver import RegionPrior
 
 
@@ -98,10 +99,7 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
     pure = np.flatnonzero(~mixed)
     for v, k in col.items():
         F[pure[own[pure] == v], k] = 1.0
-    # midpoint quadrature on each node's cell
-    t = (np.arange(samples_per_axis) + 0.5) / samples_per_axis
-    g = np.stack(np.meshgrid(t, t, t, indexing="ij"), axis=-1).reshape(-1, 3)
-    w = np.full(len(g), 1.0 / len(g))
+    # midpoint quadrature on each node's cell (meshing.voxel.cell_region_shares)
     if cell_mm is not None:
         cell_lo, cell_hi = nodes - 0.5 * cell_mm[:, None], nodes + 0.5 * cell_mm[:, None]
     elif edges_mm is None:
@@ -113,25 +111,15 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
     # target otherwise makes its cell shares lopsided (a 2.4 mm tube gave 0.72
     # above its centre node and 0.50 below).
     idx = np.flatnonzero(mixed)
-    lo_b = np.clip(ijk[idx].min(axis=0) - reach[::-1] - 1, 0, None)
-    hi_b = np.minimum(ijk[idx].max(axis=0) + reach[::-1] + 2, shape_ijk)
-    sub = lab[lo_b[2]:hi_b[2], lo_b[1]:hi_b[1], lo_b[0]:hi_b[0]]
-    sub_origin = origin + lo_b * spacing
-    # each label's indicator once (not per chunk), and only for labels present
-    indicators = {}
-    for v in col:
-        hit = sub == v
-        if hit.any():
-            indicators[v] = hit.astype(np.float32)
-        del hit
-    for start in range(0, len(idx), 2048):
-        sel = idx[start:start + 2048]
-        pts = (cell_lo[sel, None, :] + g[None] * (cell_hi - cell_lo)[sel, None, :]).reshape(-1, 3)
-        kji = ((pts - sub_origin) / spacing)[:, ::-1].T
-        for v, ind in indicators.items():
-            k = col[v]
-            vals = ndimage.map_coordinates(ind, kji, order=1, mode="nearest")
-            F[sel, k] = vals.reshape(len(sel), -1) @ w
+    if len(idx):
+        lo_b = np.clip(ijk[idx].min(axis=0) - reach[::-1] - 1, 0, None)
+        hi_b = np.minimum(ijk[idx].max(axis=0) + reach[::-1] + 2, shape_ijk)
+        sub = lab[lo_b[2]:hi_b[2], lo_b[1]:hi_b[1], lo_b[0]:hi_b[0]]
+        # each voxel's column in F (-1: a label not asked for, air among them)
+        sub_col = _columns(sub, col)
+        F[idx] = cell_region_shares(sub_col, (origin + lo_b * spacing)[::-1].copy(),
+                              spacing[::-1].copy(), cell_lo[idx][:, ::-1].copy(),
+                              cell_hi[idx][:, ::-1].copy(), int(samples_per_axis), len(labels))
     tissue = F.sum(axis=1)
     empty = tissue <= 0
     if np.any(empty):
@@ -142,6 +130,22 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
         tissue[empty] = 1.0
     return np.asarray(labels), F / tissue[:, None]
 
+
+def _columns(labels, col):
+    """(K, J, I) int32: each voxel's column ``col[label]``, -1 for a label not in
+    ``col`` (air among them)."""
+    labels = np.asarray(labels)
+    if labels.dtype.kind in "iu" and labels.size and labels.min() >= 0 \
+            and labels.max() < 2 ** 16:
+        lut = np.full(int(max(labels.max(), max(col))) + 1, -1, np.int32)
+        for v, k in col.items():
+            if v >= 0:
+                lut[v] = k
+        return lut[labels]
+    values = np.array(sorted(col), dtype=np.int64)
+    pos = np.clip(np.searchsorted(values, labels), 0, len(values) - 1)
+    return np.where(values[pos] == labels, np.array([col[int(v)] for v in values])[pos],
+                    -1).astype(np.int32)
 
 class PartialVolumePrior(RegionPrior):
     """A RegionPrior whose hard-prior basis K is the partial-volume membership

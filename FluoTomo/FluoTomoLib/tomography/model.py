@@ -483,19 +483,22 @@ def label_mean_weights(mesh, labels_kji, spacing_mm, origin_mm, region_labels):
     if np.any(box_hi <= box_lo):
         return {}
     sub = labels[box_lo[2]:box_hi[2], box_lo[1]:box_hi[1], box_lo[0]:box_hi[0]]
-    k, j, i = np.indices(sub.shape)
-    pts = (np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) + box_lo) * spacing + origin
-    del k, j, i
-    inside = np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
-    flat = sub.ravel()
+    # the voxel centres within the mesh's box (those outside it count for nothing)
+    axes = [(box_lo[a] + np.arange(sub.shape[2 - a])) * spacing[a] + origin[a] for a in range(3)]
+    within = [(c >= lo[a] - 1e-9) & (c <= hi[a] + 1e-9) for a, c in enumerate(axes)]
+    wanted = (np.isin(sub, [int(v) for v in region_labels])
+              & within[2][:, None, None] & within[1][None, :, None] & within[0][None, None, :])
+    # the wanted voxels located once, in the order of np.flatnonzero(wanted)
+    P = locator(mesh).grid_interpolation_matrix(box_lo * spacing + origin, spacing, sub.shape,
+                                                select=wanted)
+    which = sub[wanted]
     out = {}
-    loc = locator(mesh)
     for lab in region_labels:
-        sel = (flat == int(lab)) & inside
+        sel = which == int(lab)
         if not sel.any():
             continue
-        P = loc.interpolation_matrix(pts[sel], outside="zero")
-        out[int(lab)] = np.asarray(P.sum(axis=0)).ravel() / float(sel.sum())
+        out[int(lab)] = (np.asarray(P[np.flatnonzero(sel)].sum(axis=0)).ravel()
+                         / float(sel.sum()))
     return out
 
 

@@ -51,14 +51,22 @@ def nodal_to_grid(mesh, values, lm):
     zero outside the mesh and in air (label 0); float32 (K, J, I)."""
     from FluoTomoLib.fem.locate import locator
 
-    pts = lm.voxel_centres_local()
     lo, hi = mesh.bounds()
-    tissue = lm.labels_kji.ravel() > 0
-    inside = tissue & np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1)
-    out = np.zeros(len(pts), np.float32)
-    P = locator(mesh).interpolation_matrix(pts[inside], outside="zero")
-    out[inside] = P @ np.asarray(values, float)
-    return out.reshape(lm.labels_kji.shape)
+    shape = lm.labels_kji.shape
+    # the voxels in the mesh's box (on a large label map most lie outside it)
+    first = np.clip(np.floor(lo / lm.spacing_mm).astype(int) - 1, 0, None)
+    stop = np.minimum(np.ceil(hi / lm.spacing_mm).astype(int) + 2, np.array(shape[::-1]))
+    out = np.zeros(shape, np.float32)
+    if np.any(stop <= first):
+        return out
+    box = tuple(slice(a, b) for a, b in zip(first[::-1], stop[::-1]))
+    tissue = lm.labels_kji[box] > 0
+    P = locator(mesh).grid_interpolation_matrix(first * lm.spacing_mm, lm.spacing_mm,
+                                                tissue.shape, select=tissue)
+    sub = np.zeros(tissue.shape, np.float32)
+    sub[tissue] = P @ np.asarray(values, float)
+    out[box] = sub
+    return out
 
 
 def _half_max_centroid(vol, lm):

@@ -221,3 +221,56 @@ def test_points_in_a_cavity_are_outside_at_once():
     ok = elem >= 0
     np.testing.assert_allclose(np.einsum("pk,pkd->pd", bary[ok], m.nodes_mm[m.elements[elem[ok]]]),
                                pts[ok], atol=1e-9)
+
+
+def test_grid_interpolation_is_the_point_interpolation_at_the_grid_points():
+    """The element-driven grid search (each element visits the grid points in its
+    box: the yield volume, a label's mean) gives the point locator's weights at
+    every selected voxel centre of a graded mesh with a hole, points in the hole
+    and beyond the mesh an empty row, rows in the selection's order."""
+    from FluoTomoLib.fem.locate import PointLocator
+
+    nodes, el = bisection_mesh(ROI, 2.0, _size_at)
+    c = nodes[el].mean(axis=1)
+    centre = np.array([(ROI[0] + ROI[1]) / 2, (ROI[2] + ROI[3]) / 2, (ROI[4] + ROI[5]) / 2])
+    m = Mesh(nodes, el[np.linalg.norm(c - centre, axis=1) > 3.0],
+             np.ones(int(np.sum(np.linalg.norm(c - centre, axis=1) > 3.0)), int)).oriented()
+    spacing, origin = np.array([0.7, 0.45, 0.8]), np.array(ROI[0::2]) - 1.3
+    shape = tuple((np.ceil((np.array(ROI[1::2]) - origin + 1.0) / spacing)).astype(int)[::-1])
+    select = np.random.default_rng(8).random(shape) < 0.6
+    loc = PointLocator(m, k=4)
+    G = loc.grid_interpolation_matrix(origin, spacing, shape, select=select).toarray()
+    k, j, i = np.indices(shape)
+    pts = (np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * spacing + origin)[select.ravel()]
+    ref = loc.interpolation_matrix(pts, outside="zero").toarray()
+    empty = ~ref.any(axis=1)
+    assert empty.sum() > 100 and (~empty).sum() > 1000           # outside and inside
+    np.testing.assert_array_equal(~G.any(axis=1), empty)
+    # a point on a face shared by two elements may take either: the same weights
+    np.testing.assert_allclose(G, ref, atol=1e-12)
+
+
+def test_cell_shares_are_the_trilinear_indicators_mean():
+    """The compiled quadrature of a node cell's region shares is the mean, over
+    the midpoint grid, of each region's indicator interpolated trilinearly with
+    the edge held (scipy's map_coordinates, order 1, mode "nearest"), labels
+    outside the asked ones (air) counting for none."""
+    from scipy import ndimage
+
+    from FluoTomoLib.meshing.voxel import cell_region_shares
+
+    rng = np.random.default_rng(9)
+    lab = rng.integers(0, 4, (9, 11, 7))
+    col = {1: 0, 3: 1}
+    sub_col = np.where(lab == 1, 0, np.where(lab == 3, 1, -1)).astype(np.int32)
+    spacing, origin = np.array([0.8, 0.5, 0.6]), np.array([1.0, -2.0, 0.5])     # k, j, i
+    lo = origin + rng.uniform(-1.0, 4.0, (50, 3))
+    hi = lo + rng.uniform(0.2, 2.5, (50, 3))
+    got = cell_region_shares(sub_col, origin, spacing, lo, hi, 4, 2)
+    t = (np.arange(4) + 0.5) / 4
+    g = np.stack(np.meshgrid(t, t, t, indexing="ij"), axis=-1).reshape(-1, 3)
+    pts = (lo[:, None, :] + g[None] * (hi - lo)[:, None, :]).reshape(-1, 3)
+    for v, c in col.items():
+        ref = ndimage.map_coordinates((lab == v).astype(float), ((pts - origin) / spacing).T,
+                                      order=1, mode="nearest").reshape(50, -1).mean(axis=1)
+        np.testing.assert_allclose(got[:, c], ref, atol=1e-12)
