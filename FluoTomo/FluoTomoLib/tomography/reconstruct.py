@@ -596,6 +596,7 @@ def _add_segmentation(summary, seg, seg_mm, method="HP"):
     summary["segmentation"] = {"offsets_mm": seg["offsets_mm"], "not_ruled_out_mm": kept,
                                "best_offset_mm": seg["best_offset_mm"],
                                "unmoved_excess": seg.get("unmoved_excess"),
+                               "excess_over_best": seg.get("excess_over_best"),
                                "region_model": seg.get("region_model")}
     if method == "SP":
         text = _region_model_warning(seg.get("region_model"))
@@ -611,12 +612,19 @@ def _add_segmentation(summary, seg, seg_mm, method="HP"):
             f"the prior's regions fit the data better {'grown' if d > 0 else 'shrunk'} by "
             f"{abs(d):.2g} mm than as segmented: the segmentation is likely off (or the "
             "model is: see the fit); the intervals reach the values of the segmentations "
-            "the data allow")
+            "the data allow (segmentation_values_per_mm)")
     for lab, r in summary["regions"].items():
         base = seg["base"].get(int(lab))
         v = r.get("yield_per_mm")
         if base is None or v is None or not base > 0:
             continue
+        # the region's value with its boundaries at each offset (this method's value
+        # moved by HP's relative change there), the best-fitting one not quoted:
+        # on correctly segmented scenes the model's own error made a boundary moved
+        # by a third of a millimetre fit better, and its value was 2.4x (docs/
+        # validation.md, "Estimating the boundary with the yield")
+        r["segmentation_values_per_mm"] = [v * (1.0 + dv / base)
+                                           for dv in seg["shifts"][int(lab)]]
         moved = [v * dv / base for dv, k in zip(seg["shifts"][int(lab)], seg["kept"]) if k]
         lo, hi = min([0.0] + moved), max([0.0] + moved)
         r["interval_parts"]["segmentation_shift_per_mm"] = [lo, hi]
@@ -761,7 +769,9 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
                          "interval_parts; docs/reconstruction.md, 'Intervals'); "
                          "volume_mean_per_mm: the yield volume's mean over the label (the P1 "
                          "field at voxel centres; for HP lower than the region's value where "
-                         "the label is small: quote yield_per_mm)"),
+                         "the label is small: quote yield_per_mm); "
+                         "segmentation_values_per_mm: the value with the label's boundaries "
+                         "moved by each of segmentation.offsets_mm"),
         "peak_yield_per_mm": float(vol.max()),
         "peak_ras_mm": lm.to_ras(peak_local)[0].tolist(),
         "peak_label": int(lm.labels_kji[k, j, i]),
