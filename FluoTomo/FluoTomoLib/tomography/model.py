@@ -650,7 +650,8 @@ class TissueModel:
                 label_mean_weights(self.mesh, labels_kji, sp, org, self.region_labels))
 
     def segmentation_shifts(self, y, method, lam, delta_mm, log_data=False, noise_rel=None,
-                            cancel=None, steps=2, progress=None, absorbing_yield=None):
+                            cancel=None, steps=2, progress=None, absorbing_yield=None,
+                            feedback=True):
         """How the regions' values move with the segmentation's boundaries: every
         region but the background eroded and dilated by 1..``steps`` times
         ``delta_mm`` [mm] (:func:`perturb_regions`), the data solved again on the
@@ -677,7 +678,10 @@ class TissueModel:
         Without it the data of an absorbing dye, fitted by a model without its
         absorption, preferred every correctly segmented inclusion grown by about
         half a voxel (docs/reconstruction.md, "The segmentation test runs on the
-        model with the dye's absorption").
+        model with the dye's absorption"). ``feedback`` False: every offset on the
+        one model of ``absorbing_yield``'s absorption, no feedback (where the
+        reconstruction's own feedback diverged: it would diverge here as well, each
+        offset paying its passes for nothing).
 
         ``progress(fraction, message)`` hears of each solve (one per offset, and
         the solver's iterations inside it) and of each moved segmentation's
@@ -690,10 +694,11 @@ class TissueModel:
         offsets = [k * delta_mm for k in range(-steps, steps + 1) if k != 0]
         parts = len(offsets) + 1
         slopes = self.optics.mua_per_yield
-        feed = (absorbing_yield is not None and method == "HP" and not log_data
-                and (slopes[0] > 0 or slopes[1] > 0))
+        absorbing = (absorbing_yield is not None and method == "HP" and not log_data
+                     and (slopes[0] > 0 or slopes[1] > 0))
+        feed = absorbing and feedback
         model = None
-        if feed:
+        if absorbing:
             # every offset's feedback starts on the reconstruction's own absorbing
             # model (a near neighbour of its fixed point: one or two passes),
             # not from the blind model
@@ -722,7 +727,7 @@ class TissueModel:
                         slopes, lam=lam, cancel=cancel, progress=part, noise_rel=noise_rel,
                         region_matrix=self.region_matrix(prior, model))
             elif method == "HP":
-                res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part)
+                res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part, model)
             else:
                 res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
                                   region_weights=weights, noise_rel=noise_rel, cancel=cancel,

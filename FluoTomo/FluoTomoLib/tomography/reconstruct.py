@@ -487,7 +487,8 @@ def _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption, d
         progress=scaled(progress, 0.985, 0.999, f"segmentation moved by "
                         f"+-{seg_mm:.2g} mm"),
         absorbing_yield=solved[fed[0]][0].yield_per_mm
-        if fed and data_model != "log" else None)
+        if fed and data_model != "log" else None,
+        feedback=not (fed and solved[fed[0]][0].diverged))
 
 
 def _add_run_summary(summary, method, settings, remarks, cut_info, coverage, noise_pct,
