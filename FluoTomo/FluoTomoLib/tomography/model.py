@@ -736,27 +736,7 @@ class TissueModel:
                          for lab, v in res.region_confidence.items()}
 
         res0, base = solve(0, "as segmented", self.prior, self.region_weights)
-        # a boundary moved by less than a voxel: on a grid f times finer (each voxel
-        # split, labels kept), where delta_mm is at least one fine voxel
-        f = int(min(max(np.ceil(np.max(self.spacing_mm) / delta_mm - 1e-9), 1), 3))
-        reach = steps * delta_mm
-        # only the voxels around the mesh count (its region of interest), with a
-        # margin for the moved boundaries
-        lo = np.floor((self.mesh.nodes_mm.min(axis=0) - self.origin_mm - reach)
-                      / self.spacing_mm).astype(int) - 2
-        hi = np.ceil((self.mesh.nodes_mm.max(axis=0) - self.origin_mm + reach)
-                     / self.spacing_mm).astype(int) + 3
-        lo = np.maximum(lo, 0)
-        hi = np.minimum(hi, np.array(self.labels_kji.shape[::-1]))
-        fine = self.labels_kji[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
-        # the smallest integer type that holds the labels: the finer grid is up to
-        # 27 times the region of interest's voxels, copied a few times per move
-        fine = fine.astype(np.result_type(np.min_scalar_type(int(fine.min())),
-                                          np.min_scalar_type(int(fine.max()))), copy=False)
-        for ax in range(3):
-            fine = np.repeat(fine, f, axis=ax)
-        sp = self.spacing_mm / f
-        org = self.origin_mm + lo * self.spacing_mm - 0.5 * self.spacing_mm + 0.5 * sp
+        fine, sp, org = self._finer_labels(delta_mm, steps * delta_mm)
         moved = []
         for k, d in enumerate(offsets, start=1):
             what = f"moved by {d:+.2g} mm ({k} of {len(offsets)})"
@@ -786,6 +766,32 @@ class TissueModel:
                 "shifts": {lab: [v[lab] - base[lab] for _, v in moved] for lab in base},
                 "kept": kept, "base": base, "best_offset_mm": best_offset,
                 "unmoved_ruled_out": excess is not None and excess > CHI2_1_95}
+
+    def _finer_labels(self, delta_mm, reach_mm):
+        """The label map around the mesh, on a grid fine enough to move its
+        boundaries by ``delta_mm`` [mm], with a margin of ``reach_mm`` [mm] for the
+        moved boundaries: (labels (K, J, I), spacing [mm], origin [mm])."""
+        # a boundary moved by less than a voxel: on a grid f times finer (each voxel
+        # split, labels kept), where delta_mm is at least one fine voxel
+        f = int(min(max(np.ceil(np.max(self.spacing_mm) / delta_mm - 1e-9), 1), 3))
+        # only the voxels around the mesh count (its region of interest), with a
+        # margin for the moved boundaries
+        lo = np.floor((self.mesh.nodes_mm.min(axis=0) - self.origin_mm - reach_mm)
+                      / self.spacing_mm).astype(int) - 2
+        hi = np.ceil((self.mesh.nodes_mm.max(axis=0) - self.origin_mm + reach_mm)
+                     / self.spacing_mm).astype(int) + 3
+        lo = np.maximum(lo, 0)
+        hi = np.minimum(hi, np.array(self.labels_kji.shape[::-1]))
+        fine = self.labels_kji[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+        # the smallest integer type that holds the labels: the finer grid is up to
+        # 27 times the region of interest's voxels, copied a few times per move
+        fine = fine.astype(np.result_type(np.min_scalar_type(int(fine.min())),
+                                          np.min_scalar_type(int(fine.max()))), copy=False)
+        for ax in range(3):
+            fine = np.repeat(fine, f, axis=ax)
+        sp = self.spacing_mm / f
+        org = self.origin_mm + lo * self.spacing_mm - 0.5 * self.spacing_mm + 0.5 * sp
+        return fine, sp, org
 
     def make_model(self, dye_mua_x_nodes, dye_mua_m_nodes):
         """The model with the fluorophore's absorption added (self_absorption.py
