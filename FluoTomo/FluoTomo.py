@@ -1929,4 +1929,3 @@ class FluoTomoTest(ScriptedLoadableModuleTest):
             analytic = region["analytic_volume_mm3"]
             self.assertLess(abs(volumes[int(label)] - analytic) / analytic, 0.02)
         self.delayDisplay("FluoTomo phantom test passed")
-

@@ -158,8 +158,6 @@ class PointLocator:
         loop): for a voxel grid this is the :meth:`locate` result (the lowest
         element holding a point on a shared face, as the scan takes it) at a
         fraction of the candidate search's cost."""
-        import scipy.sparse as sp
-
         shape_kji = tuple(int(v) for v in shape_kji)
         sel = (np.ones(shape_kji, bool) if select is None
                else np.asarray(select, bool).reshape(shape_kji)).ravel()
@@ -172,22 +170,24 @@ class PointLocator:
                                   np.ascontiguousarray(origin_mm, float).reshape(3),
                                   np.ascontiguousarray(spacing_mm, float).reshape(3),
                                   np.array(shape_kji[::-1], np.int64), sel, 1e-9)
-        elem, bary = elem[sel], bary[sel]
-        rows = np.repeat(np.arange(len(elem)), 4)
-        cols = self.mesh.elements[np.maximum(elem, 0)].ravel()
-        vals = np.where(elem[:, None] >= 0, bary, 0.0).ravel()
-        return sp.csr_matrix((vals, (rows, cols)), shape=(len(elem), self.mesh.n_nodes))
+        return self._p1_matrix(elem[sel], bary[sel])
 
     def interpolation_matrix(self, points, outside="error", what="point"):
         """Sparse (P, N) matrix of P1 interpolation weights at the points."""
-        import scipy.sparse as sp
-
         elem, bary = self.locate(points)
         bad = np.flatnonzero(elem < 0)
         # outside="error": raise; "nan"/"zero": the row stays empty (all zero)
         if len(bad) and outside == "error":
             raise FluoInputError("lies outside the mesh", field=f"{what}[{bad[0]}]",
                                  value=np.atleast_2d(points)[bad[0]].tolist())
+        return self._p1_matrix(elem, bary)
+
+    def _p1_matrix(self, elem, bary):
+        """Sparse (P, N) P1 weights of located points (``elem``, ``bary``: element
+        and barycentric coordinates per point); a point outside (-1) gets an
+        empty row."""
+        import scipy.sparse as sp
+
         rows = np.repeat(np.arange(len(elem)), self.mesh.dim + 1)
         cols = self.mesh.elements[np.maximum(elem, 0)].ravel()
         vals = np.where(elem[:, None] >= 0, bary, 0.0).ravel()

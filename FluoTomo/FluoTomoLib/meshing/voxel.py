@@ -781,7 +781,8 @@ def _axis_sample(lo, hi, frac, origin, spacing, n):
 
 
 @njit(cache=True, nogil=True)
-def cell_region_shares(sub_col, origin_kji, spacing_kji, cell_lo_kji, cell_hi_kji, samples, n_cols):
+def cell_region_shares(sub_col, origin_kji, spacing_kji, cell_lo_kji, cell_hi_kji, samples,
+                       n_cols):
     """(P, n_cols) each cell's share of every column's region: the mean over a
     ``samples``^3 midpoint grid on the box [cell_lo, cell_hi] (mm, k-j-i order)
     of the regions' indicators interpolated trilinearly between voxel centres,

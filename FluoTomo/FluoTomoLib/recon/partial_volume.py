@@ -118,8 +118,9 @@ def node_region_fractions(nodes_mm, labels_kji, spacing_mm, origin_mm, h_mm, lab
         # each voxel's column in F (-1: a label not asked for, air among them)
         sub_col = _columns(sub, col)
         F[idx] = cell_region_shares(sub_col, (origin + lo_b * spacing)[::-1].copy(),
-                              spacing[::-1].copy(), cell_lo[idx][:, ::-1].copy(),
-                              cell_hi[idx][:, ::-1].copy(), int(samples_per_axis), len(labels))
+                                    spacing[::-1].copy(), cell_lo[idx][:, ::-1].copy(),
+                                    cell_hi[idx][:, ::-1].copy(), int(samples_per_axis),
+                                    len(labels))
     tissue = F.sum(axis=1)
     empty = tissue <= 0
     if np.any(empty):
@@ -146,6 +147,7 @@ def _columns(labels, col):
     pos = np.clip(np.searchsorted(values, labels), 0, len(values) - 1)
     return np.where(values[pos] == labels, np.array([col[int(v)] for v in values])[pos],
                     -1).astype(np.int32)
+
 
 class PartialVolumePrior(RegionPrior):
     """A RegionPrior whose hard-prior basis K is the partial-volume membership

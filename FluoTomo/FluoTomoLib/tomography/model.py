@@ -705,6 +705,8 @@ class TissueModel:
             report(progress, 0.0, "the model with the dye's absorption")
             model = absorbing_model(self.make_model, np.asarray(absorbing_yield, float),
                                     (0.0, 0.0), 0.0, slopes, progress, cancel)
+            # its fields solved now, reporting at the test's start (lazily, inside
+            # the first offset's share, the bar went back)
             _ = model.phi_x, model.adjoint_m
 
         def solve(k, what, prior, weights):

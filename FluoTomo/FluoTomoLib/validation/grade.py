@@ -73,8 +73,6 @@ def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
                    "misfit": s["solver"]["diagnostics"].get("relative_misfit"),
                    "segmentation_test": s.get("segmentation"),
                    "segmentation_values_per_mm": r.get("segmentation_values_per_mm"),
-                   "as_segmented_error_pct": None if r.get("as_segmented_yield_per_mm") is None
-                   else 100.0 * (r["as_segmented_yield_per_mm"] - truth) / truth,
                    "description": scene.description,
                    "seconds_simulation": t_sim, "seconds_reconstruction": t_rec,
                    "grading": grading or "none",
