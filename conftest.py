@@ -52,6 +52,7 @@ sys.path.insert(0, str(_ROOT / "Testing" / "Python"))
 # tear-down). 20 s is issue #29's rule; FLUO_FAST_TEST_LIMIT_S=0 turns it off
 # (a profiling run on a loaded machine, say).
 FAST_TEST_LIMIT_S = float(os.environ.get("FLUO_FAST_TEST_LIMIT_S", "20"))
+NEAR_FAST_LIMIT = 0.7      # the share of it that the summary names as near
 
 # A test not marked heavy may grow its process tree's resident memory by this
 # much: two light tests, or a light one beside the heavy reservations, fit.
@@ -123,7 +124,31 @@ def pytest_runtest_makereport(item, call):
         report.longrepr = (f"{item.nodeid} took {spent:.1f} s (set-up, call and tear-down), over "
                            f"the {FAST_TEST_LIMIT_S:.0f} s allowed a test not marked slow: make "
                            "it faster, or mark it @pytest.mark.slow (conftest.py)")
+    elif call.when == "teardown" and spent > NEAR_FAST_LIMIT * FAST_TEST_LIMIT_S:
+        report.user_properties.append(("near_fast_limit_s", round(spent, 1)))
     return report
+
+
+_NEAR = []      # (seconds, test) of the tests near the limit, as their reports arrive
+
+
+def pytest_runtest_logreport(report):
+    # here, not in makereport: under xdist only the controlling process prints
+    spent = dict(report.user_properties).get("near_fast_limit_s")
+    if report.when == "teardown" and spent is not None:
+        _NEAR.append((spent, report.nodeid))
+
+
+def pytest_terminal_summary(terminalreporter):
+    """Name the tests not marked slow that came within a few seconds of the limit:
+    a loaded CI machine is slower than the run that measured them."""
+    near = sorted(_NEAR, reverse=True)
+    if near:
+        terminalreporter.write_line(
+            f"{len(near)} test(s) not marked slow took over {NEAR_FAST_LIMIT:.0%} of the "
+            f"{FAST_TEST_LIMIT_S:.0f} s allowed (make them faster or mark them slow):")
+        for spent, nodeid in near:
+            terminalreporter.write_line(f"  {spent:5.1f} s  {nodeid}")
 
 
 # ----------------------------------------------------------------- memory

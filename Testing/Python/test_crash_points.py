@@ -327,7 +327,9 @@ def batch_ref(tomo):
 
 
 RECONSTRUCT = ["tomo", "reconstruct", "--labels", "labels.nrrd", "--optics", "optics.json",
-               "--acquisition", "acq", "--accuracy", "fast", "--method", "HP"]
+               "--acquisition", "acq", "--accuracy", "fast", "--method", "HP",
+               # the crash points are the subject, not the boundary test: exact boundaries
+               "--segmentation-mm", "0"]
 
 
 def _reconstruction(folder):
