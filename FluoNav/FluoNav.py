@@ -580,12 +580,14 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
         return res
 
     @staticmethod
-    def timeSurfaceCast(triangles=62000, seed=0, repeats=3, binnedRepeats=10, binning=10):
+    def timeSurfaceCast(triangles=62000, seed=0, repeats=3, binnedRepeats=10, binning=10,
+                        progress=None):
         """Frame rate [1/s] of the per-pixel cast (every pixel's ray onto the
         surface; no illumination model) of the open-field camera (1392 x 1040
         px) into the oral-cavity phantom's surface of ``triangles`` triangles,
         at full resolution and ``binning`` x binned: the median of ``repeats``
-        and ``binnedRepeats`` timed casts (the first includes compiling).
+        and ``binnedRepeats`` timed casts (the first includes compiling);
+        ``progress(fraction, message)`` hears of each cast.
 
         Returns
         -------
@@ -596,16 +598,21 @@ class FluoNavLogic(FluoLogicMixin, ScriptedLoadableModuleLogic):
 
         import numpy as np
 
+        from fluoguide.progress import report
         from FluoNavLib.mapping.pixel_cast import cast_camera
         from FluoNavLib.mapping.synthetic import open_field_camera, oral_cavity_surface, view_poses
 
+        report(progress, 0.0, f"the surface ({triangles} triangles)")
         caster, _ = oral_cavity_surface(triangles, seed=seed)
         camera = open_field_camera()
         pose = view_poses(2)[1]
+        done, total = [0], repeats + binnedRepeats
 
         def median_s(n, **options):
             ts = []
             for _ in range(n):
+                report(progress, 0.2 + 0.8 * done[0] / total, f"cast {done[0] + 1} of {total}")
+                done[0] += 1
                 t0 = time.perf_counter()
                 cast_camera(caster, camera, pose, **options)
                 ts.append(time.perf_counter() - t0)

@@ -67,19 +67,49 @@ def store_yield_volume(scene, array_kji, spacing_mm, origin_mm, direction, summa
     return node
 
 
-def resample_to_grid(mesh, nodal_values, shape_kji, spacing_mm, origin_mm, direction=None):
-    """P1 values of a mesh field (RAS) at the voxel centres of a volume grid
-    (any IJK-to-RAS direction; zero outside the mesh), as float32 (K, J, I)."""
-    k, j, i = np.meshgrid(*(np.arange(n) for n in shape_kji), indexing="ij")
+def grid_weights(mesh, shape_kji, spacing_mm, origin_mm, direction=None):
+    """Sparse (K*J*I, N) P1 weights of a mesh's nodes (RAS) at the voxel centres
+    of a volume grid (any IJK-to-RAS direction; an empty row outside the mesh),
+    rows in C order of ``shape_kji``: one matrix for every field on that mesh."""
     d = np.eye(3) if direction is None else np.asarray(direction, float)
+    if np.allclose(d, np.eye(3), atol=1e-12):
+        # axis-aligned: each element visits the voxel centres in its box (a
+        # compiled loop), instead of a candidate search per voxel (14 s for the
+        # demo's three volumes)
+        import scipy.sparse as sp
+
+        # only the voxels in the mesh's box: the search's arrays are per voxel
+        org, step = np.asarray(origin_mm, float), np.asarray(spacing_mm, float)
+        shape_ijk = np.array([int(n) for n in shape_kji][::-1])
+        lo, hi = mesh.bounds()
+        a = np.clip(np.floor((lo - org) / step).astype(int) - 1, 0, shape_ijk)
+        b = np.clip(np.ceil((hi - org) / step).astype(int) + 2, a, shape_ijk)
+        W = locator(mesh).grid_interpolation_matrix(org + a * step, step,
+                                                    tuple((b - a)[::-1])).tocoo()
+        i, j, k = np.unravel_index(W.row, tuple((b - a)[::-1]))[::-1]
+        rows = np.ravel_multi_index((k + a[2], j + a[1], i + a[0]), tuple(shape_ijk[::-1]))
+        return sp.csr_matrix((W.data, (rows, W.col)), shape=(int(np.prod(shape_ijk)), W.shape[1]))
+    k, j, i = np.meshgrid(*(np.arange(n) for n in shape_kji), indexing="ij")
     ijk = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * np.asarray(spacing_mm, float)
     pts = np.asarray(origin_mm, float) + ijk @ d.T
     lo, hi = mesh.bounds()
-    inside = np.all((pts >= lo) & (pts <= hi), axis=1)
-    out = np.zeros(len(pts), dtype=np.float32)
-    P = locator(mesh).interpolation_matrix(pts[inside], outside="zero")
-    out[inside] = P @ np.asarray(nodal_values, float)
-    return out.reshape(shape_kji)
+    inside = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
+    P = locator(mesh).interpolation_matrix(pts[inside], outside="zero").tocoo()
+    import scipy.sparse as sp
+
+    return sp.csr_matrix((P.data, (inside[P.row], P.col)), shape=(len(pts), P.shape[1]))
+
+
+def resample_to_grid(mesh, nodal_values, shape_kji, spacing_mm, origin_mm, direction=None,
+                     weights=None):
+    """P1 values of a mesh field (RAS) at the voxel centres of a volume grid
+    (any IJK-to-RAS direction; zero outside the mesh), as float32 (K, J, I).
+    ``weights``: :func:`grid_weights` of this mesh and grid, when the caller
+    resamples several fields."""
+    if weights is None:
+        weights = grid_weights(mesh, shape_kji, spacing_mm, origin_mm, direction)
+    out = weights @ np.asarray(nodal_values, float)
+    return out.astype(np.float32).reshape(tuple(int(n) for n in shape_kji))
 
 
 def store_reconstructions(scene, mesh, results, shape_kji, spacing_mm, origin_mm,
@@ -88,8 +118,10 @@ def store_reconstructions(scene, mesh, results, shape_kji, spacing_mm, origin_mm
     honoured), with the reconstruction summary as the ``FluoTomo.Reconstruction``
     attribute, plus the mesh surface."""
     nodes = []
+    weights = grid_weights(mesh, shape_kji, spacing_mm, origin_mm, direction)
     for method, res in results.items():
-        vol = resample_to_grid(mesh, res["yield"], shape_kji, spacing_mm, origin_mm, direction)
+        vol = resample_to_grid(mesh, res["yield"], shape_kji, spacing_mm, origin_mm, direction,
+                               weights)
         node = mrml_io.add_volume(scene, f"FluoTomoYield{method}", vol, spacing_mm, origin_mm,
                                   direction=direction)
         mrml_io.set_json_attribute(node, "FluoTomo.Reconstruction",

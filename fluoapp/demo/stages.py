@@ -479,7 +479,9 @@ def stage_surface_mapping(ctx):
                 f"{cor['miss_rate_pct']:.1f} %", cor["mask"],
                 colorbar_label="optical transport T (dimensionless)")
     report(ctx.progress, 0.8, "timing the per-pixel cast")
-    cast = nav.timeSurfaceCast(62000, seed=ctx.seed, repeats=3, binnedRepeats=10, binning=10)
+    cast = nav.timeSurfaceCast(62000, seed=ctx.seed, repeats=3, binnedRepeats=10, binning=10,
+                               progress=scaled(ctx.progress, 0.8, 0.95,
+                                               "timing the per-pixel cast"))
     ctx.metrics["surface_mapping"] = {
         "views": views, "triangles": cast["triangles"],
         "miss rate raw % (per view)": mm["miss_rate_raw_pct"],

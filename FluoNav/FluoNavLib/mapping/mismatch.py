@@ -126,10 +126,11 @@ def _checked_tolerance(cases, n_views, binning, transport, cbct_voxel_mm, max_mo
     return tol
 
 
-def _software_surfaces(cases, cbct_triangles, seed, cbct_voxel_mm, cancel):
+def _software_surfaces(cases, cbct_triangles, seed, cbct_voxel_mm, cancel, progress=None):
     """The meshes extracted from the phantom's CBCT that the cases correct with
-    ({"cbct" | "labels" | "mesh-truth": caster}; the analytic "truth" needs none)."""
-    from fluoguide.progress import check_cancel
+    ({"cbct" | "labels" | "mesh-truth": caster}; the analytic "truth" needs none);
+    ``progress`` hears of each."""
+    from fluoguide.progress import check_cancel, run_reporting
 
     from FluoNavLib.mapping.synthetic import oral_cavity_surface
 
@@ -137,9 +138,13 @@ def _software_surfaces(cases, cbct_triangles, seed, cbct_voxel_mm, cancel):
     for case in cases:
         src = MISMATCH_CASES[case][0]
         if src != "truth" and src not in casters:
-            # the self-consistent case renders on and corrects with the label-map mesh
-            casters[src] = oral_cavity_surface(cbct_triangles, seed=seed, voxel_mm=cbct_voxel_mm,
-                                               source="cbct" if src == "cbct" else "labels")[0]
+            # the self-consistent case renders on and corrects with the label-map mesh;
+            # a surface takes seconds and cannot report from inside: reported beside it
+            casters[src] = run_reporting(
+                lambda src=src: oral_cavity_surface(
+                    cbct_triangles, seed=seed, voxel_mm=cbct_voxel_mm,
+                    source="cbct" if src == "cbct" else "labels")[0],
+                progress, 0.0, f"from the {src}", cancel)
             check_cancel(cancel)
     return casters
 
@@ -236,7 +241,7 @@ def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
     (per view), the settings, and ``images`` if asked.
     """
     from fluoguide.phantoms import make_phantom
-    from fluoguide.progress import check_cancel, report
+    from fluoguide.progress import check_cancel, report, scaled
 
     from FluoCalibLib.radiometry.radiometric_model import RadiometricCamera
 
@@ -254,7 +259,8 @@ def mapping_under_mismatch(n_views=4, binning=4, transport=0.3,
     prepare_kernels(progress, 0.0, cancel)      # first run: compiled, reported as it goes
     report(progress, 0.02, "the CBCT surfaces")
     geometry = make_phantom("oral-cavity", voxel_mm=cbct_voxel_mm, seed=seed).truth()["geometry"]
-    casters = _software_surfaces(cases, cbct_triangles, seed, cbct_voxel_mm, cancel)
+    casters = _software_surfaces(cases, cbct_triangles, seed, cbct_voxel_mm, cancel,
+                                 scaled(progress, 0.02, 0.1, "the CBCT surfaces"))
     cone = coupled_light()
     rc = RadiometricCamera(gain_adu_per_e=1.0)
     cam = open_field_camera(binning=binning)

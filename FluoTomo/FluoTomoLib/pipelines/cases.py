@@ -68,9 +68,16 @@ def section_images(run, y_mm, z_mm, px_per_mm=8):
     out["truth"] = np.asarray(run["true_yield_at"](pts), float).reshape(yy.shape)
     panels = [(m, run["results"][m]["yield"]) for m in METHODS if m in run["results"]]
     if panels:
-        # every method's yield lives on the one reconstruction mesh: locate the
-        # pixels once, not once per method
-        P = locator(run["coarse"]).interpolation_matrix(pts, outside="nan")
+        # every method's yield lives on the one reconstruction mesh: the pixels
+        # located once, as a grid (each element visits the pixels in its box),
+        # on ascending axes and flipped back to the window's order
+        ys, zs = np.sort([yy[0, 0], yy[0, -1]]), np.sort([zz[0, 0], zz[-1, 0]])
+        step = np.array([1.0, (ys[1] - ys[0]) / max(ny - 1, 1), (zs[1] - zs[0]) / max(nz - 1, 1)])
+        P = locator(run["coarse"]).grid_interpolation_matrix(
+            np.array([0.0, ys[0], zs[0]]), step, (nz, ny, 1))
+        order = np.arange(nz * ny).reshape(nz, ny)
+        order = order[::-1 if zz[0, 0] > zz[-1, 0] else 1, ::-1 if yy[0, 0] > yy[0, -1] else 1]
+        P = P[order.ravel()]
         inside = np.asarray(P.sum(axis=1)).ravel() > 0.5     # rows outside the mesh are empty
     for name, values in panels:
         out[name] = np.where(inside, P @ np.asarray(values, float), np.nan).reshape(yy.shape)

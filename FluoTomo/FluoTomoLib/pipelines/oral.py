@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from fluoguide.errors import FluoInputError, seeded_rng
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
@@ -114,7 +114,9 @@ def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=
     true_props = nodal_optics(np.where(in_tongue, 2, 1), optics)
     vertices, facets, nodes = surface_of(fine)
     src_true = raster_scan(targets, BEAM_ORIGIN, BEAM_DIR, vertices, facets)["true_points_mm"]
-    fields = true_emission_fields(fine, true_props, optics[1]["n"], src_true)[nodes]
+    fields = true_emission_fields(fine, true_props, optics[1]["n"], src_true,
+                                  progress=scaled(progress, 0.15, 1.0, "forward simulation"),
+                                  cancel=cancel)[nodes]
     info = {"fine_mm": float(fine_mm), "simulate_coarse_mm": float(simulate_coarse_mm),
             "n_sources": int(n_sources), "source_spacing_mm": float(source_spacing_mm),
             "mesh_nodes": int(fine.n_nodes), "mesh_elements": int(fine.n_elements),

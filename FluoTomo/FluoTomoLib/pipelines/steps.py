@@ -35,18 +35,22 @@ def nodal_optics(node_region, optics):
     return out
 
 
-def true_emission_fields(fine, true_props, n, src_true, detectors_mm=None):
+def true_emission_fields(fine, true_props, n, src_true, detectors_mm=None, progress=None,
+                         cancel=None):
     """The FEM emission fields of the true tissue (``fine``: the simulation mesh,
     ``true_props``: its nodal optics, :func:`nodal_optics`) from the true source
     positions: (N, S) fluence per W of laser power at every node.  The
     factorisations (GBs on a whole phantom) are freed before it returns, not
-    held through the reconstruction that follows."""
+    held through the reconstruction that follows.  ``progress`` hears of each
+    factorisation as it goes; ``cancel`` is checked there."""
     det = src_true if detectors_mm is None else detectors_mm
     sim = FluorescenceModel(fine, {"mua_per_mm": true_props["mua_x_per_mm"],
                                    "musp_per_mm": true_props["musp_x_per_mm"], "n": n},
                             {"mua_per_mm": true_props["mua_m_per_mm"],
                              "musp_per_mm": true_props["musp_m_per_mm"], "n": n},
                             src_true, det, lean=True)
+    sim.progress, sim.cancel = progress, cancel
+    _ = sim.phi_x
     fields = sim.emission_fields(true_props["yield_per_mm"])
     del sim
     return fields

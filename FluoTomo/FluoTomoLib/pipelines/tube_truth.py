@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import check_cancel, report, scaled
 
 STORE = Path(__file__).resolve().parent / "data" / "tube_truth"
 #: the simulation options of the stored sets (``simulate_and_reconstruct``'s defaults)
@@ -145,7 +145,9 @@ def simulate_truth(phantom, fine_mm=0.8, simulate_coarse_mm=1.5, n_sources=16,
     # the true beams as the case aims them (its raster_scan, without tracking error)
     src_true = raster_scan(targets, np.zeros(3), np.array([0.0, 0.0, 1.0]), vertices,
                            facets)["true_points_mm"]
-    fields = true_emission_fields(fine, true_props, optics[1]["n"], src_true)[nodes]
+    fields = true_emission_fields(fine, true_props, optics[1]["n"], src_true,
+                                  progress=scaled(progress, 0.15, 1.0, "forward simulation"),
+                                  cancel=cancel)[nodes]
     info = {"format": FORMAT, "depth_mm": float(geo["tube_depth_mm"]),
             "phantom": phantom_key(phantom),
             "fine_mm": float(fine_mm), "simulate_coarse_mm": float(simulate_coarse_mm),

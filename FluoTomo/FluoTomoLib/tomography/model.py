@@ -651,7 +651,7 @@ class TissueModel:
 
     def segmentation_shifts(self, y, method, lam, delta_mm, log_data=False, noise_rel=None,
                             cancel=None, steps=2, progress=None, absorbing_yield=None,
-                            feedback=True):
+                            feedback=True, at_fixed_point=False):
         """How the regions' values move with the segmentation's boundaries: every
         region but the background eroded and dilated by 1..``steps`` times
         ``delta_mm`` [mm] (:func:`perturb_regions`), the data solved again on the
@@ -681,7 +681,10 @@ class TissueModel:
         model with the dye's absorption"). ``feedback`` False: every offset on the
         one model of ``absorbing_yield``'s absorption, no feedback (where the
         reconstruction's own feedback diverged: it would diverge here as well, each
-        offset paying its passes for nothing).
+        offset paying its passes for nothing). ``at_fixed_point`` True:
+        ``absorbing_yield`` is this HP's own converged fixed point on the
+        segmentation as given, so its model is already the unmoved segmentation's
+        own: the unmoved solve is one solve on it, not fed back again.
 
         ``progress(fraction, message)`` hears of each solve (one per offset, and
         the solver's iterations inside it) and of each moved segmentation's
@@ -713,6 +716,9 @@ class TissueModel:
             check_cancel(cancel)
             part = scaled(progress, k / parts, (k + 1) / parts, what)
             if feed:
+                # the unmoved segmentation at its own fixed point: its passes would
+                # rebuild the model it starts from (within the feedback's tolerance)
+                passes = 0 if k == 0 and at_fixed_point else None
                 # each segmentation on its own model with the dye's absorption, fed
                 # back to convergence as the reconstruction's HP is: on one model
                 # with the as-segmented yield's absorption, an eroded inclusion's
@@ -726,8 +732,8 @@ class TissueModel:
                     warnings.simplefilter("ignore")
                     res, _ = reconstruct_self_absorbing(
                         "HP", None, y, self.mask, prior, self.make_model, (0.0, 0.0), 0.0,
-                        slopes, lam=lam, cancel=cancel, progress=part, noise_rel=noise_rel,
-                        region_matrix=self.region_matrix(prior, model))
+                        slopes, lam=lam, passes=passes, cancel=cancel, progress=part,
+                        noise_rel=noise_rel, region_matrix=self.region_matrix(prior, model))
             elif method == "HP":
                 res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part, model)
             else:
@@ -749,25 +755,7 @@ class TissueModel:
             prior = self.prior_for(perturb_regions(fine, sp, d, self.background), sp, org,
                                    basis_only=method == "HP")
             moved.append(solve(k, what, *prior))
-        dof = max(len(y) - res0.diagnostics.get("effective_parameters", 0.0), 1.0)
-        var = res0.residual / dof
-        rss = [r.residual for r, _ in moved]
-        best = min([res0.residual] + rss)
-        kept = [bool(var > 0 and (r - best) / var <= CHI2_1_95) for r in rss]
-        best_offset = 0.0 if best == res0.residual else offsets[int(np.argmin(rss))]
-        # the unmoved solve is the regions-as-constants model's own fit of these
-        # data: what SP's resolution-corrected value assumes (reconstruct.py)
-        zero = res0.diagnostics.get("at_zero_bound") or {}
-        region_model = {"fit": res0.diagnostics.get("fit"),
-                        "negative_regions": sorted(int(lab) for lab, c in zero.items()
-                                                   if not c.get("consistent_with_zero", True))}
-        excess = float((res0.residual - best) / var) if var > 0 else None
-        return {"offsets_mm": offsets, "region_model": region_model, "unmoved_excess": excess,
-                "excess_over_best": [float((r - best) / var) if var > 0 else None
-                                     for r in rss],
-                "shifts": {lab: [v[lab] - base[lab] for _, v in moved] for lab in base},
-                "kept": kept, "base": base, "best_offset_mm": best_offset,
-                "unmoved_ruled_out": excess is not None and excess > CHI2_1_95}
+        return _shift_summary(res0, base, moved, offsets, len(y))
 
     def _finer_labels(self, delta_mm, reach_mm):
         """The label map around the mesh, on a grid fine enough to move its
@@ -839,6 +827,31 @@ class TissueModel:
             passes = []
         res.seconds = time.perf_counter() - t0
         return res, passes
+
+
+def _shift_summary(res0, base, moved, offsets, n_data):
+    """``TissueModel.segmentation_shifts``' result from the unmoved solve (``res0``,
+    its region values ``base``) and the moved ones (``moved``: (result, values) per
+    offset in ``offsets``) of ``n_data`` used data."""
+    dof = max(n_data - res0.diagnostics.get("effective_parameters", 0.0), 1.0)
+    var = res0.residual / dof
+    rss = [r.residual for r, _ in moved]
+    best = min([res0.residual] + rss)
+    kept = [bool(var > 0 and (r - best) / var <= CHI2_1_95) for r in rss]
+    best_offset = 0.0 if best == res0.residual else offsets[int(np.argmin(rss))]
+    # the unmoved solve is the regions-as-constants model's own fit of these
+    # data: what SP's resolution-corrected value assumes (reconstruct.py)
+    zero = res0.diagnostics.get("at_zero_bound") or {}
+    region_model = {"fit": res0.diagnostics.get("fit"),
+                    "negative_regions": sorted(int(lab) for lab, c in zero.items()
+                                               if not c.get("consistent_with_zero", True))}
+    excess = float((res0.residual - best) / var) if var > 0 else None
+    return {"offsets_mm": offsets, "region_model": region_model, "unmoved_excess": excess,
+            "excess_over_best": [float((r - best) / var) if var > 0 else None
+                                 for r in rss],
+            "shifts": {lab: [v[lab] - base[lab] for _, v in moved] for lab in base},
+            "kept": kept, "base": base, "best_offset_mm": best_offset,
+            "unmoved_ruled_out": excess is not None and excess > CHI2_1_95}
 
 
 def fit_to_surface(mesh, surface, roi=None, max_move=0.75, min_quality=0.2, iterations=6):

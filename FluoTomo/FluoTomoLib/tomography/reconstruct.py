@@ -488,7 +488,9 @@ def _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption, d
                         f"+-{seg_mm:.2g} mm"),
         absorbing_yield=solved[fed[0]][0].yield_per_mm
         if fed and data_model != "log" else None,
-        feedback=not (fed and solved[fed[0]][0].diverged))
+        feedback=not (fed and solved[fed[0]][0].diverged),
+        at_fixed_point=bool(fed) and fed[0] == "HP" and str(
+            solved["HP"][0].stop_reason).startswith("self-absorption converged"))
 
 
 def _add_run_summary(summary, method, settings, remarks, cut_info, coverage, noise_pct,

@@ -250,6 +250,57 @@ def test_grid_interpolation_is_the_point_interpolation_at_the_grid_points():
     np.testing.assert_allclose(G, ref, atol=1e-12)
 
 
+def test_a_field_on_a_volume_grid_is_its_point_interpolation_at_the_voxel_centres():
+    """The yield volumes' resampling (FluoTomoLib.scene.grid_weights): on an
+    axis-aligned grid (the element-driven search) and on an oblique one (the
+    point search), every voxel centre gets the point locator's value of a nodal
+    field, zero outside the mesh."""
+    from scipy.spatial.transform import Rotation
+
+    from FluoTomoLib.fem.locate import locator
+    from FluoTomoLib.scene import resample_to_grid
+
+    nodes, el = bisection_mesh(ROI, 2.0, _size_at)
+    m = Mesh(nodes, el, np.ones(len(el), int)).oriented()
+    field = np.sin(m.nodes_mm @ np.array([0.3, -0.2, 0.5])) + 2.0
+    # the grid reaches 4 mm beyond the mesh on every side: only the mesh's box is searched
+    spacing, origin = np.array([1.1, 0.9, 1.3]), np.array(ROI[0::2]) - 4.3
+    shape = tuple((np.ceil((np.array(ROI[1::2]) - origin + 4.0) / spacing)).astype(int)[::-1])
+    for d in (None, Rotation.from_euler("xyz", [20, -10, 35], degrees=True).as_matrix()):
+        got = resample_to_grid(m, field, shape, spacing, origin, d)
+        k, j, i = np.indices(shape)
+        ijk = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * spacing
+        pts = origin + ijk @ (np.eye(3) if d is None else d).T
+        ref = locator(m).interpolation_matrix(pts, outside="zero") @ field
+        assert got.shape == shape and (ref == 0).sum() > 100 and (ref > 0).sum() > 1000
+        np.testing.assert_allclose(got.ravel(), ref, rtol=1e-6, atol=1e-6)
+
+
+def test_a_section_image_is_the_point_interpolation_at_its_pixels():
+    """The demo's section images (pipelines.cases.section_images): each method's
+    pixels are the point locator's values, NaN outside the mesh, in the window's
+    own order whichever way its axes run."""
+    from FluoTomoLib.fem.locate import locator
+    from FluoTomoLib.pipelines.cases import section_images
+
+    nodes, el = bisection_mesh(ROI, 2.0, _size_at)
+    m = Mesh(nodes, el, np.ones(len(el), int)).oriented()
+    f = np.sin(m.nodes_mm @ np.array([0.3, -0.2, 0.5])) + 2.0
+    run = {"true_yield_at": lambda p: np.zeros(len(p)), "coarse": m,
+           "results": {"HP": {"yield": f}}}
+    y0, y1, z0, z1 = ROI[2] - 2.0, ROI[3] + 1.5, ROI[5] + 1.0, ROI[4] - 2.0
+    for y, z in (((y0, y1), (z0, z1)), ((y1, y0), (z1, z0)), ((y0 + 3, y1 - 3), (z0 - 2, z1 + 2))):
+        got = section_images(run, y, z, px_per_mm=4)["HP"]
+        yy, zz = np.meshgrid(np.linspace(*y, got.shape[1]), np.linspace(*z, got.shape[0]))
+        pts = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
+        P = locator(m).interpolation_matrix(pts, outside="nan")
+        ref = np.where(np.asarray(P.sum(axis=1)).ravel() > 0.5, P @ f, np.nan).reshape(yy.shape)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+        np.testing.assert_allclose(got[~np.isnan(ref)], ref[~np.isnan(ref)], rtol=1e-12)
+    assert np.isnan(ref).sum() == 0 and np.isnan(section_images(run, (y0, y1), (z0, z1))[
+        "HP"]).sum() > 100
+
+
 def test_cell_shares_are_the_trilinear_indicators_mean():
     """The compiled quadrature of a node cell's region shares is the mean, over
     the midpoint grid, of each region's indicator interpolated trilinearly with
