@@ -400,21 +400,22 @@ def membership(mesh, labels_kji, spacing_mm, origin_mm=(0.0, 0.0, 0.0), region_l
 def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
     """Each region's volume as the prior implies it (HP basis: sum_n K[n, r] v_n;
     SP node regions: the volume of their nodes) against the label map's inside
-    the mesh.  Returns (table {label: {...}}, warnings)."""
+    the mesh.  Returns (table {label: {...}}, warnings {method: [text]}): the
+    basis's to HP, the node regions' to SP (NP has no prior to match)."""
     v = nodal_volumes(mesh)
     K = prior.K()
-    out, notes = {}, []
+    out, notes = {}, {"HP": [], "SP": []}
     for r, lab in enumerate(prior.labels):
         ref = float(labelmap_volumes_mm3.get(int(lab), 0.0))
         hp = float(K[:, r] @ v)
         sp = float(v[prior.node_region == lab].sum())
         out[int(lab)] = {"labelmap_mm3": ref, "hard_prior_mm3": hp, "soft_prior_mm3": sp}
         if ref > 0:
-            for what, got in (("hard-prior basis holds", hp),
-                              ("soft-prior node regions hold", sp)):
+            for method, what, got in (("HP", "hard-prior basis holds", hp),
+                                      ("SP", "soft-prior node regions hold", sp)):
                 err = 100.0 * (got - ref) / ref
                 if abs(err) > PRIOR_VOLUME_WARN_PCT:
-                    notes.append(f"region {int(lab)}: the {what} {got:.4g} mm^3 against "
+                    notes[method].append(f"region {int(lab)}: the {what} {got:.4g} mm^3 against "
                                  f"the label map's {ref:.4g} mm^3 ({err:+.0f} %): the prior "
                                  "does not match the segmentation")
     return out, notes

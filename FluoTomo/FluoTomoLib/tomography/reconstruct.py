@@ -268,8 +268,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
                                      grading, roi_ras, mesh, timings, notes, progress, cancel)
         nodal_j = _check_jacobian_memory(acquisition, mesh, methods, h)
         check_cancel(cancel)
-        tm, prior_volumes, forward_err = _tissue_model(lm, optics, acquisition, mesh, src, det,
-                                                       nodal_j, timings, notes, progress)
+        tm, prior_volumes, forward_err, prior_notes = _tissue_model(
+            lm, optics, acquisition, mesh, src, det, nodal_j, timings, progress)
         y = acquisition.y()
         noise_rel = None if noise_pct is None else noise_pct / 100
         solved = _solve_methods(tm, y, methods, lam, self_absorption, data_model, noise_rel,
@@ -287,7 +287,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
     out = {}
     for method, (res, passes) in solved.items():
         out[method] = _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam,
-                              target, data_model, settings, h, roi_info, list(notes),
+                              target, data_model, settings, h, roi_info,
+                              list(notes) + prior_notes.get(method, []),
                               dict(timings, reconstruction=res.seconds), src, det, d_src, d_det,
                               t_common + res.seconds)
         _add_run_summary(out[method]["summary"], method, settings, remarks, cut_info, coverage,
@@ -434,10 +435,11 @@ def _check_jacobian_memory(acquisition, mesh, methods, h):
     return nodal_j
 
 
-def _tissue_model(lm, optics, acquisition, mesh, src, det, nodal_j, timings, notes, progress):
+def _tissue_model(lm, optics, acquisition, mesh, src, det, nodal_j, timings, progress):
     """The model on the mesh (its Jacobian, progress 0.3-0.6), the priors' volumes
-    against the label map's (their warnings into ``notes``) and the mesh's own
-    error in the data.  Returns (TissueModel, prior_volumes, forward_err)."""
+    against the label map's and the mesh's own error in the data.  Returns (TissueModel, prior_volumes, forward_err,
+    prior_notes {method: [warning]}: each prior's volume warnings go to the method
+    that uses it)."""
     from FluoTomoLib.tomography.model import TissueModel, check_prior_volumes
 
     report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
@@ -451,8 +453,7 @@ def _tissue_model(lm, optics, acquisition, mesh, src, det, nodal_j, timings, not
     prior_volumes, prior_notes = check_prior_volumes(
         tm.prior, mesh, mesh.meta.get("labelmap_volumes_mm3", {}))
     forward_err = _forward_error(tm, acquisition.mask)
-    notes.extend(prior_notes)
-    return tm, prior_volumes, forward_err
+    return tm, prior_volumes, forward_err, prior_notes
 
 
 def _solve_methods(tm, y, methods, lam, self_absorption, data_model, noise_rel, progress,

@@ -163,3 +163,34 @@ def test_self_absorption_feedback(alpha, absorbing_data, expect):
     else:
         assert "diverged" in res.stop_reason and "blind model kept" in res.stop_reason
         assert np.isclose(x, blind)
+
+
+def test_a_prior_s_volume_warning_goes_to_the_method_that_uses_it():
+    """check_prior_volumes: a hard-prior basis off the label map's volume warns HP,
+    soft-prior node regions off it warn SP, and NP (no prior) hears of neither;
+    the table gives both volumes whatever the warnings."""
+    from FluoTomoLib.meshing.structured import box_mesh
+    from FluoTomoLib.meshing.voxel import nodal_volumes
+    from FluoTomoLib.tomography.model import check_prior_volumes
+
+    ax = np.linspace(0.0, 6.0, 7)
+    mesh = box_mesh(ax, ax, ax)
+    v = nodal_volumes(mesh)
+    inner = np.all(np.abs(mesh.nodes_mm - 3.0) <= 1.0, axis=1)     # 27 nodes, 27 mm^3
+    node_region = np.where(inner, 2, 1)
+    F = np.stack([~inner, inner], axis=1).astype(float)
+    prior = PartialVolumePrior(node_region, [1, 2], F)
+    got = float(v[inner].sum())
+    table, notes = check_prior_volumes(prior, mesh, {1: float(v.sum()) - got, 2: got})
+    assert notes == {"HP": [], "SP": []} and table[2]["soft_prior_mm3"] == pytest.approx(got)
+    # the basis holds half the inclusion's nodes' share, the node regions are unchanged
+    half = F.copy()
+    half[inner] = [0.5, 0.5]
+    table, notes = check_prior_volumes(PartialVolumePrior(node_region, [1, 2], half), mesh,
+                                       {1: float(v.sum()) - got, 2: got})
+    assert table[2]["hard_prior_mm3"] == pytest.approx(0.5 * got) and notes["SP"] == []
+    assert len(notes["HP"]) == 1 and "region 2: the hard-prior basis holds" in notes["HP"][0]
+    # the label map's inclusion 30 % larger: both priors are short of it
+    table, notes = check_prior_volumes(prior, mesh, {1: float(v.sum()) - got, 2: 1.3 * got})
+    assert [len(notes[m]) for m in ("HP", "SP")] == [1, 1] and "NP" not in notes
+    assert "soft-prior node regions hold" in notes["SP"][0]
