@@ -424,6 +424,12 @@ def check_prior_volumes(prior, mesh, labelmap_volumes_mm3):
 #: 95 % point of chi^2 with one degree of freedom
 CHI2_1_95 = 3.841
 
+#: self-absorption passes of each moved segmentation in the segmentation test,
+#: after its first solve on the reconstruction's absorbing model: one pass moved
+#: no value, coverage or best boundary on the scene family against feeding each
+#: back to convergence, at a pass less per boundary (docs/reconstruction.md)
+OFFSET_PASSES = 1
+
 
 def perturb_regions(labels_kji, spacing_mm, delta_mm, background):
     """A segmentation whose boundaries moved by ``delta_mm`` [mm]: every labelled
@@ -675,7 +681,8 @@ class TissueModel:
 
         ``absorbing_yield``: not None (the reconstruction's nodal yield after its
         self-absorption feedback) to solve HP on models with the dye's absorption,
-        each segmentation's own fed back to convergence (:func:`reconstruct_self_absorbing`).
+        each segmentation's own fed back (:func:`reconstruct_self_absorbing`,
+        :data:`OFFSET_PASSES` passes from the reconstruction's absorbing model).
         Without it the data of an absorbing dye, fitted by a model without its
         absorption, preferred every correctly segmented inclusion grown by about
         half a voxel (docs/reconstruction.md, "The segmentation test runs on the
@@ -718,10 +725,11 @@ class TissueModel:
             part = scaled(progress, k / parts, (k + 1) / parts, what)
             if feed:
                 # the unmoved segmentation at its own fixed point: its passes would
-                # rebuild the model it starts from (within the feedback's tolerance)
-                passes = 0 if k == 0 and at_fixed_point else None
+                # rebuild the model it starts from (within the feedback's tolerance);
+                # every other one a pass from that near neighbour (OFFSET_PASSES)
+                passes = 0 if k == 0 and at_fixed_point else OFFSET_PASSES
                 # each segmentation on its own model with the dye's absorption, fed
-                # back to convergence as the reconstruction's HP is: on one model
+                # back as the reconstruction's HP is: on one model
                 # with the as-segmented yield's absorption, an eroded inclusion's
                 # 2-50x yield absorbed so much light that the true boundary fit
                 # worse than the eroded one, and the intervals missed (docs/
