@@ -115,7 +115,9 @@ def test_a_reply_without_end_is_bounded_in_time_and_memory():
                 assert client.stats.malformed + client.stats.timeouts >= client.max_failures
     took = time.monotonic() - t0
     grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
-    assert took < 120.0 and grew_mb < 100
+    # ended by the error, never by tracking's own 150 s (CI's load once stretched the
+    # counting to 123 s: a bound below 150 s measured the machine, not the client)
+    assert took < 150.0 and grew_mb < 100
     assert MAX_REPLY_BYTES <= 2**20
 
 
