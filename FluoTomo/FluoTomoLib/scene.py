@@ -71,17 +71,17 @@ def grid_weights(mesh, shape_kji, spacing_mm, origin_mm, direction=None):
     """Sparse (K*J*I, N) P1 weights of a mesh's nodes (RAS) at the voxel centres
     of a volume grid (any IJK-to-RAS direction; an empty row outside the mesh),
     rows in C order of ``shape_kji``: one matrix for every field on that mesh."""
+    import scipy.sparse as sp
+
     d = np.eye(3) if direction is None else np.asarray(direction, float)
+    lo, hi = mesh.bounds()
     if np.allclose(d, np.eye(3), atol=1e-12):
         # axis-aligned: each element visits the voxel centres in its box (a
         # compiled loop), instead of a candidate search per voxel (14 s for the
-        # demo's three volumes)
-        import scipy.sparse as sp
-
-        # only the voxels in the mesh's box: the search's arrays are per voxel
+        # demo's three volumes); only the voxels in the mesh's box, as the
+        # search's arrays are per voxel
         org, step = np.asarray(origin_mm, float), np.asarray(spacing_mm, float)
         shape_ijk = np.array([int(n) for n in shape_kji][::-1])
-        lo, hi = mesh.bounds()
         a = np.clip(np.floor((lo - org) / step).astype(int) - 1, 0, shape_ijk)
         b = np.clip(np.ceil((hi - org) / step).astype(int) + 2, a, shape_ijk)
         W = locator(mesh).grid_interpolation_matrix(org + a * step, step,
@@ -92,11 +92,8 @@ def grid_weights(mesh, shape_kji, spacing_mm, origin_mm, direction=None):
     k, j, i = np.meshgrid(*(np.arange(n) for n in shape_kji), indexing="ij")
     ijk = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1) * np.asarray(spacing_mm, float)
     pts = np.asarray(origin_mm, float) + ijk @ d.T
-    lo, hi = mesh.bounds()
     inside = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
     P = locator(mesh).interpolation_matrix(pts[inside], outside="zero").tocoo()
-    import scipy.sparse as sp
-
     return sp.csr_matrix((P.data, (inside[P.row], P.col)), shape=(len(pts), P.shape[1]))
 
 

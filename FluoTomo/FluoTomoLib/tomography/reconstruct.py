@@ -437,9 +437,9 @@ def _check_jacobian_memory(acquisition, mesh, methods, h):
 
 def _tissue_model(lm, optics, acquisition, mesh, src, det, nodal_j, timings, progress):
     """The model on the mesh (its Jacobian, progress 0.3-0.6), the priors' volumes
-    against the label map's and the mesh's own error in the data.  Returns (TissueModel, prior_volumes, forward_err,
-    prior_notes {method: [warning]}: each prior's volume warnings go to the method
-    that uses it)."""
+    against the label map's and the mesh's own error in the data.  Returns
+    (TissueModel, prior_volumes, forward_err, prior_notes {method: [warning]}:
+    each prior's volume warnings go to the method that uses it)."""
     from FluoTomoLib.tomography.model import TissueModel, check_prior_volumes
 
     report(progress, 0.3, f"Jacobian ({mesh.n_nodes} nodes, "
