@@ -136,7 +136,7 @@ def grade_depth(depth_mm, mc_acquisition, fem_acquisition=None, methods=("NP", "
         report(progress, 0.0, f"diffusion FEM data, depth {depth_mm:g} mm (whole phantom)")
         fem_acquisition, _ = simulate_tube(depth_mm, "fem", progress=scaled(
             progress, 0.0, 0.3, "FEM data"), cancel=cancel)
-    rows = {}
+    rows, mesh = {}, None
     for k, (name, acq) in enumerate((("diffusion FEM", fem_acquisition),
                                      ("Monte Carlo", mc_acquisition))):
         check_cancel(cancel)
@@ -147,8 +147,12 @@ def grade_depth(depth_mm, mc_acquisition, fem_acquisition=None, methods=("NP", "
         solved = reconstruct_labelmap_methods(
             lm, optics, acq, methods, target=2, accuracy=accuracy, grading=grading,
             progress=scaled(progress, 0.3 + 0.35 * k, 0.65 + 0.35 * k, f"{name} data"),
-            cancel=cancel)
+            cancel=cancel, mesh=mesh)
         rows[name] = {m: _errors(r, truth_yield, depth_mm) for m, r in solved.items()}
+        # both data sets on one reconstruction mesh (the optodes and the label map
+        # are the same): the rows then differ by the data alone, and the second
+        # set does not mesh again
+        mesh = next(iter(solved.values()))["mesh"]
     return {"depth_mm": float(depth_mm), "true_yield_per_mm": truth_yield,
             "noise_pct": noise_pct, "accuracy": accuracy, "rows": rows,
             "seconds": time.perf_counter() - t0}

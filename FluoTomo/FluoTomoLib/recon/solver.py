@@ -629,6 +629,8 @@ def _unresolved(method, prior, Jm, V, iterations, lam, decay, cache, progress=No
     V = np.array(V, float)
     lam_j = float(lam)
     n = max(int(iterations), 0)
+    if n and float(decay) == 1.0:
+        return _unresolved_fixed(method, prior, Jm, V, n, lam_j, cache, progress, cancel)
     for j in range(n):
         check_cancel(cancel)
         report(progress, j / n, f"{method} intervals: iteration {j + 1} of {n} replayed")
@@ -640,6 +642,27 @@ def _unresolved(method, prior, Jm, V, iterations, lam, decay, cache, progress=No
         V = V - RJt @ ds.solve(Jm @ V)
         lam_j /= decay
     return V
+
+
+def _unresolved_fixed(method, prior, Jm, V, n, lam, cache, progress, cancel):
+    """:func:`_unresolved` where every iteration had the same damping (NP, SP): with
+    T = R^-1 J^T S^-1 J and S = J R^-1 J^T + I, (I - T) = I - R^-1 J^T S^-1 J, and
+    since S^-1 J R^-1 J^T = I - S^-1, (I - T)^n V = V - R^-1 J^T sum_{j=1..n} S^-j J V:
+    the n steps in data space (M x M solves), one product with R^-1 J^T and one with
+    J instead of n of each (NP's 20-odd replayed iterations on a 45k-node mesh:
+    1.4 s, the N x M products of every step)."""
+    check_cancel(cancel)
+    report(progress, 0.0, f"{method} intervals: {n} iterations replayed in data space")
+    if lam not in cache:
+        _, _, _, RJt, ds = _step_system(method, prior, Jm, np.zeros(Jm.shape[1]), False, lam)
+        cache = {lam: (RJt, ds)}
+    RJt, ds = cache[lam]
+    z = Jm @ V
+    acc = np.zeros_like(z)
+    for _ in range(n):
+        z = ds.solve(z)
+        acc += z
+    return V - RJt @ acc
 
 
 #: two-sided 95 % point of the normal distribution: the intervals' noise part

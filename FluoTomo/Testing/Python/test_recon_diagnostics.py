@@ -313,3 +313,26 @@ def test_a_background_the_data_want_negative_is_warned(meshes):
     assert at_bound[1]["unconstrained"] < -3 * at_bound[1]["sd"]
     assert at_bound[1]["data_fraction"] > 0.02
     assert any("ask for a negative" in w and "region 1" in w for w in res.warnings), res.warnings
+
+
+@pytest.mark.parametrize("method", ["NP", "SP"])
+def test_intervals_replay_in_data_space_equals_the_iterations(independent, method):
+    """NP's and SP's damping is the same every iteration, so the replay of what the
+    iterations left unresolved (the intervals' resolution part) runs in data space
+    (solver._unresolved_fixed); it must equal replaying the steps one by one."""
+    from FluoTomoLib.recon import solver
+
+    J, _, prior = independent
+    rng = np.random.default_rng(3)
+    V = np.column_stack([prior.K(), rng.random(J.shape[1])])
+    n, lam = 17, 10.0
+    _, _, _, RJt, ds = solver._step_system(method, prior, J, np.zeros(J.shape[1]), False, lam)
+    step = V.copy()
+    for _ in range(n):
+        step = step - RJt @ ds.solve(J @ step)
+    fast = solver._unresolved(method, prior, J, V, n, lam, 1.0, {lam: (RJt, ds)})
+    # both accumulate rounding over the n steps (SP's 17: 3e-11 of V's unit columns)
+    tol = 1e-9 * np.abs(V).max()
+    assert np.abs(step).max() > 100 * tol and np.abs(fast - step).max() < tol
+    # and without a cached system: it builds its own
+    assert np.abs(solver._unresolved(method, prior, J, V, n, lam, 1.0, {}) - step).max() < tol
