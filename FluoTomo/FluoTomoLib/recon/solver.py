@@ -638,14 +638,19 @@ def _unresolved(method, prior, Jm, V, iterations, lam, decay, cache, progress=No
     for j in range(n):
         check_cancel(cancel)
         report(progress, j / n, f"{method} intervals: iteration {j + 1} of {n} replayed")
-        if lam_j not in cache:
-            _, _, _, RJt, ds = _step_system(method, prior, Jm, np.zeros(Jm.shape[1]), False,
-                                            lam_j)
-            cache = {lam_j: (RJt, ds)}              # one at a time: (N, M) each
-        RJt, ds = cache[lam_j]
+        RJt, ds, cache = _replay_system(method, prior, Jm, lam_j, cache)
         V = V - RJt @ ds.solve(Jm @ V)
         lam_j /= decay
     return V
+
+
+def _replay_system(method, prior, Jm, lam, cache):
+    """(R^-1 J^T, data-space system, cache) at damping ``lam``: the cached one, or
+    built at x = 0 and cached alone (one at a time: (N, M) each)."""
+    if lam not in cache:
+        _, _, _, RJt, ds = _step_system(method, prior, Jm, np.zeros(Jm.shape[1]), False, lam)
+        cache = {lam: (RJt, ds)}
+    return (*cache[lam], cache)
 
 
 def _unresolved_fixed(method, prior, Jm, V, n, lam, cache, progress, cancel):
@@ -657,10 +662,7 @@ def _unresolved_fixed(method, prior, Jm, V, n, lam, cache, progress, cancel):
     1.4 s, the N x M products of every step)."""
     check_cancel(cancel)
     report(progress, 0.0, f"{method} intervals: {n} iterations replayed in data space")
-    if lam not in cache:
-        _, _, _, RJt, ds = _step_system(method, prior, Jm, np.zeros(Jm.shape[1]), False, lam)
-        cache = {lam: (RJt, ds)}
-    RJt, ds = cache[lam]
+    RJt, ds, _ = _replay_system(method, prior, Jm, lam, cache)
     z = Jm @ V
     acc = np.zeros_like(z)
     for _ in range(n):
@@ -728,41 +730,6 @@ def _step_system(method, prior, Jm, x, normalise, lam):
 LOW_RANK_SHARE = 4
 
 
-class _LowRankDataSpace:
-    """:class:`_DataSpace` for G = Jc R^-1 Jc^T of rank r << M (r unknowns): with Jc
-    = Q Rq (thin QR) G = Q C Q^T, C = Rq (R^-1 Jc^T) Q (r x r), whose eigenpairs
-    (g, U) give G = V diag(g) V^T with V = Q U orthonormal (M x r). Then
-    (I + G)^-1 b = b - V diag(g / (1 + g)) V^T b, p = sum g / (1 + g), and the
-    predicted residuals follow in r dimensions. HP, 2-3 regions and 130-500
-    data: the M x M matrix and its Cholesky, rebuilt at every damping of the
-    iterations, were a tenth of a tube case's time."""
-
-    def __init__(self, Jc, RJt):
-        Q, Rq = np.linalg.qr(Jc)
-        C = Rq @ (RJt @ Q)
-        g, U = np.linalg.eigh(0.5 * (C + C.T))
-        self._eig = (np.maximum(g, 0.0), Q @ U)
-
-    def spectrum(self):
-        return self._eig
-
-    def solve(self, b):
-        g, V = self._eig
-        c = V.T @ b
-        w = g / (1.0 + g)
-        return b - V @ ((c.T * w).T)
-
-    def effective_parameters(self):
-        g, _ = self._eig
-        return float(np.sum(g / (1.0 + g)))
-
-    def predicted_rss(self, r, t=1.0):
-        g, V = self._eig
-        c = V.T @ r
-        out = max(float(r @ r) - float(c @ c), 0.0)     # r outside G's range
-        return out + float(np.sum((c / (1.0 + t * g)) ** 2))
-
-
 class _DataSpace:
     """Solves with the data-space matrix S = G + I, G = J R^-1 J^T symmetric
     positive semi-definite.  Cholesky while it succeeds; where rounding has
@@ -790,19 +757,20 @@ class _DataSpace:
     def solve(self, b):
         if self.L is not None:
             return _chol_solve(self.L, b)
+        # (I + V g V^T)^-1 b for orthonormal V, whole (M x M) or thin (M x r)
         g, V = self._eig
         c = V.T @ b
-        return V @ ((c.T / (1.0 + g)).T)
+        return b - V @ ((c.T * (g / (1.0 + g))).T)
 
     def effective_parameters(self):
         """p = trace(I - S^-1) = M - ||L^-1||_F^2 (one triangular inverse, about
         a Cholesky's cost; an eigen-decomposition costs ~10 of them)."""
-        M = len(self.S)
         if self.L is None:
             g, _ = self._eig
             return float(np.sum(g / (1.0 + g)))
         from scipy.linalg import solve_triangular
 
+        M = len(self.S)
         Linv = solve_triangular(self.L, np.eye(M), lower=True)
         return float(M - np.einsum("ij,ij->", Linv, Linv))
 
@@ -824,6 +792,22 @@ class _DataSpace:
         c = V.T @ r
         out = max(float(r @ r) - float(c @ c), 0.0)     # r outside G's range
         return out + float(np.sum((c / (1.0 + t * g)) ** 2))
+
+
+class _LowRankDataSpace(_DataSpace):
+    """:class:`_DataSpace` for G = Jc R^-1 Jc^T of rank r << M (r unknowns), on its
+    eigen path from the start: with Jc = Q Rq (thin QR) G = Q C Q^T, C = Rq (R^-1
+    Jc^T) Q (r x r), whose eigenpairs (g, U) give G = V diag(g) V^T with V = Q U
+    orthonormal (M x r); no M x M matrix is formed. HP, 2-3 regions and 130-500
+    data: that matrix and its Cholesky, rebuilt at every damping of the
+    iterations, were a tenth of a tube case's time."""
+
+    def __init__(self, Jc, RJt):
+        Q, Rq = np.linalg.qr(Jc)
+        C = Rq @ (RJt @ Q)
+        g, U = np.linalg.eigh(0.5 * (C + C.T))
+        self.S, self.L = None, None
+        self._eig = (np.maximum(g, 0.0), Q @ U)
 
 
 def _noise_model(y, noise_sd, noise_rel):
