@@ -65,6 +65,9 @@ class _Bisector:
         self.tags = np.asarray(tags, np.int8)
         self.mid_keys = np.zeros(0, np.int64)
         self.mid_nodes = np.zeros(0, np.int64)
+        #: per element: its size was checked against the wanted size and kept (an
+        #: element does not change while it exists, so it is not checked again)
+        self.settled = np.zeros(len(self.elements), bool)
 
     def node_array(self):
         if len(self.nodes) > 1:
@@ -113,6 +116,7 @@ class _Bisector:
         keep[idx] = False
         self.elements = np.concatenate([self.elements[keep], c1, c2])
         self.tags = np.concatenate([self.tags[keep], new_tag, new_tag])
+        self.settled = np.concatenate([self.settled[keep], np.zeros(2 * len(idx), bool)])
 
     def _find(self, keys):
         """(found, position): which edge keys were bisected, and where they sit in
@@ -122,23 +126,51 @@ class _Bisector:
         pos = np.minimum(np.searchsorted(self.mid_keys, keys), len(self.mid_keys) - 1)
         return self.mid_keys[pos] == keys, pos
 
-    def hanging(self):
-        """Elements with a bisected edge (a midpoint node on one of their edges)."""
-        el = self.elements
-        out = np.zeros(len(el), bool)
+    def hanging(self, only=None):
+        """Elements with a bisected edge (a midpoint node on one of their edges);
+        ``only`` (element indices): check these alone, the rest False."""
+        el = self.elements if only is None else self.elements[only]
+        found = np.zeros(len(el), bool)
         for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
-            out |= self._find(_edge_keys(el[:, i], el[:, j], self.N_MAX))[0]
+            found |= self._find(_edge_keys(el[:, i], el[:, j], self.N_MAX))[0]
+        if only is None:
+            return found
+        out = np.zeros(len(self.elements), bool)
+        out[only[found]] = True
         return out
 
     def close(self, cancel=None):
-        """Bisect until no node hangs (terminates on a Kuhn grid, Maubach 1995)."""
+        """Bisect until no node hangs (terminates on a Kuhn grid, Maubach 1995).
+        After the first sweep only the elements that a bisection can have left
+        hanging are checked: its children, and the elements holding both ends of
+        an edge it split (an element none of whose edges was split keeps its
+        state; every hanging one is bisected)."""
+        h = None
         for _ in range(200):
             check_cancel(cancel)
-            h = self.hanging()
+            if h is None:
+                h = self.hanging()
             if not h.any():
                 return
+            n_before = len(self.elements)
+            n_bisected = int(h.sum())
+            split = self._split_edges(h)
             self.bisect(h)
+            # the elements after bisect(): the untouched ones first (in order),
+            # then the 2 * n_bisected children
+            n_kept = n_before - n_bisected
+            ends = np.zeros(self.n_nodes, bool)
+            ends[split.ravel()] = True
+            near = np.flatnonzero(ends[self.elements[:n_kept]].sum(axis=1) >= 2)
+            only = np.concatenate([near, np.arange(n_kept, len(self.elements))])
+            h = self.hanging(only)
         raise RuntimeError("bisection closure did not end")     # pragma: no cover
+
+    def _split_edges(self, which):
+        """(K, 2) the refinement edges of the elements ``which`` (bool mask)."""
+        idx = np.flatnonzero(which)
+        el, tag = self.elements[idx], self.tags[idx].astype(np.int64)
+        return np.stack([el[:, 0], el[np.arange(len(idx)), tag]], axis=1)
 
 
 def element_size(nodes, elements):
@@ -185,21 +217,28 @@ def bisection_mesh(roi, coarse_mm, size_at, anchor_mm=None, min_mm=None, progres
     for it in range(passes):
         check_cancel(cancel)
         pts = b.node_array()
-        el = b.elements
+        # only the elements made since the last pass: the others were checked
+        # and kept (an element's size and centre do not change)
+        new = np.flatnonzero(~b.settled)
+        el = b.elements[new]
         size = element_size(pts, el)
         want = np.maximum(np.asarray(size_at(pts[el].mean(axis=1)), float), floor)
         # a step of bisection divides the size by 2^(1/3): refine while it is
         # over the wanted size by more than half a step
-        mark = size > want * 2 ** (1 / 6)
+        split = size > want * 2 ** (1 / 6)
+        b.settled[new[~split]] = True
+        mark = np.zeros(len(b.elements), bool)
+        mark[new[split]] = True
         report(progress, min(0.95, it / passes),
-               f"bisection pass {it + 1}: {len(el)} elements, {int(mark.sum())} to split")
-        if not mark.any():
+               f"bisection pass {it + 1}: {len(b.elements)} elements, {int(split.sum())} to "
+               "split")
+        if not split.any():
             break
         b.bisect(mark)
         b.close(cancel)
         if len(b.elements) > MAX_ELEMENTS:
             raise FluoInputError(f"the refinement passed {MAX_ELEMENTS:.3g} elements: choose a "
                                  "larger element size or a smaller region", field="size_mm",
-                                 value=float(np.min(want)))
+                                 value=float(np.min(want)) if len(want) else coarse)
     report(progress, 1.0, f"{len(b.elements)} elements")
     return b.node_array(), b.elements

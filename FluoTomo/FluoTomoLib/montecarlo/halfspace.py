@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from fluoguide.errors import FluoInputError
-from fluoguide.progress import check_cancel, report
+from fluoguide.progress import report
 
 from FluoTomoLib.montecarlo.engine import (
     check_photons,

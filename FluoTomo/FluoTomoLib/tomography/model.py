@@ -541,7 +541,7 @@ class TissueModel:
 
     def __init__(self, mesh, labels_kji, spacing_mm, optics, sources_mm, detectors_mm, mask,
                  origin_mm=(0.0, 0.0, 0.0), source_normals=None, timings=None,
-                 cut_facets=None, progress=None, nodal_jacobian=True):
+                 cut_facets=None, progress=None, nodal_jacobian=True, fields=True):
         from fluoguide.progress import report
         from FluoTomoLib.fem.forward import FluorescenceModel
 
@@ -575,8 +575,9 @@ class TissueModel:
         # the fields, then the factorisations freed (about a GB each on a 150k-node
         # mesh): the Jacobian kernel, HP's region sensitivities and the solvers
         # work on the fields (self-absorption builds its own models)
-        self.model.phi_x, self.model.adjoint_m      # in this order: lean frees each
-        self.model.release()
+        if fields or nodal_jacobian:
+            self.model.phi_x, self.model.adjoint_m      # in this order: lean frees each
+            self.model.release()
         self.timings = timings
         self._J = None
         timings["jacobian"] = time.perf_counter() - t0
