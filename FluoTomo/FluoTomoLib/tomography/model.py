@@ -643,8 +643,13 @@ class TissueModel:
 
         sp = self.spacing_mm if spacing_mm is None else np.asarray(spacing_mm, float)
         org = self.origin_mm if origin_mm is None else np.asarray(origin_mm, float)
-        labs, fractions = membership(self.mesh, labels_kji, sp, org,
-                                     region_labels=[int(v) for v in self.region_labels])
+        if labels_kji is self.labels_kji and spacing_mm is None and origin_mm is None:
+            # this model's own segmentation: its partial volumes are the ones the
+            # optical properties were built from (the same call, not repeated)
+            labs, fractions = self.region_labels, self.fractions
+        else:
+            labs, fractions = membership(self.mesh, labels_kji, sp, org,
+                                         region_labels=[int(v) for v in self.region_labels])
         if list(labs) != list(self.region_labels):
             raise FluoInputError("a perturbed segmentation lost or gained a region",
                                  field="segmentation_mm", value=sorted(set(labs) ^ set(
