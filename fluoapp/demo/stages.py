@@ -150,7 +150,6 @@ def _tomo_figures(ctx, runs):
                "with its stated 95 % interval (an interval that misses zero missed the truth), "
                "and the half-maximum centroid.")
 
-
     d = depths[0]
     run = runs[d]
     geometry = ctx.state["tube_phantoms"][d].truth()["geometry"]

@@ -75,10 +75,12 @@ class _Bisector:
         return self.nodes[0]
 
     def bisect(self, which):
-        """Bisect the elements ``which`` (bool mask) at their refinement edges."""
+        """Bisect the elements ``which`` (bool mask) at their refinement edges; the
+        untouched elements keep their order, the children follow them. Returns
+        the split edges' end nodes (K, 2)."""
         idx = np.flatnonzero(which)
         if len(idx) == 0:
-            return
+            return np.zeros((0, 2), np.int64)
         el, tag = self.elements[idx], self.tags[idx].astype(np.int64)
         rows = np.arange(len(idx))
         a, b = el[:, 0], el[rows, tag]
@@ -117,6 +119,7 @@ class _Bisector:
         self.elements = np.concatenate([self.elements[keep], c1, c2])
         self.tags = np.concatenate([self.tags[keep], new_tag, new_tag])
         self.settled = np.concatenate([self.settled[keep], np.zeros(2 * len(idx), bool)])
+        return np.stack([a, b], axis=1)
 
     def _find(self, keys):
         """(found, position): which edge keys were bisected, and where they sit in
@@ -152,25 +155,16 @@ class _Bisector:
                 h = self.hanging()
             if not h.any():
                 return
-            n_before = len(self.elements)
-            n_bisected = int(h.sum())
-            split = self._split_edges(h)
-            self.bisect(h)
-            # the elements after bisect(): the untouched ones first (in order),
-            # then the 2 * n_bisected children
-            n_kept = n_before - n_bisected
+            split = self.bisect(h)
+            # bisect() keeps the untouched elements first, the two children of
+            # each split element after them
+            n_kept = len(self.elements) - 2 * len(split)
             ends = np.zeros(self.n_nodes, bool)
             ends[split.ravel()] = True
             near = np.flatnonzero(ends[self.elements[:n_kept]].sum(axis=1) >= 2)
             only = np.concatenate([near, np.arange(n_kept, len(self.elements))])
             h = self.hanging(only)
         raise RuntimeError("bisection closure did not end")     # pragma: no cover
-
-    def _split_edges(self, which):
-        """(K, 2) the refinement edges of the elements ``which`` (bool mask)."""
-        idx = np.flatnonzero(which)
-        el, tag = self.elements[idx], self.tags[idx].astype(np.int64)
-        return np.stack([el[:, 0], el[np.arange(len(idx)), tag]], axis=1)
 
 
 def element_size(nodes, elements):

@@ -704,15 +704,13 @@ class TissueModel:
         the solver's iterations inside it) and of each moved segmentation's
         prior; ``cancel`` is checked between them and in the solver."""
         from fluoguide.progress import check_cancel, report, scaled
-        from FluoTomoLib.recon.self_absorption import (absorbing_model,
-                                                       reconstruct_self_absorbing)
+        from FluoTomoLib.recon.self_absorption import absorbing_model
         from FluoTomoLib.recon.solver import reconstruct
 
         offsets = [k * delta_mm for k in range(-steps, steps + 1) if k != 0]
         parts = len(offsets) + 1
         slopes = self.optics.mua_per_yield
-        absorbing = (absorbing_yield is not None and method == "HP" and not log_data
-                     and (slopes[0] > 0 or slopes[1] > 0))
+        absorbing = absorbing_yield is not None and method == "HP" and self.absorbs(log_data)
         feed = absorbing and feedback
         model = None
         if absorbing:
@@ -740,23 +738,17 @@ class TissueModel:
                 # 2-50x yield absorbed so much light that the true boundary fit
                 # worse than the eroded one, and the intervals missed (docs/
                 # validation.md, "Estimating the boundary with the yield")
-                with warnings.catch_warnings():
-                    # a moved segmentation's model is a hypothesis: what it says of
-                    # its own validity (a shrunk inclusion's inflated absorption: "diffusion
-                    # theory is inaccurate") is not said of the scene
-                    warnings.simplefilter("ignore")
-                    res, _ = reconstruct_self_absorbing(
-                        "HP", None, y, self.mask, prior, self.make_model, (0.0, 0.0), 0.0,
-                        slopes, lam=lam, passes=passes, cancel=cancel, progress=part,
-                        noise_rel=noise_rel, region_matrix=self.region_matrix(prior, model))
+                # (a moved segmentation's model is a hypothesis: what it says of its
+                # own validity, a shrunk inclusion's inflated absorption making
+                # "diffusion theory is inaccurate", is not said of the scene)
+                res = self.hp_fed_back(y, lam, model, passes, prior, noise_rel, cancel, part)
             elif method == "HP":
                 res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part, model)
             else:
                 res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
                                   region_weights=weights, noise_rel=noise_rel, cancel=cancel,
                                   progress=part)
-            return res, {int(lab): v["mean_yield_per_mm"]
-                         for lab, v in res.region_confidence.items()}
+            return res, region_values(res)
 
         res0, base = solve(0, "as segmented", self.prior, self.region_weights)
         fine, sp, org = self._finer_labels(delta_mm, steps * delta_mm)
@@ -798,6 +790,34 @@ class TissueModel:
         org = self.origin_mm + lo * self.spacing_mm - 0.5 * self.spacing_mm + 0.5 * sp
         return fine, sp, org
 
+    def absorbs(self, log_data=False):
+        """Whether the dye's own absorption can be fed back into the model: the
+        optics give its slopes (d mua / d yield) and the data are fitted as they
+        are (log data are not)."""
+        slopes = self.optics.mua_per_yield
+        return not log_data and (slopes[0] > 0 or slopes[1] > 0)
+
+    def hp_fed_back(self, y, lam, model, passes, prior=None, noise_rel=None, cancel=None,
+                    progress=None):
+        """HP of ``prior``'s basis (None: this model's own) with its first solve on
+        ``model``, a model with the dye's absorption already in it
+        (``self_absorption.absorbing_model``), then fed back ``passes`` times: a
+        near neighbour of its fixed point, as the segmentation test's moved
+        boundaries and the mesh placement test's shifted meshes take it. What the
+        models say of their own validity is not said again (the reconstruction's
+        own model has said it of the scene). Returns the ReconResult."""
+        from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
+
+        prior = self.prior if prior is None else prior
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res, _ = reconstruct_self_absorbing(
+                "HP", None, y, self.mask, prior, self.make_model, (0.0, 0.0), 0.0,
+                self.optics.mua_per_yield, lam=lam, passes=passes, cancel=cancel,
+                progress=progress, noise_rel=noise_rel,
+                region_matrix=self.region_matrix(prior, model))
+        return res
+
     def make_model(self, dye_mua_x_nodes, dye_mua_m_nodes):
         """The model with the fluorophore's absorption added (self_absorption.py
         passes the dye's nodal absorption; the tissue's is kept)."""
@@ -824,7 +844,7 @@ class TissueModel:
         t0 = time.perf_counter()
         slopes = self.optics.mua_per_yield
         feed = (method in tuple(self_absorption or ()) and method in ("HP", "SP")
-                and not log_data and (slopes[0] > 0 or slopes[1] > 0))
+                and self.absorbs(log_data))
         if feed:
             hp = method == "HP"
             res, passes = reconstruct_self_absorbing(
@@ -842,6 +862,11 @@ class TissueModel:
             passes = []
         res.seconds = time.perf_counter() - t0
         return res, passes
+
+
+def region_values(res):
+    """{label: value [1/mm]} of a result's regions (``mean_yield_per_mm``)."""
+    return {int(lab): v["mean_yield_per_mm"] for lab, v in res.region_confidence.items()}
 
 
 def _shift_summary(res0, base, moved, offsets, n_data):

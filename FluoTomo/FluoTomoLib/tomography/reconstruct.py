@@ -536,12 +536,11 @@ def _mesh_placements(lm, optics, acquisition, src, det, mesh, tm0, target, setti
     it back PLACEMENT_PASSES times, as the segmentation test's moved segmentations
     do. Returns {"shifts_mm": [...], "values_per_mm": {label: [unmoved, moved...]}}
     or None."""
-    from FluoTomoLib.recon.self_absorption import absorbing_model, reconstruct_self_absorbing
-    from FluoTomoLib.tomography.model import TissueModel
+    from FluoTomoLib.recon.self_absorption import absorbing_model
+    from FluoTomoLib.tomography.model import TissueModel, region_values
 
     def values_of(res):
-        return None if res.diverged else {
-            int(k): c.get("mean_yield_per_mm") for k, c in res.region_confidence.items()}
+        return None if res.diverged else region_values(res)
 
     log_data = data_model == "log"
     if "HP" in solved:
@@ -551,9 +550,7 @@ def _mesh_placements(lm, optics, acquisition, src, det, mesh, tm0, target, setti
                                    noise_rel=noise_rel)[0])
     if base is None:
         return None
-    slopes = optics.mua_per_yield
-    feed = ("HP" in tuple(self_absorption or ()) and not log_data
-            and (slopes[0] > 0 or slopes[1] > 0))
+    feed = "HP" in tuple(self_absorption or ()) and tm0.absorbs(log_data)
     roi = np.asarray(mesh.meta["roi"], float)
     h = float(mesh.meta.get("size_mm"))
     h_t = h if target is None else min(h, float(settings["refine_factor"] or 1.0) * h)
@@ -570,21 +567,18 @@ def _mesh_placements(lm, optics, acquisition, src, det, mesh, tm0, target, setti
         m = _mesh_on(lm, optics, src, det, target, settings, grading, roi, anchor + shift,
                      scaled(part, 0.0, 0.4), cancel)
         tm = TissueModel(m, lm.labels_kji, lm.spacing_mm, optics, src, det, acquisition.mask,
-                         source_normals=lm.surface().closest(src)[1],
-                         cut_facets=lm.cut_facets(m), progress=scaled(part, 0.4, 0.5),
-                         nodal_jacobian=False, fields=not feed)
+                         source_normals=tm0.source_normals, cut_facets=lm.cut_facets(m),
+                         progress=scaled(part, 0.4, 0.5), nodal_jacobian=False,
+                         fields=not feed)
         step = scaled(part, 0.5, 1.0)
         if feed:
             start = tm.prior.K() @ np.array([base[int(lab)] for lab in tm.prior.labels])
             with warnings.catch_warnings():
-                # said of the scene by the unmoved model already
-                warnings.simplefilter("ignore")
-                model = absorbing_model(tm.make_model, start, (0.0, 0.0), 0.0, slopes, step,
-                                        cancel)
-                res, _ = reconstruct_self_absorbing(
-                    "HP", None, y, tm.mask, tm.prior, tm.make_model, (0.0, 0.0), 0.0, slopes,
-                    lam=lam, passes=PLACEMENT_PASSES, cancel=cancel, progress=step,
-                    noise_rel=noise_rel, region_matrix=tm.region_matrix(tm.prior, model))
+                warnings.simplefilter("ignore")     # said by the unmoved model already
+                model = absorbing_model(tm.make_model, start, (0.0, 0.0), 0.0,
+                                        optics.mua_per_yield, step, cancel)
+            res = tm.hp_fed_back(y, lam, model, PLACEMENT_PASSES, noise_rel=noise_rel,
+                                 cancel=cancel, progress=step)
         else:
             res, _ = tm.solve(y, "HP", lam, (), log_data, cancel, progress=step,
                               noise_rel=noise_rel)
@@ -611,8 +605,7 @@ def _add_mesh_placements(summary, placements):
         v = r.get("yield_per_mm")
         if not vals or v is None or vals[0] is None or not vals[0] > 0:
             continue
-        rel = max(abs(x / vals[0] - 1.0) for x in vals[1:] if x is not None) \
-            if any(x is not None for x in vals[1:]) else 0.0
+        rel = max((abs(x / vals[0] - 1.0) for x in vals[1:] if x is not None), default=0.0)
         r["interval_parts"]["mesh_placement_per_mm"] = float(rel * v)
         r["ci95_per_mm"] = _widen(r.get("ci95_per_mm"), rel * v, rel * v)
         worst = max(worst, rel)
