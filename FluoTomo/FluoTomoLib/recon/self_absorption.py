@@ -83,7 +83,7 @@ FEEDBACK_PENDING = 0.62 / (1 - 0.62)
 def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
                                mua_per_yield, lam=10.0, passes=None, rel_tol=0.02,
                                cancel=None, progress=None, region_weights=None, noise_rel=None,
-                               region_matrix=None):
+                               region_matrix=None, optodes=None):
     """Reconstruct with the fluorophore's absorption fed back into the model.
 
     Parameters
@@ -109,6 +109,8 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
     region_matrix : (M, R) HP's first-pass region sensitivities J @ prior.K(), when
         the caller has them without J (``TissueModel.region_matrix``; J may then
         be None)
+    optodes : HP: (sources, detectors) index of each used measurement, to fit the
+        optodes' gains in every solve (``reconstruct``'s); None: no gains
 
     Returns (ReconResult of the last pass with ``yield_per_mm`` nodal, list of
     the largest nodal yield after each pass).
@@ -121,7 +123,7 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
                                     region_weights, noise_rel)
     return _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg,
                                 mua_per_yield, lam, passes, rel_tol, cancel, progress,
-                                noise_rel, region_matrix)
+                                noise_rel, region_matrix, optodes)
 
 
 def _pass_progress(progress, method, passes, k, what):
@@ -168,7 +170,8 @@ def _soft_prior_feedback(method, J, y, mask, prior, make_model, mua_bg, yield_bg
 
 
 def _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg, mua_per_yield, lam,
-                         passes, rel_tol, cancel, progress, noise_rel, region_matrix):
+                         passes, rel_tol, cancel, progress, noise_rel, region_matrix,
+                         optodes=None):
     """:func:`reconstruct_self_absorbing` for HP: the unknowns are the region values
     v, the model's data for region r are those of the basis K[:, r], so each pass
     is forward solves only (:func:`_region_data`); Steffensen's iteration
@@ -181,7 +184,7 @@ def _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg, mua_pe
     A0 = J @ K if region_matrix is None else np.asarray(region_matrix, float)
     res = first = reconstruct(A0, y, "HP", lam=lam, prior=unknowns,
                               progress=_pass_progress(progress, "HP", passes, 0, "first solve"),
-                              noise_rel=noise_rel)
+                              noise_rel=noise_rel, optodes=optodes)
     values = [res.yield_per_mm.copy()]     # every state the models were built from
     triple = [values[-1]]                  # the current fixed-point sequence
     # the stop reason, and carried alongside what callers decide on: whether it
@@ -194,7 +197,7 @@ def _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg, mua_pe
         A = _region_data(make_model, K @ triple[-1], K, mask, mua_bg, yield_bg, mua_per_yield,
                          step, cancel)
         res = reconstruct(A, y, "HP", lam=lam, prior=unknowns, progress=step,
-                          noise_rel=noise_rel)
+                          noise_rel=noise_rel, optodes=optodes)
         triple.append(res.yield_per_mm.copy())
         values.append(triple[-1])
         scale = max(float(np.max(np.abs(triple[-1]))), 1e-300)

@@ -128,6 +128,10 @@ class ReconResult:
     #: reason; a caller decides on these, not on the words (not in ``summary``)
     diverged: bool = False
     stop_warned: bool = False
+    #: HP with ``reconstruct(optodes=...)``: the fit of the same data with the
+    #: optodes' gains (recon.coupling.OptodeCoupling, or None where they cannot be
+    #: told from the values); not in ``summary``
+    coupling: object = None
 
     @property
     def residual(self):
@@ -320,7 +324,7 @@ def _inverse_regulariser(method, prior, Jm, lam_k):
 def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, rel_tol=0.02,
                 nonneg=True, lambda_decay=None, log_data=False, normalise=False,
                 region_jacobian=None, progress=None, cancel=None, noise_sd=None, noise_rel=None,
-                region_weights=None):
+                region_weights=None, optodes=None):
     """Reconstruct nodal yield from data ``y`` with sensitivity ``J``.
 
     Parameters
@@ -358,6 +362,11 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
         yield and its standard deviation that of the same functional (the label
         map path: the volume-weighted mean over the label's voxels). Default: the
         mean over the prior's node region. HP's region means are its unknowns.
+    optodes : (sources, detectors), each (M,) the measurement's source and detector
+        index, or None. HP with linear data: the result's ``coupling`` is the same
+        data's fit with each source's and detector's gain as an unknown beside the
+        region values (``recon.coupling``: its residual, for comparing models on
+        what the optodes' gains leave); the fit itself is not changed.
 
     Returns
     -------
@@ -375,8 +384,8 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
                              field="max_iter", value=max_iter)
     sigma = _noise_model(y, noise_sd, noise_rel)
     K = prior.K() if method == "HP" else None
-    A_s, y_s, x_exp, b_exp = _exact_scaling(_unknowns_matrix(J, K, region_jacobian, prior), y,
-                                            log_data)
+    A = _unknowns_matrix(J, K, region_jacobian, prior)
+    A_s, y_s, x_exp, b_exp = _exact_scaling(A, y, log_data)
     nonlinear = bool(log_data or normalise)
     x = _start(A_s, y_s, x0, x_exp, K, prior, log_data, nonlinear)
     x_start = x.copy()
@@ -403,8 +412,13 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     resolution = None if relinearise else _resolution(
         run, method, prior, K, x_start, lam, lambda_decay, progress, max_iter, cancel)
     s_fit, excess = _model_excess(run.resid, y, sigma, log_data, b_exp, diag["residual_dof"])
-    return _result(run, method, lam, prior, K, x_exp, b_exp, diag, warn, resolution, excess,
-                   s_fit, region_weights, t0)
+    res = _result(run, method, lam, prior, K, x_exp, b_exp, diag, warn, resolution, excess,
+                  s_fit, region_weights, t0)
+    if optodes is not None and method == "HP" and not log_data:
+        from FluoTomoLib.recon.coupling import optode_coupling
+
+        res.coupling = optode_coupling(A, y, *optodes, sigma=sigma)
+    return res
 
 def _unknowns_matrix(J, K, region_jacobian, prior):
     """The data's sensitivity to the unknowns: J (NP, SP) or to each region's yield

@@ -569,7 +569,7 @@ def _mesh_placements(lm, optics, acquisition, src, det, mesh, tm0, target, setti
         tm = TissueModel(m, lm.labels_kji, lm.spacing_mm, optics, src, det, acquisition.mask,
                          source_normals=tm0.source_normals, cut_facets=lm.cut_facets(m),
                          progress=scaled(part, 0.4, 0.5), nodal_jacobian=False,
-                         fields=not feed)
+                         fields=not feed, soft_prior=False)
         step = scaled(part, 0.5, 1.0)
         if feed:
             start = tm.prior.K() @ np.array([base[int(lab)] for lab in tm.prior.labels])
@@ -723,11 +723,23 @@ def _add_segmentation(summary, seg, seg_mm, method="HP"):
                                "best_offset_mm": seg["best_offset_mm"],
                                "unmoved_excess": seg.get("unmoved_excess"),
                                "excess_over_best": seg.get("excess_over_best"),
+                               "optode_gains": seg.get("optode_gains", False),
+                               "best_fit_over_noise": seg.get("best_fit_over_noise"),
+                               "boundaries_explain_data": seg.get("boundaries_explain_data",
+                                                                  True),
                                "region_model": seg.get("region_model")}
     if method == "SP":
         text = _region_model_warning(seg.get("region_model"))
         if text:
             summary["warnings"].append(text)
+    if seg.get("boundaries_explain_data") is False:
+        summary["warnings"].append(
+            f"no boundary the segmentation test tried (moved by up to "
+            f"{max(abs(d) for d in seg['offsets_mm']):.2g} mm) explains the data, even with "
+            f"each optode's gain fitted ({seg['best_fit_over_noise']:.2g} times the stated "
+            "noise at best): the segmentation (shifted, missed or false inclusions), the "
+            "optical properties or dye outside the labels may be off; none is ruled out, "
+            "and the intervals reach the values of them all")
     if seg["unmoved_ruled_out"]:
         d = seg["best_offset_mm"]
         # a warning at any fit grade: on the model with the dye's absorption the

@@ -68,3 +68,31 @@ def test_hp_alone_never_builds_the_nodal_jacobian_and_gets_the_same_values(scene
     np.testing.assert_allclose(res_lean.yield_per_mm, res_full.yield_per_mm, rtol=1e-8,
                                atol=1e-12)
     assert set(shifts["shifts"]) == set(a) and len(shifts["offsets_mm"]) == 4
+
+
+def test_a_model_for_hp_alone_skips_the_soft_prior_and_gets_the_same_values(scene):
+    """The mesh placement test's model solves HP only: HP's basis (the partial
+    volumes) without the soft prior's volume-preserving node regions and region
+    weights, and the same HP values to rounding."""
+    from FluoTomoLib.tomography.model import TissueModel
+
+    lm, optics, acq, src, det, mesh = scene
+    lean = TissueModel(mesh, lm.labels_kji, lm.spacing_mm, optics, src, det, acq.mask,
+                       nodal_jacobian=False, soft_prior=False)
+    full = _model(scene, nodal_jacobian=False)
+    assert lean.region_weights is None and full.region_weights is not None
+    assert list(lean.prior.labels) == list(full.prior.labels)
+    np.testing.assert_array_equal(lean.prior.K(), full.prior.K())
+    y = acq.y()
+    a, _ = lean.solve(y, "HP", lam=10.0)
+    b, _ = full.solve(y, "HP", lam=10.0)
+    np.testing.assert_allclose(a.yield_per_mm, b.yield_per_mm, rtol=1e-10, atol=1e-15)
+
+
+def test_every_region_keeps_a_node_in_hp_s_basis_holder():
+    from FluoTomoLib.tomography.model import _dominant_regions
+
+    # region 9 never dominates a node; it keeps the node of its largest share
+    F = np.array([[0.9, 0.1, 0.0], [0.6, 0.1, 0.3], [0.2, 0.7, 0.1], [0.5, 0.1, 0.4]])
+    out = _dominant_regions(F, [3, 7, 9])
+    assert sorted(set(out.tolist())) == [3, 7, 9] and out[3] == 9
