@@ -80,12 +80,16 @@ class OptodeCoupling:
 
 
 def _nnls(A, y):
-    """Non-negative least squares of a few columns (HP's region values)."""
+    """Non-negative least squares of a few columns (HP's region values); None where
+    it does not converge or the numbers are not finite."""
     from scipy.optimize import nnls
 
     scale = np.max(np.abs(A), axis=0)
     scale = np.where(scale > 0, scale, 1.0)
-    v, _ = nnls(A / scale, y)
+    try:
+        v, _ = nnls(A / scale, y)
+    except (RuntimeError, ValueError):
+        return None
     return v / scale
 
 
@@ -118,6 +122,8 @@ def optode_coupling(A, y, sources, detectors, sigma=None):
     if n_gains == 0 or M < MIN_PAIRS_PER_UNKNOWN * (R + n_gains):
         return None
     v0 = _nnls(A, y)
+    if v0 is None:
+        return None
     rss_plain = float(np.sum((A @ v0 - y) ** 2))
     a, b, v = np.zeros(S), np.zeros(D), v0
     for _ in range(MAX_ALTERNATIONS):
@@ -139,6 +145,8 @@ def optode_coupling(A, y, sources, detectors, sigma=None):
         change = max(np.max(np.abs(a_new - a)), np.max(np.abs(b_new - b)))
         a, b = a_new, b_new
         v = _nnls(A * np.exp(a[src] + b[det])[:, None], y)
+        if v is None:
+            return None
         if change < GAIN_TOL:
             break
     g = np.exp(a[src] + b[det])

@@ -85,3 +85,13 @@ def test_hp_keeps_its_fit_and_reports_the_fit_with_gains():
     assert c.rss < 0.25 * c.rss_plain
     assert c.rss_plain == pytest.approx(without.residual, rel=0.05)
     assert np.max(np.abs(c.values / v - 1)) < 0.02
+
+
+def test_data_the_gains_cannot_read_give_none_not_an_error():
+    from FluoTomoLib.recon.coupling import optode_coupling
+
+    A, y, src, det, *_ = _scan(4)
+    assert optode_coupling(A, np.full_like(y, -1.0), src, det) is None   # no positive data
+    bad = y.copy()
+    bad[3] = np.nan
+    assert optode_coupling(A, bad, src, det) is None
