@@ -109,8 +109,9 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
     region_matrix : (M, R) HP's first-pass region sensitivities J @ prior.K(), when
         the caller has them without J (``TissueModel.region_matrix``; J may then
         be None)
-    optodes : HP: (sources, detectors) index of each used measurement, to fit the
-        optodes' gains in every solve (``reconstruct``'s); None: no gains
+    optodes : HP: (sources, detectors) index of each used measurement: every
+        solve's result also carries the fit with the optodes' gains
+        (``reconstruct``'s ``optodes``); None: no such fit
 
     Returns (ReconResult of the last pass with ``yield_per_mm`` nodal, list of
     the largest nodal yield after each pass).

@@ -430,20 +430,21 @@ CHI2_1_95 = 3.841
 #: back to convergence, at a pass less per boundary (docs/reconstruction.md)
 OFFSET_PASSES = 1
 
-#: the segmentation test fits each source's and detector's gain beside the region
-#: values in every solve (recon.coupling) and, where the noise is stated, compares
-#: the boundaries on what the gains leave: the optodes' coupling on the mesh (3-6 % per optode at `fast`)
-#: is no change of boundary, and without the gains a moved boundary, which mimics
-#: part of it, was preferred on 6 of 24 correct segmentations of the scene family
-#: (docs/validation.md, "Optode coupling"). The reconstruction's own values are
-#: fitted without them: where each inclusion has its own patch of optodes, a
-#: patch's mean gain and its inclusion's yield are one unknown to the data.
+#: the segmentation test also fits each of its solves' data with every source's
+#: and detector's gain as an unknown (recon.coupling) and, where the noise is
+#: stated, compares the boundaries on what the gains leave: the optodes' coupling
+#: on the mesh (3-6 % per optode at `fast`) is no change of boundary, and without
+#: the gains a moved boundary, which mimics part of it, was preferred on 6 of 24
+#: correct segmentations of the scene family (docs/validation.md, "Optode
+#: coupling"). The values are fitted without them: where each inclusion has its
+#: own patch of optodes, a patch's mean gain and its inclusion's yield are one
+#: unknown to the data.
 SEGMENTATION_COUPLING = True
 #: the test rules boundaries out only where the best of them, with the optodes'
 #: gains, fits the data within this many times the stated noise ("fair"): on the
 #: family's correct segmentations those fits are 1-3x the noise; a segmentation
-#: shifted by 1 mm fitted 38x at best, and ruling out by it kept a boundary that
-#: does not hold the truth (docs/reconstruction.md)
+#: shifted by 1 mm fitted 8.2x at best, and ruling out by those fits kept a boundary
+#: whose interval missed the truth (docs/reconstruction.md)
 SEGMENTATION_FIT_MAX = 5.0
 
 
@@ -670,8 +671,8 @@ class TissueModel:
                   model=None, coupled=False):
         """HP of ``prior``'s basis on its region unknowns (:meth:`region_matrix`: no
         nodal Jacobian, on ``model``'s fields), the result with the nodal yield
-        K @ values, as reconstruct() returns it. ``coupled``: with the optodes'
-        gains as unknowns (``recon.coupling``)."""
+        K @ values, as reconstruct() returns it. ``coupled``: the result also
+        carries the same data's fit with the optodes' gains (``result.coupling``)."""
         from FluoTomoLib.recon.partial_volume import region_unknowns
         from FluoTomoLib.recon.solver import reconstruct
 
@@ -856,8 +857,9 @@ class TissueModel:
         near neighbour of its fixed point, as the segmentation test's moved
         boundaries and the mesh placement test's shifted meshes take it. What the
         models say of their own validity is not said again (the reconstruction's
-        own model has said it of the scene). ``coupled``: every solve with the
-        optodes' gains as unknowns (``recon.coupling``). Returns the ReconResult."""
+        own model has said it of the scene). ``coupled``: each solve's result also
+        carries its data's fit with the optodes' gains (``result.coupling``).
+        Returns the ReconResult."""
         from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
 
         prior = self.prior if prior is None else prior
