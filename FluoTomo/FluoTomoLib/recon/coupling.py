@@ -43,7 +43,6 @@ PRIOR_PAIRS = 1.0
 MIN_PAIRS_PER_UNKNOWN = 3.0
 
 
-
 @dataclass
 class OptodeCoupling:
     """The gains of one fit: ``factors`` (M,) exp(a_s + b_d) per used measurement,
@@ -62,21 +61,6 @@ class OptodeCoupling:
     rss_plain: float
     values: np.ndarray
     residual_over_noise: float | None = None
-
-    def summary(self):
-        """Plain dict for the JSON: each set's rms and largest gain [%], and the
-        share of the residual the gains explain."""
-        def pct(v):
-            return float(100.0 * np.expm1(v))
-
-        s, d = self.source_log, self.detector_log
-        return {"sources_rms_pct": float(100.0 * np.sqrt(np.mean(s ** 2))),
-                "detectors_rms_pct": float(100.0 * np.sqrt(np.mean(d ** 2))),
-                "largest_source_pct": pct(s[np.argmax(np.abs(s))]),
-                "largest_detector_pct": pct(d[np.argmax(np.abs(d))]),
-                "residual_explained": float(1.0 - self.rss / max(self.rss_plain, 1e-300)),
-                "residual_over_noise": self.residual_over_noise,
-                "parameters": int(self.parameters)}
 
 
 def _nnls(A, y):
@@ -133,15 +117,16 @@ def optode_coupling(A, y, sources, detectors, sigma=None):
             return None
         L = np.log(y[ok] / pred[ok])
         si, di = src[ok], det[ok]
-        a_new, b_new = a.copy(), b.copy()
+        n_s = np.bincount(si, minlength=S) + PRIOR_PAIRS
+        n_d = np.bincount(di, minlength=D) + PRIOR_PAIRS
+        b_new = b
         for _ in range(10):
-            a_new = np.bincount(si, L - b_new[di], S) / (np.bincount(si, None, S) + PRIOR_PAIRS)
-            b_new = np.bincount(di, L - a_new[si], D) / (np.bincount(di, None, D) + PRIOR_PAIRS)
-        # zero mean over the optodes that have data: the scale stays with v
+            a_new = np.bincount(si, L - b_new[di], S) / n_s
+            b_new = np.bincount(di, L - a_new[si], D) / n_d
+        # zero mean over the optodes that have data (the others stay 0): the
+        # scale stays with v
         a_new[seen_s] -= a_new[seen_s].mean()
         b_new[seen_d] -= b_new[seen_d].mean()
-        a_new[~seen_s] = 0.0
-        b_new[~seen_d] = 0.0
         change = max(np.max(np.abs(a_new - a)), np.max(np.abs(b_new - b)))
         a, b = a_new, b_new
         v = _nnls(A * np.exp(a[src] + b[det])[:, None], y)
@@ -150,11 +135,12 @@ def optode_coupling(A, y, sources, detectors, sigma=None):
         if change < GAIN_TOL:
             break
     g = np.exp(a[src] + b[det])
-    rss = float(np.sum((g * (A @ v) - y) ** 2))
+    resid = g * (A @ v) - y
+    rss = float(resid @ resid)
     if not rss < rss_plain:
         return None
     ratio = None
     if sigma is not None:
-        chi2 = float(np.sum(((g * (A @ v) - y) / np.broadcast_to(sigma, y.shape)) ** 2))
+        chi2 = float(np.sum((resid / np.broadcast_to(sigma, y.shape)) ** 2))
         ratio = float(np.sqrt(chi2 / max(M - R - n_gains, 1)))
     return OptodeCoupling(g, a, b, n_gains, rss, rss_plain, v, ratio)
