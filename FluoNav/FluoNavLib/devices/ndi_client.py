@@ -16,7 +16,10 @@ A device that misbehaves is reported as such, not as numbers (issue #34):
   list), and bytes nobody asked for (a second reply to one request, found
   before the next request or right behind a reply) are counted as
   ``duplicate_replies``; the stream is drained until quiet (resynchronised)
-  and a reply that may be stale is not used. :data:`DUPLICATE_LIMIT` of them
+  and a reply that may be stale is not used; the frames of the TX replies read
+  and not used are remembered, so a late copy of one of them, taken for the answer
+  to a later request, is not delivered (``stale_replies``: a drain that ends before
+  the copy comes cannot tell). :data:`DUPLICATE_LIMIT` of them
   among :data:`DUPLICATE_WINDOW` requests refuse the device
   (``FluoDeviceError``): its replies cannot be matched to its requests;
 - a frame counter that jumps further than the device could have counted in
@@ -92,6 +95,7 @@ class TrackingStats:
     duplicates: int = 0           # polls that returned an already delivered frame
     duplicate_replies: int = 0    # replies nobody asked for (a second reply to a request)
     late_replies: int = 0         # replies that came after their request had timed out
+    stale_replies: int = 0        # replies with a frame the line already carried unused (a copy)
     counter_jumps: int = 0        # implausible steps of the device's frame counter
     segments: list = field(default_factory=list)   # (first, last) frame per tracking session
     open_segment: tuple = None    # (first, last) of the session still running
@@ -122,6 +126,7 @@ class NDIClient:
         self._expect_stray = False    # a serial break: the device's own RESET reply may come
         self._recent = collections.deque(maxlen=DUPLICATE_WINDOW)
         self._last_jump = None
+        self._line_frame = None       # the highest frame of a TX reply read and not used
         self._logged = {}             # fault kind -> (last log time, events not logged)
 
     # -- transport -------------------------------------------------------------
@@ -163,19 +168,36 @@ class NDIClient:
         """Read and drop bytes until the line is quiet for RESYNC_QUIET_S; the number of
         bytes dropped. A device that keeps sending for RESYNC_MAX_S is refused."""
         dropped = 0
+        data = b""
         t_end = time.monotonic() + RESYNC_MAX_S
         quiet_from = time.monotonic()
         while time.monotonic() - quiet_from < RESYNC_QUIET_S:
             n = self.serial.in_waiting
             if n:
-                dropped += len(self.serial.read(min(n, MAX_REPLY_BYTES)))
+                chunk = self.serial.read(min(n, MAX_REPLY_BYTES))
+                dropped += len(chunk)
+                data = (data + chunk)[-MAX_REPLY_BYTES:]
                 quiet_from = time.monotonic()
                 if time.monotonic() > t_end:
                     raise FluoDeviceError(f"tracker on {self.port_name} keeps sending without "
                                           f"a request ({dropped} bytes in {RESYNC_MAX_S:g} s)")
             else:
                 time.sleep(0.002)
+        self._unused(data)
         return dropped
+
+    def _unused(self, data):
+        """Remember the highest frame among the TX replies in ``data``, bytes read from
+        the line and not used: a copy of one of them may still come, late, and be taken
+        for the answer to a later request (``poll`` does not deliver it)."""
+        for part in bytes(data).split(b"\r"):
+            try:
+                reply = parse_tx(check_reply(part + b"\r"))
+            except NDIProtocolError:
+                continue        # a set-up reply, a fragment or garbage: no frame to remember
+            frames = [p.frame for p in reply.tools.values() if p.frame is not None]
+            if frames and (self._line_frame is None or max(frames) > self._line_frame):
+                self._line_frame = max(frames)
 
     def _unrequested(self, name, where):
         """Bytes nobody asked for were found ``where`` (before / right behind the reply to
@@ -209,7 +231,10 @@ class NDIClient:
         else:
             self._recent.append(False)
         self._expect_stray = False
-        self.serial.reset_input_buffer()
+        late = self.serial.in_waiting
+        if late:
+            # what came since is dropped, but seen: a copy of it may follow
+            self._unused(self.serial.read(min(late, MAX_REPLY_BYTES)))
         self._sent_at = time.monotonic()
         self.serial.write(command(name, *args))
         self._answered = False
@@ -225,6 +250,7 @@ class NDIClient:
         if self.serial.in_waiting:
             # more right behind the reply: this one may be the stale answer to an earlier
             # request; not used, and the next request starts on a quiet line
+            self._unused(raw)
             self._unrequested(name, "right behind the reply to")
             raise NDIProtocolError(f"{name}: a second reply right behind the first "
                                    "(resynchronised)", "duplicate", raw)
@@ -304,6 +330,7 @@ class NDIClient:
         if self._segment_first is not None and self._last_frame is not None:
             self.stats.segments.append((self._segment_first, self._last_frame))
         self._segment_first = self._last_frame = self._last_frame_t = None
+        self._line_frame = None
         self.stats.open_segment = None
 
     # -- tracking --------------------------------------------------------------
@@ -329,6 +356,16 @@ class NDIClient:
         now = time.monotonic()
         if self._last_frame is not None and f == self._last_frame:
             self.stats.duplicates += 1
+            return None
+        if self._line_frame is not None and f <= self._line_frame and (
+                self._last_frame is None or f > self._last_frame):
+            # the line carried this frame, or a later one, in a reply not used: this is a
+            # late copy of it (a device that answers twice), the answer to an earlier
+            # request; a frame this device makes again is as old (counted missing if
+            # never delivered)
+            self.stats.stale_replies += 1
+            self._note("stale", "TX: frame %d came before, in a reply not used (not "
+                       "delivered)", f)
             return None
         if self._last_frame is not None and not self._plausible_step(f, now):
             # a counter fault: a new segment, no missing frames counted across it

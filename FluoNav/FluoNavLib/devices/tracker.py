@@ -212,7 +212,8 @@ class NDITracker(TrackerSession):
                 "timeouts": stats.timeouts, "malformed": stats.malformed,
                 "device_errors": stats.device_errors, "recovered": stats.recovered,
                 "duplicate_replies": stats.duplicate_replies,
-                "late_replies": stats.late_replies, "counter_jumps": stats.counter_jumps,
+                "late_replies": stats.late_replies, "stale_replies": stats.stale_replies,
+                "counter_jumps": stats.counter_jumps,
                 "lost_unreported": stats.lost_unreported(), "segments": stats.segments,
                 "simulator": self.sim.counters if self.sim is not None else None}
 
