@@ -212,6 +212,40 @@ def test_the_segmentation_part_reaches_the_segmentation_as_given_when_a_moved_on
         assert "segmentation_values_per_mm" not in r3       # no positive value to scale
 
 
+def test_a_method_that_fits_no_better_on_the_chosen_boundary_keeps_the_segmentation_s_values():
+    """HP fits better on the chosen boundary: both re-solves are taken (SP's own damped
+    fit, worse there, does not decide), each one's time the sum of both solves, its
+    values as segmented kept. HP no better there: both declined, with HP's residuals.
+    Without HP, SP's own fit decides."""
+    from types import SimpleNamespace
+
+    from FluoTomoLib.tomography.reconstruct import _take_quoted
+
+    def res(residual, value, seconds=1.0):
+        return SimpleNamespace(residual=residual, seconds=seconds,
+                               region_confidence={7: {"mean_yield_per_mm": value}})
+
+    solved = {"HP": (res(4.0, 0.006), []), "SP": (res(2.0, 0.005), [])}
+    on_quoted = {"HP": (res(1.0, 0.002), [0.1], "moved"), "SP": (res(2.5, 0.003), [], "moved")}
+    as_given, declined = _take_quoted(on_quoted, solved)
+    assert list(on_quoted) == ["HP", "SP"] and declined == {}
+    assert as_given == {"HP": {7: 0.006}, "SP": {7: 0.005}}
+    assert solved["HP"][0].region_confidence[7]["mean_yield_per_mm"] == 0.002
+    assert solved["HP"][0].seconds == 2.0 and solved["HP"][1] == [0.1]
+    assert solved["SP"][0].residual == 2.5
+
+    solved = {"HP": (res(4.0, 0.006), []), "SP": (res(2.0, 0.005), [])}
+    on_quoted = {"HP": (res(5.0, 0.002), [], "moved"), "SP": (res(1.5, 0.003), [], "moved")}
+    as_given, declined = _take_quoted(on_quoted, solved)
+    assert on_quoted == {} and as_given == {}
+    assert declined == {"HP": (5.0, 4.0, "HP"), "SP": (5.0, 4.0, "HP")}
+    assert solved["SP"][0].residual == 2.0
+
+    solved = {"SP": (res(2.0, 0.005), [])}
+    on_quoted = {"SP": (res(2.5, 0.003), [], "moved")}
+    assert _take_quoted(on_quoted, solved) == ({}, {"SP": (2.5, 2.0, "SP")})
+
+
 def test_the_outer_value_is_the_next_offset_out_or_as_far_again_as_the_step_in():
     from FluoTomoLib.tomography.reconstruct import _outer_value
 
