@@ -212,38 +212,49 @@ def test_the_segmentation_part_reaches_the_segmentation_as_given_when_a_moved_on
         assert "segmentation_values_per_mm" not in r3       # no positive value to scale
 
 
-def test_a_method_that_fits_no_better_on_the_chosen_boundary_keeps_the_segmentation_s_values():
-    """HP fits better on the chosen boundary: both re-solves are taken (SP's own damped
-    fit, worse there, does not decide), each one's time the sum of both solves, its
-    values as segmented kept. HP no better there: both declined, with HP's residuals.
-    Without HP, SP's own fit decides."""
+def _fake_result(residual, value, seconds=1.0):
     from types import SimpleNamespace
 
-    from FluoTomoLib.tomography.reconstruct import _take_quoted
+    return SimpleNamespace(residual=residual, seconds=seconds,
+                           region_confidence={7: {"mean_yield_per_mm": value}})
 
-    def res(residual, value, seconds=1.0):
-        return SimpleNamespace(residual=residual, seconds=seconds,
-                               region_confidence={7: {"mean_yield_per_mm": value}})
 
-    solved = {"HP": (res(4.0, 0.006), []), "SP": (res(2.0, 0.005), [])}
-    on_quoted = {"HP": (res(1.0, 0.002), [0.1], "moved"), "SP": (res(2.5, 0.003), [], "moved")}
-    as_given, declined = _take_quoted(on_quoted, solved)
-    assert list(on_quoted) == ["HP", "SP"] and declined == {}
+def test_a_method_that_fits_no_better_on_the_chosen_boundary_keeps_the_segmentation_s_values():
+    """HP is solved first and judges: fitting better on the chosen boundary, both
+    re-solves are taken (SP's own damped fit, worse there, does not decide). HP no
+    better there: both declined, with HP's residuals, and SP is not solved at all.
+    Without HP, SP's own fit decides."""
+    from FluoTomoLib.tomography.reconstruct import _judged_solves, _take_quoted
+
+    def solver(results):
+        calls = []
+
+        def solve_one(method, i, n):
+            calls.append((method, i, n))
+            return results[method]
+        return solve_one, calls
+
+    solved = {"HP": (_fake_result(4.0, 0.006), []), "SP": (_fake_result(2.0, 0.005), [])}
+    solve_one, calls = solver({"HP": (_fake_result(1.0, 0.002), [0.1]),
+                               "SP": (_fake_result(2.5, 0.003), [])})
+    done, declined = _judged_solves(["SP", "HP"], solved, solve_one)
+    assert calls == [("HP", 0, 2), ("SP", 1, 2)] and declined == {}
+    as_given = _take_quoted({m: (*done[m], "moved") for m in done}, solved)
     assert as_given == {"HP": {7: 0.006}, "SP": {7: 0.005}}
     assert solved["HP"][0].region_confidence[7]["mean_yield_per_mm"] == 0.002
     assert solved["HP"][0].seconds == 2.0 and solved["HP"][1] == [0.1]
     assert solved["SP"][0].residual == 2.5
 
-    solved = {"HP": (res(4.0, 0.006), []), "SP": (res(2.0, 0.005), [])}
-    on_quoted = {"HP": (res(5.0, 0.002), [], "moved"), "SP": (res(1.5, 0.003), [], "moved")}
-    as_given, declined = _take_quoted(on_quoted, solved)
-    assert on_quoted == {} and as_given == {}
+    solved = {"HP": (_fake_result(4.0, 0.006), []), "SP": (_fake_result(2.0, 0.005), [])}
+    solve_one, calls = solver({"HP": (_fake_result(5.0, 0.002), []),
+                               "SP": (_fake_result(1.5, 0.003), [])})
+    done, declined = _judged_solves(["SP", "HP"], solved, solve_one)
+    assert calls == [("HP", 0, 2)] and done == {}
     assert declined == {"HP": (5.0, 4.0, "HP"), "SP": (5.0, 4.0, "HP")}
-    assert solved["SP"][0].residual == 2.0
 
-    solved = {"SP": (res(2.0, 0.005), [])}
-    on_quoted = {"SP": (res(2.5, 0.003), [], "moved")}
-    assert _take_quoted(on_quoted, solved) == ({}, {"SP": (2.5, 2.0, "SP")})
+    solve_one, calls = solver({"SP": (_fake_result(2.5, 0.003), [])})
+    assert _judged_solves(["SP"], {"SP": (_fake_result(2.0, 0.005), [])}, solve_one) == (
+        {}, {"SP": (2.5, 2.0, "SP")})
 
 
 def test_the_outer_value_is_the_next_offset_out_or_as_far_again_as_the_step_in():
