@@ -29,6 +29,7 @@ from fluoguide.progress import check_cancel, report, scaled
 
 from FluoTomoLib.recon.solver import SP_CORRECTION_MAX
 from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
+from FluoTomoLib.tomography.model import move_text
 
 #: Jacobian-sized arrays the solver holds at once (J and R^-1 J^T for NP / SP)
 _JACOBIAN_COPIES = 2
@@ -323,8 +324,8 @@ def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "
         _add_mesh_placements(out[method]["summary"], placements)
         if method in declined:
             out[method]["summary"]["notes"].append(
-                f"the segmentation test chose the regions moved by "
-                f"{shifts['quoted_offset_mm']:+.2g} mm, but {declined[method][2]} fits the "
+                f"the segmentation test chose the regions "
+                f"{move_text(_quoted_move(shifts))}, but {declined[method][2]} fits the "
                 f"data no better there (residual {declined[method][0]:.3g} against "
                 f"{declined[method][1]:.3g} as segmented): the values are the segmentation's "
                 "own")
@@ -541,11 +542,11 @@ def _solve_on_quoted_boundary(tm, y, solved, methods, lam, seg_mm, shifts, self_
     quoted"). Returns ({method: (result, passes, the moved model)}, {method declined:
     (residual there, residual as segmented, the method whose residuals they are)});
     both empty where nothing was quoted."""
-    q = None if not shifts else shifts.get("quoted_offset_mm")
+    q = _quoted_move(shifts)
     again = [m for m in methods if m in ("HP", "SP") and m in solved]
     if q is None or not again:
         return {}, {}
-    report(progress, 0.96, f"the regions moved by {q:+.2g} mm: their priors")
+    report(progress, 0.96, f"the regions {move_text(q)}: their priors")
     moved = tm.with_boundaries_moved(q, seg_mm)
 
     def solve_one(method, i, n):
@@ -555,6 +556,16 @@ def _solve_on_quoted_boundary(tm, y, solved, methods, lam, seg_mm, shifts, self_
 
     done, declined = _judged_solves(again, solved, solve_one)
     return {m: (res, passes, moved) for m, (res, passes) in done.items()}, declined
+
+
+def _quoted_move(shifts):
+    """The move whose values are quoted (``TissueModel.segmentation_shifts``): an
+    offset [mm], a rigid move {label: (di, dj, dk) mm}, or None."""
+    if not shifts:
+        return None
+    if shifts.get("quoted_translation") is not None:
+        return shifts["translations"][shifts["quoted_translation"]]["moves_mm"]
+    return shifts.get("quoted_offset_mm")
 
 
 def _judged_solves(methods, solved, solve_one):
@@ -790,25 +801,28 @@ def _add_prior_volume(summary, volumes, method):
 
 def _add_segmentation(summary, seg, seg_mm, method="HP", as_segmented=None):
     """The segmentation's part of each region's 95 % interval: it reaches the
-    values the region takes with its boundaries moved by the offsets the data do
-    not rule out (``TissueModel.segmentation_shifts``: HP's relative changes,
-    carried over to every method); a warning when the segmentation as given fits
-    worse than a moved one, and for SP (:func:`_region_model_warning`) when the
-    regions as constants do not explain the data. ``as_segmented`` ({label: 1/mm}, not
-    None): this method's values were solved on the boundary the test chose
-    (``quoted_offset_mm``, :func:`_solve_on_quoted_boundary`) and these are its values
-    on the segmentation as given; the interval then reaches them
-    (``as_segmented_per_mm``) and half-way to the value at the next offset out (the
-    boundary is known to a step: opening an eroded inclusion by the step does not
-    give back its corners)."""
+    values the region takes with its boundaries moved by the offsets, and its
+    regions moved by the rigid moves, that the data do not rule out
+    (``TissueModel.segmentation_shifts``: HP's relative changes, carried over to
+    every method); a warning when the segmentation as given fits worse than a moved
+    one, and for SP (:func:`_region_model_warning`) when the regions as constants do
+    not explain the data. ``as_segmented`` ({label: 1/mm}, not None): this method's
+    values were solved on the boundary the test chose (``quoted_offset_mm`` or
+    ``quoted_translation``, :func:`_solve_on_quoted_boundary`) and these are its
+    values on the segmentation as given; the interval then reaches them
+    (``as_segmented_per_mm``) and half-way to the value at the next offset out, or
+    at the rigid move twice (the boundary is known to a step: opening an eroded
+    inclusion by the step does not give back its corners)."""
     summary["segmentation_mm"] = seg_mm
     if not seg:
         return
-    q = seg.get("quoted_offset_mm") if as_segmented is not None else None
-    iq = None if q is None else seg["offsets_mm"].index(q)
+    q = _quoted_move(seg) if as_segmented is not None else None
+    quoted = _quoted_shifts(seg, q)
     kept = [d for d, k in zip(seg["offsets_mm"], seg["kept"]) if k]
+    trans = seg.get("translations") or []
     summary["segmentation"] = {"offsets_mm": seg["offsets_mm"], "not_ruled_out_mm": kept,
                                "best_offset_mm": seg["best_offset_mm"],
+                               "best_move": seg.get("best_move", seg["best_offset_mm"]),
                                "unmoved_excess": seg.get("unmoved_excess"),
                                "excess_over_best": seg.get("excess_over_best"),
                                "optode_gains": seg.get("optode_gains", False),
@@ -816,35 +830,15 @@ def _add_segmentation(summary, seg, seg_mm, method="HP", as_segmented=None):
                                "boundaries_explain_data": seg.get("boundaries_explain_data",
                                                                   True),
                                "region_model": seg.get("region_model"),
-                               "quoted_offset_mm": q}
-    if method == "SP":
-        text = _region_model_warning(seg.get("region_model"))
-        if text:
-            summary["warnings"].append(text)
-    if seg.get("boundaries_explain_data") is False:
-        summary["warnings"].append(
-            f"no boundary the segmentation test tried (moved by up to "
-            f"{max(abs(d) for d in seg['offsets_mm']):.2g} mm) explains the data, even with "
-            f"each optode's gain fitted ({seg['best_fit_over_noise']:.2g} times the stated "
-            "noise at best): the segmentation (shifted, missed or false inclusions), the "
-            "optical properties or dye outside the labels may be off; none is ruled out, "
-            "and the intervals reach the values of them all")
-    if seg["unmoved_ruled_out"]:
-        d = seg["best_offset_mm"]
-        # a warning at any fit grade: on the model with the dye's absorption the
-        # test no longer rules out correct segmentations at fair fits (docs/
-        # reconstruction.md, "The segmentation test runs on the model with the dye's
-        # absorption")
-        how = f"{'grown' if d > 0 else 'shrunk'} by {abs(d):.2g} mm"
-        summary["warnings"].append(
-            f"the prior's regions fit the data better {how} than as segmented: the "
-            "segmentation is likely off (or the model is: see the fit); " + (
-                f"the values are those of the regions {how} (as_segmented_per_mm: the "
-                "segmentation's own), and " if q is not None else "") +
-            "the intervals reach the values of the segmentations the data allow "
-            "(segmentation_values_per_mm)")
+                               "best_at_edge": seg.get("best_at_edge", False),
+                               "quoted_offset_mm": None if isinstance(q, dict) else q,
+                               "rigid_moves": [{k: t[k] for k in ("moves_mm", "kept",
+                                                                  "excess_over_best")}
+                                               for t in trans],
+                               "quoted_move_mm": q if isinstance(q, dict) else None}
+    _segmentation_warnings(summary, seg, method, q)
     # HP's values on the boundary this method's value stands on
-    ref = {lab: b + (0.0 if iq is None else seg["shifts"][lab][iq])
+    ref = {lab: b + (0.0 if quoted is None else quoted[0][lab])
            for lab, b in seg["base"].items()}
     if method == "SP":
         _reach_region_fit(summary, ref)
@@ -861,20 +855,78 @@ def _add_segmentation(summary, seg, seg_mm, method="HP", as_segmented=None):
         # millimetre fit better, and its value was 2.4x (docs/validation.md,
         # "Estimating the boundary with the yield")
         scale = v / at if at > 0 else 1.0
-        vals = [v + (base + dv - at) * scale for dv in seg["shifts"][int(lab)]]
+
+        def value(dv):
+            return v + (base + dv - at) * scale
+
+        vals = [value(dv) for dv in seg["shifts"][int(lab)]]
         r["segmentation_values_per_mm"] = vals
-        moved = [(base + dv - at) * scale
-                 for dv, k in zip(seg["shifts"][int(lab)], seg["kept"]) if k]
+        moved = [value(dv) - v for dv, k in zip(seg["shifts"][int(lab)], seg["kept"]) if k]
+        if trans:
+            r["rigid_move_values_per_mm"] = [value(t["shifts"][int(lab)]) for t in trans]
+            moved += [value(t["shifts"][int(lab)]) - v for t in trans if t["kept"]]
         if q is not None:
-            given = as_segmented.get(int(lab), v + (base - at) * scale)
+            given = as_segmented.get(int(lab), value(0.0))
             r["as_segmented_per_mm"] = given
-            moved.append(given - v)
-            moved.append(0.5 * (_outer_value(seg["offsets_mm"], iq, vals, given) - v))
+            outer = (_outer_value(seg["offsets_mm"], seg["offsets_mm"].index(q), vals, given)
+                     if quoted[1] is None else value(quoted[1][int(lab)]))
+            moved += [given - v, 0.5 * (outer - v)]
         lo, hi = min([0.0] + moved), max([0.0] + moved)
         r["interval_parts"]["segmentation_shift_per_mm"] = [lo, hi]
         # added to the other parts (as they are to each other): a boundary off moves
         # the value whatever the noise did
         r["ci95_per_mm"] = _widen(r.get("ci95_per_mm"), -lo, hi)
+
+
+def _quoted_shifts(seg, q):
+    """HP's change at the quoted move ``q`` ({label: 1/mm}) and, for a rigid move, at
+    the same move twice ({label: 1/mm}; None for an offset); None where nothing is
+    quoted."""
+    if q is None:
+        return None
+    if not isinstance(q, dict):
+        iq = seg["offsets_mm"].index(q)
+        return {lab: sh[iq] for lab, sh in seg["shifts"].items()}, None
+    trans = seg["translations"]
+    it = seg["quoted_translation"]
+    outer = [t for t in trans if t["outer_of"] == it]
+    return trans[it]["shifts"], outer[0]["shifts"]
+
+
+def _segmentation_warnings(summary, seg, method, q):
+    """The segmentation test's warnings: SP's regions-as-constants model
+    (:func:`_region_model_warning`), no boundary tried explaining the data, and the
+    segmentation as given ruled out (``q``: the move whose values are quoted)."""
+    if method == "SP":
+        text = _region_model_warning(seg.get("region_model"))
+        if text:
+            summary["warnings"].append(text)
+    moves = ("moved by up to "
+             f"{max(abs(d) for d in seg['offsets_mm']):.2g} mm"
+             + (" or shifted by a step along each axis" if seg.get("translations") else ""))
+    if seg.get("boundaries_explain_data") is False:
+        summary["warnings"].append(
+            f"no boundary the segmentation test tried ({moves}) explains the data, even "
+            f"with each optode's gain fitted ({seg['best_fit_over_noise']:.2g} times the "
+            "stated noise at best): the segmentation (shifted, missed or false "
+            "inclusions), the optical properties or dye outside the labels may be off; "
+            "none is ruled out, and the intervals reach the values of them all")
+    if seg["unmoved_ruled_out"]:
+        # a warning at any fit grade: on the model with the dye's absorption the
+        # test no longer rules out correct segmentations at fair fits (docs/
+        # reconstruction.md, "The segmentation test runs on the model with the dye's
+        # absorption")
+        how = move_text(seg.get("best_move", seg["best_offset_mm"]))
+        summary["warnings"].append(
+            f"the prior's regions fit the data better {how} than as segmented: the "
+            "segmentation is likely off (or the model is: see the fit); " + (
+                f"the values are those of the regions {how} (as_segmented_per_mm: the "
+                "segmentation's own), and " if q is not None else "") +
+            ("it is the last of those tried, so the data's best lies beyond them: none "
+             "is ruled out, and the intervals reach the values of them all "
+             if seg.get("best_at_edge") else
+             "the intervals reach the values of the segmentations the data allow ") +
+            "(segmentation_values_per_mm, rigid_move_values_per_mm)")
 
 
 def _outer_value(offsets, iq, values, given):
@@ -1047,9 +1099,12 @@ def _result(lm, optics, acquisition, tm, mesh, res, passes, method, lam, target,
                          "field at voxel centres; for HP lower than the region's value where "
                          "the label is small: quote yield_per_mm); "
                          "segmentation_values_per_mm: the value with the label's boundaries "
-                         "moved by each of segmentation.offsets_mm; as_segmented_per_mm: "
+                         "moved by each of segmentation.offsets_mm; "
+                         "rigid_move_values_per_mm: with the regions moved by each of "
+                         "segmentation.rigid_moves; as_segmented_per_mm: "
                          "where the values stand on the boundary the data chose "
-                         "(segmentation.quoted_offset_mm), the value as segmented"),
+                         "(segmentation.quoted_offset_mm or quoted_move_mm), the value as "
+                         "segmented"),
         "peak_yield_per_mm": float(vol.max()),
         "peak_ras_mm": lm.to_ras(peak_local)[0].tolist(),
         "peak_label": int(lm.labels_kji[k, j, i]),

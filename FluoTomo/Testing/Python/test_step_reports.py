@@ -158,7 +158,8 @@ def test_the_moved_segmentation_s_solves_report_one_by_one(coarse_model):
     heads = [m.split(":")[0] for m in messages]
     # the unmoved solve, then each offset's prior and solve, in order
     order = ["as segmented"] + [f"moved by {d:+.2g} mm ({k} of 4)"
-                                for k, d in enumerate(shifts["offsets_mm"], start=1)]
+                                for k, d in enumerate(shifts["offsets_mm"], start=1)] + [
+        "segmentation test done"]
     assert [h for i, h in enumerate(heads) if i == 0 or h != heads[i - 1]] == order, heads
     assert any(m.endswith("its prior") for m in messages)
     assert any("HP iteration 1:" in m for m in messages)
@@ -167,6 +168,33 @@ def test_the_moved_segmentation_s_solves_report_one_by_one(coarse_model):
     assert fractions == sorted(fractions) and fractions[-1] <= 1.0
     print(f"segmentation shifts: {t1 - t0:.1f} s, {len(items)} reports, longest gap "
           f"{_longest_gap(t0, items, t1):.2f} s")
+
+
+def test_the_rigid_moves_follow_the_offsets_in_order_where_the_noise_is_stated(
+        coarse_model, monkeypatch):
+    """With a stated noise (and here any fit: TRANSLATION_FIT 0) the segmentation test
+    also moves each region rigidly, a step along each axis (then as combined and
+    twice, where those apply), reporting each move's prior and solve after the
+    offsets', the bar never going back."""
+    from FluoTomoLib.tomography import model
+
+    monkeypatch.setattr(model, "TRANSLATION_FIT", 0.0)
+    tm, y, _ = coarse_model
+    items, progress = _recorder()
+    with limited_threads(1):
+        shifts = tm.segmentation_shifts(y, "HP", 10.0, 0.5, noise_rel=0.01, progress=progress)
+    moves = shifts["translations"]
+    labs = [int(v) for v in tm.region_labels if int(v) != int(tm.background)]
+    assert len(moves) >= 6 * len(labs) and all(t["excess_over_best"] >= 0 for t in moves)
+    assert [next(iter(t["moves_mm"])) for t in moves[:6]] == [labs[0]] * 6
+    messages = [m for _, _, m in items]
+    rigid = [i for i, m in enumerate(messages) if m.startswith("the regions moved rigidly")]
+    last_offset = max(i for i, m in enumerate(messages) if m.startswith("moved by"))
+    assert rigid and min(rigid) > last_offset
+    assert any(m.startswith("the regions moved rigidly: with label "
+                            f"{labs[0]} moved 0.5 mm along +i (1 of ") for m in messages)
+    fractions = [f for _, f, _ in items]
+    assert fractions == sorted(fractions) and fractions[-1] <= 1.0
 
 
 def test_the_moved_segmentation_s_solves_stop_at_a_cancel(coarse_model):
