@@ -914,25 +914,28 @@ class TissueModel:
             return span[0] + (span[1] - span[0]) * i / n
 
         def run(i, moves, outer_of=None):
+            """The move solved and compared: its entry in ``out``, or None."""
             check_cancel(cancel)
             labels = translate_regions(fine, sp, moves, self.background)
             if labels is None:
-                return
+                return None
             what = f"the regions moved rigidly: {move_text(moves)} ({i + 1} of {n})"
             report(progress, at(i), f"{what}: its prior")
             try:
                 prior = self.prior_for(labels, sp, org, basis_only=method == "HP")
             except FluoInputError:
-                return                       # a region moved out of the mesh
+                return None                  # a region moved out of the mesh
             result = solve((at(i), at(i + 1)), what, *prior)
             c = result[0].coupling
-            if c is not None and c.residual_over_noise is not None:
+            if c is None or c.residual_over_noise is None:
                 # compared on the fits with the optodes' gains, as every offset is: a
                 # move whose gains cannot be fitted (recon.coupling: too few positive
                 # predictions, or gains that explain nothing) is not compared (kept,
                 # it took the comparison off the gains' fits for every move, and
                 # scene 109's boundary grown by 1 mm was no longer quoted: +5374 %)
-                out.append({"moves_mm": moves, "outer_of": outer_of, "result": result})
+                return None
+            out.append({"moves_mm": moves, "outer_of": outer_of, "result": result})
+            return out[-1]
 
         def rss(res):
             return res.coupling.rss if res.coupling is not None else np.inf
@@ -965,10 +968,10 @@ class TissueModel:
                 raw = np.sign(current.get(lab, (0.0,) * 3)) * delta_mm + np.asarray(v, float)
                 cand = dict(current)
                 cand[lab] = tuple(float(c) for c in raw * (delta_mm / np.linalg.norm(raw)))
-                run(len(singles) + tries, cand)
+                tried = run(len(singles) + tries, cand)
                 tries += 1
-                if len(out) and out[-1]["moves_mm"] is cand and rss(out[-1]["result"][0]) < now:
-                    current, now = cand, rss(out[-1]["result"][0])
+                if tried is not None and rss(tried["result"][0]) < now:
+                    current, now = cand, rss(tried["result"][0])
         if not out:
             return out
         ib = int(np.argmin([rss(t["result"][0]) for t in out]))
@@ -1145,10 +1148,12 @@ def _shift_summary(res0, base, moved, offsets, n_data, translated=()):
         return bool(var > 0 and (r - best) / var <= CHI2_1_95)
 
     kept, tkept = [within(r) for r in rss], [within(r) for r in trss]
+    last = max(abs(d) for d in offsets)
     best_offset = 0.0 if min([rss0] + rss) == rss0 else offsets[int(np.argmin(rss))]
     best_move = best_offset
-    if trss and min(trss) == best and best < min([rss0] + rss):
-        best_move = translated[int(np.argmin(trss))]["moves_mm"]
+    it = int(np.argmin(trss)) if trss else None         # the best rigid move
+    if it is not None and trss[it] == best and best < min([rss0] + rss):
+        best_move = translated[it]["moves_mm"]
     explained = best_fit is None or best_fit <= SEGMENTATION_FIT_MAX
     # the best move at the edge of those tried (the largest offset, or a rigid move
     # twice): the data's own best lies beyond, and the moves tried do not bracket it.
@@ -1156,9 +1161,9 @@ def _shift_summary(res0, base, moved, offsets, n_data, translated=()):
     # plain fits the demo's correctly segmented tubes chose an edge offset by the
     # optodes' coupling, and their intervals held the truth as they were
     if isinstance(best_move, dict):
-        edge = translated[int(np.argmin(trss))]["outer_of"] is not None
+        edge = translated[it]["outer_of"] is not None
     else:
-        edge = best_offset != 0.0 and abs(best_offset) == max(abs(d) for d in offsets)
+        edge = best_offset != 0.0 and abs(best_offset) == last
     edge = coupled and edge
     if not explained or (edge and var > 0 and (rss0 - best) / var > CHI2_1_95):
         # no boundary of the family tried explains the data even with the optodes'
@@ -1186,11 +1191,10 @@ def _shift_summary(res0, base, moved, offsets, n_data, translated=()):
     by_far = coupled and ruled_out and excess >= SEGMENTATION_QUOTE_EXCESS
     quoted = quoted_t = None
     if isinstance(best_move, dict):
-        it = int(np.argmin(trss))
         outer = [j for j, t in enumerate(translated) if t["outer_of"] == it]
         if by_far and outer and trss[outer[0]] > trss[it]:
             quoted_t = it
-    elif best_move != 0.0 and abs(best_move) < max(abs(d) for d in offsets) and by_far:
+    elif best_move != 0.0 and abs(best_move) < last and by_far:
         quoted = best_move
     return {"offsets_mm": offsets, "region_model": region_model, "unmoved_excess": excess,
             "optode_gains": coupled, "best_fit_over_noise": best_fit,

@@ -534,9 +534,10 @@ def _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption, d
 def _solve_on_quoted_boundary(tm, y, solved, methods, lam, seg_mm, shifts, self_absorption,
                               data_model, noise_rel, progress, cancel):
     """HP and SP (the methods with a prior) solved again, as they were, on the
-    segmentation with its boundaries moved to the offset the segmentation test chose
-    (``shifts["quoted_offset_mm"]``, progress 0.96-0.97): the boundary estimated with
-    the yield, where HP's fit confirms it (:func:`_judged_solves`). On the family 1 mm
+    segmentation with its boundaries moved to the offset, or its regions by the rigid
+    move, the segmentation test chose (:func:`_quoted_move`, progress 0.96-0.97): the
+    boundary estimated with the yield, where HP's fit confirms it
+    (:func:`_judged_solves`). On the family 1 mm
     off, quoting the chosen boundary's values took HP's median |error| from 66 % to
     33 % and SP's from 64 % to 20 % (docs/validation.md, "The boundary the data choose,
     quoted"). Returns ({method: (result, passes, the moved model)}, {method declined:

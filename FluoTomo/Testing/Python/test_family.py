@@ -123,6 +123,23 @@ def test_a_correct_segmentation_is_not_ruled_out_by_the_dye_s_own_absorption():
         assert not any("fit the data better" in t for t in s["notes"] + s["warnings"])
 
 
+def _one_mm_off(seed, kind):
+    """Family scene ``seed`` with its segmentation 1 mm off (``kind``: eroded,
+    dilated or shifted), simulated and reconstructed by HP and SP with the
+    segmentation's accuracy stated (1 mm). Returns (scene, {method: result})."""
+    from FluoTomoLib.tomography import optics_from_dict
+    from FluoTomoLib.tomography.reconstruct import reconstruct_labelmap_methods
+    from FluoTomoLib.validation.family import simulate
+
+    scene = make_scene(seed, segmentation_error_mm=1.0)
+    assert scene.segmentation.startswith(kind)
+    acq, _ = simulate(scene)
+    return scene, reconstruct_labelmap_methods(scene.labelmap(recon=True),
+                                               optics_from_dict(scene.optics), acq,
+                                               methods=["HP", "SP"], accuracy="fast",
+                                               target=scene.target(), segmentation_mm=1.0)
+
+
 @pytest.mark.slow      # one scene simulated (fine) and reconstructed (HP, SP): about 15 s
 def test_an_eroded_segmentation_is_found_on_each_segmentation_s_own_absorbing_model():
     """Scene 101 handed over with its inclusion eroded by 1 mm (the reconstruction
@@ -132,17 +149,7 @@ def test_an_eroded_segmentation_is_found_on_each_segmentation_s_own_absorbing_mo
     back, the data rule it out by far in favour of the inclusion grown by 1 mm, and
     HP and SP quote their values there: within 10 % (HP) and 30 % (SP) of the truth
     (the segmentation's own +257 % and +142 %)."""
-    from FluoTomoLib.tomography import optics_from_dict
-    from FluoTomoLib.tomography.reconstruct import reconstruct_labelmap_methods
-    from FluoTomoLib.validation.family import simulate
-
-    scene = make_scene(101, segmentation_error_mm=1.0)
-    assert scene.segmentation.startswith("eroded")
-    acq, _ = simulate(scene)
-    out = reconstruct_labelmap_methods(scene.labelmap(recon=True),
-                                       optics_from_dict(scene.optics), acq,
-                                       methods=["HP", "SP"], accuracy="fast",
-                                       target=scene.target(), segmentation_mm=1.0)
+    scene, out = _one_mm_off(101, "eroded")
     truth = scene.yield_by_label[7]
     for method, within in (("HP", 0.1), ("SP", 0.3)):
         s = out[method]["summary"]
@@ -166,21 +173,11 @@ def test_an_eroded_segmentation_is_found_on_each_segmentation_s_own_absorbing_mo
 def test_a_shifted_segmentation_is_found_by_moving_its_region_rigidly():
     """Scene 124 handed over with its inclusion shifted by 1 mm: HP as segmented is
     +73 %; of the offsets, the inclusion grown by 1 mm fits best, by 15 residual
-    variances (too few to quote) and reads -34 %. Moved rigidly, one step along +i and
-    one along -k (greedily combined) fit the data far better, the move twice worse: HP
+    variances (too few to quote) and reads -34 %. Moved rigidly one step along the +i -k
+    diagonal (greedily combined) it fits the data far better, the move twice worse: HP
     and SP quote the moved region's values, within 10 % of the truth, the interval
     reaching the segmentation's own value."""
-    from FluoTomoLib.tomography import optics_from_dict
-    from FluoTomoLib.tomography.reconstruct import reconstruct_labelmap_methods
-    from FluoTomoLib.validation.family import simulate
-
-    scene = make_scene(124, segmentation_error_mm=1.0)
-    assert scene.segmentation.startswith("shifted")
-    acq, _ = simulate(scene)
-    out = reconstruct_labelmap_methods(scene.labelmap(recon=True),
-                                       optics_from_dict(scene.optics), acq,
-                                       methods=["HP", "SP"], accuracy="fast",
-                                       target=scene.target(), segmentation_mm=1.0)
+    scene, out = _one_mm_off(124, "shifted")
     truth = scene.yield_by_label[7]
     for method in ("HP", "SP"):
         s = out[method]["summary"]
