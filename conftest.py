@@ -54,7 +54,7 @@ sys.path.insert(0, str(_ROOT / "Testing" / "Python"))
 FAST_TEST_LIMIT_S = float(os.environ.get("FLUO_FAST_TEST_LIMIT_S", "20"))
 NEAR_FAST_LIMIT = 0.7      # the share of it that the summary names as near
 
-# A test not marked heavy may grow its process tree's resident memory by this
+# A test not marked heavy may grow its process tree's memory (_tree_bytes) by this
 # much: two light tests, or a light one beside the heavy reservations, fit.
 LIGHT_TEST_LIMIT_GB = float(os.environ.get("FLUO_LIGHT_TEST_LIMIT_GB", "4"))
 
@@ -152,9 +152,28 @@ def pytest_terminal_summary(terminalreporter):
 
 
 # ----------------------------------------------------------------- memory
-def _tree_rss_bytes(proc, exclude=()):
-    """Resident size of ``proc`` and every process below it (bytes), but the pids
-    in ``exclude``."""
+def _proportional_bytes(p):
+    """Memory ``p`` holds (bytes): its proportional set size plus its proportional
+    share of swap (``/proc/PID/smaps_rollup``), its resident size where the kernel
+    has no rollup. Resident size counts a page shared by N processes N times: a
+    child forked from a large process (the fork server's, a worker's) reads as
+    large as its parent until it writes, and pages swapped out and back in read
+    as growth. The proportional size is what the machine actually spends."""
+    import psutil
+
+    try:
+        with open(f"/proc/{p.pid}/smaps_rollup") as fh:
+            next(fh)                          # the address range the rollup spans
+            kb = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in fh)}
+        return (kb.get("Pss", 0) + kb.get("SwapPss", 0)) * 1024
+    except (OSError, ValueError):
+        return p.memory_info().rss
+
+
+def _tree_bytes(proc, exclude=(), per_pid=None):
+    """Memory held by ``proc`` and every process below it (bytes,
+    ``_proportional_bytes``), but the pids in ``exclude``; ``per_pid`` (a dict)
+    keeps each process's largest value, for the failure message."""
     import psutil
 
     total = 0
@@ -162,9 +181,16 @@ def _tree_rss_bytes(proc, exclude=()):
         if p.pid in exclude:
             continue
         try:
-            total += p.memory_info().rss
+            b = _proportional_bytes(p)
         except psutil.Error:
-            pass
+            continue
+        total += b
+        if per_pid is not None and b > per_pid.get(p.pid, (0, ""))[0]:
+            try:
+                name = " ".join(p.cmdline())[:60]
+            except psutil.Error:
+                name = "?"
+            per_pid[p.pid] = (b, name)
     return total
 
 
@@ -221,7 +247,8 @@ def _alive(pid):
 
 @pytest.fixture(autouse=True)
 def _memory(request):
-    """Reserve a heavy test's GB; sample the test's process tree every 0.2 s; fail
+    """Reserve a heavy test's GB; sample the memory of the test's process tree
+    (``_tree_bytes``) every 0.2 s; fail
     a test that grew by more than it declared (``LIGHT_TEST_LIMIT_GB`` if light);
     report to ``FLUO_TEST_MEMORY_REPORT``."""
     import psutil
@@ -234,13 +261,14 @@ def _memory(request):
     # processes already running below this one are an earlier test's (one still
     # shutting down grew by 4.4 GB during a 22 MB test in CI): not this test's
     earlier = {p.pid for p in proc.children(recursive=True)}
-    start = _tree_rss_bytes(proc, earlier)
+    start = _tree_bytes(proc, earlier)
     found = {"peak": start}
+    per_pid = {}
     stop = threading.Event()
 
     def sample():
         while not stop.wait(0.2):
-            found["peak"] = max(found["peak"], _tree_rss_bytes(proc, earlier))
+            found["peak"] = max(found["peak"], _tree_bytes(proc, earlier, per_pid))
 
     t0 = time.monotonic()
     thread = threading.Thread(target=sample, daemon=True)
@@ -263,9 +291,11 @@ def _memory(request):
     if grew_gb > allowed:
         fix = ("make it smaller, or mark it @pytest.mark.heavy(gb=...)" if gb is None
                else "raise its @pytest.mark.heavy(gb=...) or make it smaller")
-        pytest.fail(f"{request.node.nodeid} grew its processes' resident memory by "
-                    f"{grew_gb:.1f} GB, over the {allowed:g} GB it may: {fix} (conftest.py)",
-                    pytrace=False)
+        largest = sorted(per_pid.items(), key=lambda kv: -kv[1][0])[:3]
+        who = "; ".join(f"pid {pid} {b / 2**30:.1f} GB ({name})" for pid, (b, name) in largest)
+        pytest.fail(f"{request.node.nodeid} grew its processes' memory by "
+                    f"{grew_gb:.1f} GB, over the {allowed:g} GB it may: {fix} (conftest.py; "
+                    f"largest at their peaks: {who})", pytrace=False)
 
 
 # ----------------------------------------------------------------- shared inputs
