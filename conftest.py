@@ -159,8 +159,6 @@ def _proportional_bytes(p):
     child forked from a large process (the fork server's, a worker's) reads as
     large as its parent until it writes, and pages swapped out and back in read
     as growth. The proportional size is what the machine actually spends."""
-    import psutil
-
     try:
         with open(f"/proc/{p.pid}/smaps_rollup") as fh:
             next(fh)                          # the address range the rollup spans
