@@ -14,7 +14,8 @@ reconstructed yield implies (fluoguide.optics_table.icg_absorption_per_yield
 for ICG), rebuild the forward model, reconstruct again.  For a hard prior
 only the data of each region's basis are needed (forward solves, no Jacobian
 assembly), so it iterates to convergence cheaply; a soft prior needs a new
-nodal Jacobian per pass (one pass by default).  NP is left alone: without a
+nodal Jacobian per pass (one pass by default), so it starts from a converged
+HP's absorption where the caller has one (``start``).  NP is left alone: without a
 prior its yield is smeared towards the surface and would put the absorption
 in the wrong place.
 
@@ -76,6 +77,9 @@ def absorbing_model(make_model, yield_nodes, mua_bg, yield_bg, mua_per_yield, pr
     return model
 
 
+#: SP's feedback passes after its first solve (each a nodal Jacobian)
+SP_PASSES = 1
+
 #: q / (1 - q) for the feedback's slowest measured contraction q = 0.62 per pass
 FEEDBACK_PENDING = 0.62 / (1 - 0.62)
 
@@ -83,7 +87,7 @@ FEEDBACK_PENDING = 0.62 / (1 - 0.62)
 def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
                                mua_per_yield, lam=10.0, passes=None, rel_tol=0.02,
                                cancel=None, progress=None, region_weights=None, noise_rel=None,
-                               region_matrix=None, optodes=None):
+                               region_matrix=None, optodes=None, start=None):
     """Reconstruct with the fluorophore's absorption fed back into the model.
 
     Parameters
@@ -112,16 +116,20 @@ def reconstruct_self_absorbing(method, J, y, mask, prior, make_model, mua_bg, yi
     optodes : HP: (sources, detectors) index of each used measurement: every
         solve's result also carries the fit with the optodes' gains
         (``reconstruct``'s ``optodes``); None: no such fit
+    start : SP: (nodal yield [1/mm], {label: value [1/mm]}) of a converged HP on the
+        same regions: the first solve takes its absorption (one pass from the blind
+        model left SP's feedback a quarter to a half of the truth short on the
+        scene family's absorbing inclusions: docs/reconstruction.md); None: blind
 
     Returns (ReconResult of the last pass with ``yield_per_mm`` nodal, list of
     the largest nodal yield after each pass).
     """
     method = method.upper()
-    passes = (6 if method == "HP" else 1) if passes is None else int(passes)
+    passes = (6 if method == "HP" else SP_PASSES) if passes is None else int(passes)
     if method != "HP":
         return _soft_prior_feedback(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
                                     mua_per_yield, lam, passes, cancel, progress,
-                                    region_weights, noise_rel)
+                                    region_weights, noise_rel, start)
     return _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg,
                                 mua_per_yield, lam, passes, rel_tol, cancel, progress,
                                 noise_rel, region_matrix, optodes)
@@ -138,35 +146,46 @@ def _pass_progress(progress, method, passes, k, what):
 
 def _soft_prior_feedback(method, J, y, mask, prior, make_model, mua_bg, yield_bg,
                          mua_per_yield, lam, passes, cancel, progress, region_weights,
-                         noise_rel):
+                         noise_rel, start=None):
     """:func:`reconstruct_self_absorbing` for SP (and any method but HP): each pass
     a new nodal Jacobian with the last result's absorption; the region rows say
-    what the feedback still owes (``feedback_pending_per_mm``)."""
+    what the feedback still owes (``feedback_pending_per_mm``). ``start``: (nodal
+    yield [1/mm], {label: value [1/mm]}) of a converged HP on the same regions, whose
+    absorption the first solve takes instead of none (the blind model)."""
     from fluoguide.progress import check_cancel, report
 
-    res = reconstruct(J, y, method, lam=lam, prior=prior,
-                      progress=_pass_progress(progress, method, passes, 0, "first solve"),
+    first = _pass_progress(progress, method, passes, 0, "first solve")
+    if start is None:
+        J0, before = J, None
+    else:
+        report(first, 0.0, "model with HP's dye absorption, its Jacobian")
+        model = absorbing_model(make_model, start[0], mua_bg, yield_bg, mua_per_yield, first,
+                                cancel)
+        J0, before = model.jacobian_yield()[mask.ravel()], start[1]
+    res = reconstruct(J0, y, method, lam=lam, prior=prior, progress=first,
                       region_weights=region_weights, noise_rel=noise_rel)
-    blind = {k: v["mean_yield_per_mm"] for k, v in res.region_confidence.items()}
     history = [float(np.max(res.yield_per_mm))]
     for k in range(passes):
         check_cancel(cancel)
         step = _pass_progress(progress, method, passes, k + 1, f"self-absorption pass {k + 1}")
         report(step, 0.0, "model with the dye's absorption, its Jacobian")
-        x = res.yield_per_mm
-        model = absorbing_model(make_model, x, mua_bg, yield_bg, mua_per_yield, step, cancel)
+        before = {int(lab): c["mean_yield_per_mm"] for lab, c in res.region_confidence.items()}
+        model = absorbing_model(make_model, res.yield_per_mm, mua_bg, yield_bg,
+                                mua_per_yield, step, cancel)
         res = reconstruct(model.jacobian_yield()[mask.ravel()], y, method, lam=lam,
                           prior=prior, progress=step, region_weights=region_weights,
                           noise_rel=noise_rel)
         history.append(float(np.max(res.yield_per_mm)))
-    # what the feedback still owes: its last pass moved each region by delta;
-    # a contraction q per pass leaves q / (1 - q) delta to come (q measured
-    # 0.25 for a thin tube, 0.62 for a bulk, optically thick target: the
-    # latter taken, so the intervals reach it)
-    if passes:
-        for k, c in res.region_confidence.items():
-            delta = c["mean_yield_per_mm"] - blind.get(k, c["mean_yield_per_mm"])
-            c["feedback_pending_per_mm"] = float(delta * FEEDBACK_PENDING / passes)
+    # what the feedback still owes: its last step moved each region by delta (from
+    # the blind solve, or from HP's values whose absorption the first solve took);
+    # a contraction q per pass leaves q / (1 - q) delta to come (q measured 0.25
+    # for a thin tube, 0.62 for a bulk, optically thick target: the latter taken,
+    # so the intervals reach it). With neither a start nor a pass nothing is owed
+    # that the data can tell: the blind model's bias is the caller's to state
+    if before is not None:
+        for lab, c in res.region_confidence.items():
+            delta = c["mean_yield_per_mm"] - before.get(int(lab), c["mean_yield_per_mm"])
+            c["feedback_pending_per_mm"] = float(delta * FEEDBACK_PENDING)
     return res, history
 
 

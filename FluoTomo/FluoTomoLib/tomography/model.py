@@ -1067,12 +1067,13 @@ class TissueModel:
                                  lean=True)
 
     def solve(self, y, method="HP", lam=10.0, self_absorption=("HP",), log_data=False,
-              cancel=None, progress=None, noise_rel=None):
+              cancel=None, progress=None, noise_rel=None, start=None):
         """NP / SP / HP of the used data ``y``; the methods in ``self_absorption``
         (HP by default: it took the tube's HP from 23 % to 5 % mean error, SP from
         10.5 % to 13.7 %) feed the fluorophore's absorption back when the optics
         give its slopes. ``noise_rel``: the data's relative noise (a fraction; None:
-        unknown), against which the solver tests its fit.
+        unknown), against which the solver tests its fit. ``start``: SP's feedback
+        starts from this converged HP result's absorption (``reconstruct_self_absorbing``).
         Returns (ReconResult, per-pass peaks)."""
         from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
         from FluoTomoLib.recon.solver import reconstruct
@@ -1088,7 +1089,9 @@ class TissueModel:
                 method, None if hp else self.J, y, self.mask, self.prior, self.make_model,
                 (0.0, 0.0), 0.0, slopes, lam=lam, cancel=cancel, progress=progress,
                 region_weights=self.region_weights, noise_rel=noise_rel,
-                region_matrix=self.region_matrix(self.prior) if hp else None)
+                region_matrix=self.region_matrix(self.prior) if hp else None,
+                start=None if hp or start is None else
+                (start.yield_per_mm, region_values(start)))
         elif method == "HP":
             res = self._solve_hp(self.prior, y, lam, log_data, noise_rel, cancel, progress)
             passes = []
