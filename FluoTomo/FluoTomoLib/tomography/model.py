@@ -461,7 +461,10 @@ TRANSLATIONS = True
 #: ruled out, the best offset's fit with the gains above this many times the
 #: stated noise (correct segmentations of the family: 1-3x; a shifted one that no
 #: offset ruled out, 3.9x), no offset explaining the data, or the best offset the
-#: last one tried (an eroded inclusion eroded no further: as given fitted as well)
+#: last one tried (an eroded inclusion eroded no further: as given fitted as well),
+#: or the regions as segmented fitted without the gains worse than "fair"
+#: (SEGMENTATION_FIT_MAX): the gains absorb a shift (fresh seeds 162, 163: as given
+#: fitted best with them, at 1.4-2.5x the noise, and 9-16x without; values -26 %, -61 %)
 TRANSLATION_FIT = 3.0
 #: moves combined greedily from the best single one (``TissueModel._translated``)
 COMBINED_TRIES = 3
@@ -1116,9 +1119,11 @@ def _leaves_a_question(summary):
     if not summary["optode_gains"]:
         return False
     edge = max(abs(d) for d in summary["offsets_mm"])
+    plain = (summary["region_model"].get("fit") or {}).get("residual_over_noise")
     return bool(summary["unmoved_ruled_out"] or not summary["boundaries_explain_data"]
                 or summary["best_fit_over_noise"] > TRANSLATION_FIT
-                or abs(summary["best_offset_mm"]) == edge)
+                or abs(summary["best_offset_mm"]) == edge
+                or (plain is not None and plain > SEGMENTATION_FIT_MAX))
 
 
 def _shift_summary(res0, base, moved, offsets, n_data, translated=()):

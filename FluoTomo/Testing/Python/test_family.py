@@ -496,3 +496,20 @@ def test_a_best_offset_at_the_edge_of_those_tried_rules_nothing_out(edge, gains)
     assert s["kept"] == ([True] * 4 if edge and gains else
                          [False, False, False, True] if edge else [False, False, True, False])
     assert s["quoted_offset_mm"] == (None if edge else 1.0)
+
+
+@pytest.mark.parametrize("plain, asks", [(1.3, False), (9.0, True), (None, False)])
+def test_a_poor_plain_fit_asks_for_the_rigid_moves_where_the_gains_fit_well(plain, asks):
+    """The segmentation as given fits best with the optodes' gains, at 1.5x the noise,
+    and the offsets are ruled out: nothing else asks for the moves. Where the regions
+    as segmented fit the data without the gains worse than "fair" (9x the noise), the
+    gains may be absorbing a shift (fresh scenes 162, 163): the moves run."""
+    from FluoTomoLib.tomography.model import _leaves_a_question, _shift_summary
+
+    res0, base = _fit(10.0, 0.004)
+    res0.diagnostics["fit"] = None if plain is None else {"residual_over_noise": plain}
+    moved = [_fit(r, 0.004 - 0.001 * k) for k, r in enumerate([300, 200, 150, 400])]
+    s = _shift_summary(res0, base, moved, [-2.0, -1.0, 1.0, 2.0], 100)
+    assert not s["unmoved_ruled_out"] and s["best_offset_mm"] == 0.0
+    assert s["boundaries_explain_data"] and s["best_fit_over_noise"] == 1.5
+    assert _leaves_a_question(s) is asks
