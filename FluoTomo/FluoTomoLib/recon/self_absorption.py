@@ -77,6 +77,16 @@ def absorbing_model(make_model, yield_nodes, mua_bg, yield_bg, mua_per_yield, pr
     return model
 
 
+#: how HP's stop reason opens where its feedback reached its fixed point
+CONVERGED = "self-absorption converged"
+
+
+def converged(res):
+    """Whether ``res`` (HP's ReconResult) fed the dye's absorption back to its fixed
+    point (its ``stop_reason``)."""
+    return str(res.stop_reason).startswith(CONVERGED)
+
+
 #: SP's feedback passes after its first solve (each a nodal Jacobian)
 SP_PASSES = 1
 
@@ -223,7 +233,7 @@ def _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg, mua_pe
         scale = max(float(np.max(np.abs(triple[-1]))), 1e-300)
         if len(triple) == 2:
             if np.max(np.abs(triple[-1] - triple[-2])) <= rel_tol * scale:
-                stop = f"self-absorption converged ({k + 1} passes)"
+                stop = f"{CONVERGED} ({k + 1} passes)"
                 diverged, warned = False, False
                 break
             continue
@@ -248,7 +258,7 @@ def _hard_prior_feedback(J, y, mask, prior, make_model, mua_bg, yield_bg, mua_pe
         v_a = _aitken(*triple)
         values.append(v_a)
         if np.max(np.abs(v_a - triple[-1])) <= rel_tol * scale:
-            stop = f"self-absorption converged (Aitken, {k + 1} passes)"
+            stop = f"{CONVERGED} (Aitken, {k + 1} passes)"
             diverged, warned = False, False
             break
         triple = [v_a]

@@ -27,6 +27,7 @@ import numpy as np
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel, report, scaled
 
+from FluoTomoLib.recon.self_absorption import converged
 from FluoTomoLib.recon.solver import SP_CORRECTION_MAX
 from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 from FluoTomoLib.tomography.model import move_text
@@ -520,8 +521,7 @@ def _sp_start(hp, self_absorption):
     (docs/reconstruction.md, "SP's value"); a diverged HP feedback is no start."""
     if hp is None or "HP" not in tuple(self_absorption or ()):
         return None
-    res = hp[0]
-    return res if str(res.stop_reason).startswith("self-absorption converged") else None
+    return hp[0] if converged(hp[0]) else None
 
 
 def _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption, data_model,
@@ -543,8 +543,7 @@ def _segmentation_shifts(tm, y, solved, methods, lam, seg_mm, self_absorption, d
         absorbing_yield=solved[fed[0]][0].yield_per_mm
         if fed and data_model != "log" else None,
         feedback=not (fed and solved[fed[0]][0].diverged),
-        at_fixed_point=bool(fed) and fed[0] == "HP" and str(
-            solved["HP"][0].stop_reason).startswith("self-absorption converged"))
+        at_fixed_point=bool(fed) and fed[0] == "HP" and converged(solved["HP"][0]))
 
 
 def _solve_on_quoted_boundary(tm, y, solved, methods, lam, seg_mm, shifts, self_absorption,

@@ -129,6 +129,17 @@ class _FakeModel:
         return np.stack([self.emission_data(e).ravel() for e in np.eye(6)], axis=1)
 
 
+def _two_regions():
+    """:class:`_FakeModel`'s regions as a prior, its (3, 3) data mask, the truth
+    (region 2 at yield 2e-3) and the dye's d mua / d yield at both wavelengths."""
+    F = np.zeros((6, 2))
+    F[:3, 0] = 1.0
+    F[3:, 1] = 1.0
+    prior = PartialVolumePrior(np.array([1, 1, 1, 2, 2, 2]), [1, 2], F)
+    return (prior, np.ones((3, 3), bool), np.array([0.0, 0.0, 0.0, 2e-3, 2e-3, 2e-3]),
+            (25.0, 7.0))
+
+
 @pytest.mark.parametrize("alpha, absorbing_data, expect", [
     (10.0, True, "truth"),       # contracting: the feedback finds the truth
     (40.0, True, "lower"),       # the truth is an unstable fixed point: a lower one is found
@@ -137,13 +148,7 @@ class _FakeModel:
 def test_self_absorption_feedback(alpha, absorbing_data, expect):
     from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
 
-    F = np.zeros((6, 2))
-    F[:3, 0] = 1.0
-    F[3:, 1] = 1.0
-    prior = PartialVolumePrior(np.array([1, 1, 1, 2, 2, 2]), [1, 2], F)
-    mask = np.ones((3, 3), bool)
-    truth = np.array([0.0, 0.0, 0.0, 2e-3, 2e-3, 2e-3])
-    per_yield = (25.0, 7.0)
+    prior, mask, truth, per_yield = _two_regions()
 
     def make(mx, mm):
         return _FakeModel(mx, alpha)
@@ -176,13 +181,7 @@ def test_sp_feedback_from_hp_s_absorption_owes_less_than_from_the_blind_model():
     from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
     from FluoTomoLib.recon.solver import reconstruct
 
-    F = np.zeros((6, 2))
-    F[:3, 0] = 1.0
-    F[3:, 1] = 1.0
-    prior = PartialVolumePrior(np.array([1, 1, 1, 2, 2, 2]), [1, 2], F)
-    mask = np.ones((3, 3), bool)
-    truth = np.array([0.0, 0.0, 0.0, 2e-3, 2e-3, 2e-3])
-    per_yield = (25.0, 7.0)
+    prior, mask, truth, per_yield = _two_regions()
 
     def make(mx, mm):
         return _FakeModel(mx, 10.0)      # one pass multiplies the error by about -0.5
