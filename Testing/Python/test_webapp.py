@@ -229,6 +229,24 @@ def test_calib_panel_runs_the_light_calibrations(app):
     assert "folder not found" in app.state.fluo_message
 
 
+def test_a_click_carries_the_panel_inputs_it_reads(app):
+    """The browser pushes typed values only between requests but sends a click at
+    once (CI: 'Add segment by threshold' ran on the old 60..3000 HU while the page
+    showed 0.5..100). Each action button sends its panel's inputs with the click;
+    they are applied before the action, and only the panel's inputs are."""
+    html = app.ui.layout.html
+    for name in ("calib_run", "calib_save", "nav_stream", "tomo_build_mesh", "tomo_reconstruct",
+                 "tomo_threshold_segment"):
+        trigger = app.server.trigger_name(getattr(app.ctrl, name))
+        assert f"trigger('{trigger}', [], {{fluo_form: {{" in html, name
+    assert "tomo_seg_min: tomo_seg_min, tomo_seg_max: tomo_seg_max" in html
+    app.state.tomo_mesh_roi = ""
+    app.ctrl.tomo_build_mesh(fluo_form={"tomo_mesh_roi": "1,2,3", "fluo_message_color": "x"})
+    assert "ROI" in app.state.fluo_message and not app.jobs.busy
+    assert app.state.tomo_mesh_roi == "1,2,3" and app.state.fluo_message_color == "error"
+    app.state.tomo_mesh_roi = ""
+
+
 def test_mesh_roi_is_validated(app):
     app.state.tomo_mesh_roi = "1,2,3"
     app.ctrl.tomo_build_mesh()

@@ -69,6 +69,7 @@ class FluoGuideApp:
             self.workspace = Workspace(workspace if workspace is not None
                                        else tempfile.mkdtemp(prefix="fluoguide-workspace-"))
         self.gate = None
+        self._form_fields = set()  # the state keys a click may carry (submit)
         self.state.trame__title = "FluoGuide"
         self.state.fluo_message = ""
         self.state.fluo_message_color = "info"
@@ -128,12 +129,35 @@ class FluoGuideApp:
         self.state.dirty("fluo_message_visible")
         (log.warning if color == "error" else log.info)("%s", text)
 
+    def submit(self, action, fields):
+        """A button's ``click`` that carries the form fields its panel's actions read.
+
+        The browser pushes typed values only while no request is in flight, but sends
+        a click at once: a click right after typing (during a render, say) would run
+        the action on the values from before. So the values travel with the click and
+        :meth:`guarded` applies them before the action runs.
+
+        Parameters
+        ----------
+        action : callable
+            The controller function (``app.ctrl.x``).
+        fields : sequence of str
+            State keys bound to the panel's inputs.
+        """
+        self._form_fields.update(fields)
+        form = ", ".join(f"{k}: {k}" for k in fields)
+        return (action, "[]", "{fluo_form: {" + form + "}}")
+
     def guarded(self, fn):
-        """Wrap a UI callback: errors become a red message, the page lives on."""
+        """Wrap a UI callback: errors become a red message, the page lives on. A
+        ``fluo_form`` argument (from :meth:`submit`) is applied to the state first."""
 
         @functools.wraps(fn)
-        def wrapper(*args, **kwargs):
+        def wrapper(*args, fluo_form=None, **kwargs):
             try:
+                if fluo_form:
+                    self.state.update({k: v for k, v in fluo_form.items()
+                                       if k in self._form_fields})
                 return fn(*args, **kwargs)
             except FluoError as exc:
                 self.notify(str(exc), "error")

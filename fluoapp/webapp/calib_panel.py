@@ -20,6 +20,9 @@ class CalibPanel:
     key = "FluoCalib"
     title = "FluoCalib: camera calibration"
     icon = "mdi-camera-iris"
+    # the inputs every button of the panel sends with its click (app.submit)
+    FORM = ("calib_images", "calib_board", "calib_light_kind", "calib_light_folder",
+            "calib_save_path")
 
     def __init__(self, app, logic):
         self.app = app
@@ -159,6 +162,10 @@ class CalibPanel:
         mrml_io.save_scene(self.app.scene, path)
         self.app.notify(f"Scene saved to {self.app.workspace.shown(path)}", "success")
 
+    def _click(self, action):
+        """A button's click: the controller ``action`` with the panel's inputs."""
+        return self.app.submit(getattr(self.app.ctrl, action), self.FORM)
+
     def build_ui(self):
         from trame.widgets import html
         from trame.widgets import vuetify3 as v
@@ -173,7 +180,7 @@ class CalibPanel:
                      density="compact", hide_details=True, classes="mt-2", id="calib-board")
         with v.VRow(dense=True, classes="mt-1"):
             with v.VCol(cols=8):
-                v.VBtn("Calibrate", click=self.app.ctrl.calib_run, block=True, color="primary",
+                v.VBtn("Calibrate", click=self._click("calib_run"), block=True, color="primary",
                        disabled=(busy,), id="calib-run")
             with v.VCol(cols=4):
                 v.VBtn("Cancel", click=self.app.ctrl.fluo_cancel_job, block=True,
@@ -200,10 +207,10 @@ class CalibPanel:
                      id="calib-light-folder")
         with v.VRow(dense=True, classes="mt-1"):
             with v.VCol(cols=6):
-                v.VBtn("Synthetic data", click=self.app.ctrl.calib_light_synth, block=True,
+                v.VBtn("Synthetic data", click=self._click("calib_light_synth"), block=True,
                        disabled=(busy,), id="calib-light-synth")
             with v.VCol(cols=6):
-                v.VBtn("Calibrate", click=self.app.ctrl.calib_light_run, block=True, color="primary",
+                v.VBtn("Calibrate", click=self._click("calib_light_run"), block=True, color="primary",
                        disabled=(busy,), id="calib-light-run")
         with html.Div(v_if="calib_light_result", classes="text-caption mt-1", id="calib-light-result"):
             html.Div("{{ Object.entries(calib_light_result).map(([k, v]) => k + ' ' + v).join(', ') }}")
@@ -213,5 +220,5 @@ class CalibPanel:
         v.VTextField(v_model=("calib_save_path",), label="Scene file (.mrml, in the workspace)",
                      density="compact",
                      hide_details=True, id="calib-save-path")
-        v.VBtn("Save scene", click=self.app.ctrl.calib_save, block=True, classes="mt-2",
+        v.VBtn("Save scene", click=self._click("calib_save"), block=True, classes="mt-2",
                disabled=(busy,), id="calib-save")
