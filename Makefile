@@ -18,14 +18,19 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet -c constraints.txt -e ".[test,mc]"
 	touch $(STAMP)
 
+# the demo on every core (a laptop running it is otherwise quiet; on a 2-core machine
+# the quick demo takes three quarters of its one-thread time, docs/performance.md);
+# make demo DEMO_THREADS=1 for a busy machine
+DEMO_THREADS ?= auto
+
 demo: $(STAMP)
-	$(VENV)/bin/fluo demo --quick --out $(DEMO_OUT)
+	$(VENV)/bin/fluo --threads $(DEMO_THREADS) demo --quick --out $(DEMO_OUT)
 
 demo-quick: demo
 
 # the whole study (five tube depths at the balanced level): a workstation's memory
 demo-full: $(STAMP)
-	$(VENV)/bin/fluo demo --out $(DEMO_OUT)
+	$(VENV)/bin/fluo --threads $(DEMO_THREADS) demo --out $(DEMO_OUT)
 
 # one thread per library, as the fluo CLI's default (docs/performance.md): on a busy
 # 2-core machine the libraries' own defaults ran a reconstruction 7-11x slower

@@ -157,13 +157,21 @@ async def _attack(url, port, secret, workspace, outside):
         # the Save button's trigger, as the page's template names it
         templates = [v for v in state["result"]["state"].values()
                      if isinstance(v, str) and 'id="calib-save"' in v]
-        m = re.search(r'id="calib-save"[^>]*trigger\(\'(\w+)\'\)', templates[0]) if templates else None
+        m = re.search(r'id="calib-save"[^>]*trigger\(\'(\w+)\'', templates[0]) if templates else None
         report["save_trigger_found"] = m is not None
         if m:
-            for target in (str(outside / "evil.mrml"), "../evil.mrml"):
-                await c.call("trame.state.update", [{"key": "calib_save_path", "value": target}])
+            # the path set in the state, or sent with the click as the page does
+            # (app.submit): refused either way
+            for target, by_click in ((str(outside / "evil.mrml"), False), ("../evil.mrml", False),
+                                     ("../evil.mrml", True)):
+                if by_click:
+                    kwargs = {"fluo_form": {"calib_save_path": target}}
+                else:
+                    kwargs = {}
+                    await c.call("trame.state.update", [{"key": "calib_save_path",
+                                                         "value": target}])
                 c.state.pop("fluo_message", None)
-                await c.call("trame.trigger", m.group(1), [], {})
+                await c.call("trame.trigger", m.group(1), [], kwargs)
                 # the server publishes its state after the call returns: on a busy
                 # machine the message can come a few pushes later
                 for _ in range(40):
