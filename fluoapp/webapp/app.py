@@ -139,14 +139,14 @@ class FluoGuideApp:
 
         Parameters
         ----------
-        action : callable
-            The controller function (``app.ctrl.x``).
+        action : str
+            The controller function's name (``app.ctrl.<action>``).
         fields : sequence of str
             State keys bound to the panel's inputs.
         """
         self._form_fields.update(fields)
         form = ", ".join(f"{k}: {k}" for k in fields)
-        return (action, "[]", "{fluo_form: {" + form + "}}")
+        return (getattr(self.ctrl, action), "[]", "{fluo_form: {" + form + "}}")
 
     def guarded(self, fn):
         """Wrap a UI callback: errors become a red message, the page lives on. A

@@ -162,10 +162,6 @@ class CalibPanel:
         mrml_io.save_scene(self.app.scene, path)
         self.app.notify(f"Scene saved to {self.app.workspace.shown(path)}", "success")
 
-    def _click(self, action):
-        """A button's click: the controller ``action`` with the panel's inputs."""
-        return self.app.submit(getattr(self.app.ctrl, action), self.FORM)
-
     def build_ui(self):
         from trame.widgets import html
         from trame.widgets import vuetify3 as v
@@ -180,8 +176,8 @@ class CalibPanel:
                      density="compact", hide_details=True, classes="mt-2", id="calib-board")
         with v.VRow(dense=True, classes="mt-1"):
             with v.VCol(cols=8):
-                v.VBtn("Calibrate", click=self._click("calib_run"), block=True, color="primary",
-                       disabled=(busy,), id="calib-run")
+                v.VBtn("Calibrate", click=self.app.submit("calib_run", self.FORM),
+                       block=True, color="primary", disabled=(busy,), id="calib-run")
             with v.VCol(cols=4):
                 v.VBtn("Cancel", click=self.app.ctrl.fluo_cancel_job, block=True,
                        disabled=("!" + busy,))
@@ -207,11 +203,11 @@ class CalibPanel:
                      id="calib-light-folder")
         with v.VRow(dense=True, classes="mt-1"):
             with v.VCol(cols=6):
-                v.VBtn("Synthetic data", click=self._click("calib_light_synth"), block=True,
-                       disabled=(busy,), id="calib-light-synth")
+                v.VBtn("Synthetic data", click=self.app.submit("calib_light_synth", self.FORM),
+                       block=True, disabled=(busy,), id="calib-light-synth")
             with v.VCol(cols=6):
-                v.VBtn("Calibrate", click=self._click("calib_light_run"), block=True, color="primary",
-                       disabled=(busy,), id="calib-light-run")
+                v.VBtn("Calibrate", click=self.app.submit("calib_light_run", self.FORM),
+                       block=True, color="primary", disabled=(busy,), id="calib-light-run")
         with html.Div(v_if="calib_light_result", classes="text-caption mt-1", id="calib-light-result"):
             html.Div("{{ Object.entries(calib_light_result).map(([k, v]) => k + ' ' + v).join(', ') }}")
             html.Img(src=("calib_light_plot",), v_if="calib_light_plot",
@@ -220,5 +216,5 @@ class CalibPanel:
         v.VTextField(v_model=("calib_save_path",), label="Scene file (.mrml, in the workspace)",
                      density="compact",
                      hide_details=True, id="calib-save-path")
-        v.VBtn("Save scene", click=self._click("calib_save"), block=True, classes="mt-2",
-               disabled=(busy,), id="calib-save")
+        v.VBtn("Save scene", click=self.app.submit("calib_save", self.FORM),
+               block=True, classes="mt-2", disabled=(busy,), id="calib-save")

@@ -136,10 +136,6 @@ class NavPanel:
             self.app.show_in_3d(self.logic.showTrackedCamera())
         self.app.render_all()
 
-    def _click(self, action):
-        """A button's click: the controller ``action`` with the panel's inputs."""
-        return self.app.submit(getattr(self.app.ctrl, action), self.FORM)
-
     def build_ui(self):
         from trame.widgets import html
         from trame.widgets import vuetify3 as v
@@ -149,8 +145,8 @@ class NavPanel:
         v.VTextField(v_model_number=("nav_target_triangles",), type="number",
                      label="Target triangles (0 = keep all)", density="compact", hide_details=True,
                      id="nav-triangles")
-        v.VBtn("Surface from the label map", click=self._click("nav_build_surface"), block=True,
-               classes="mt-2", disabled=("job.running",), id="nav-surface")
+        v.VBtn("Surface from the label map", click=self.app.submit("nav_build_surface", self.FORM),
+               block=True, classes="mt-2", disabled=("job.running",), id="nav-surface")
         html.Div("{{ nav_surface_info }}", classes="text-caption", id="nav-surface-info")
         html.Div("Tracked fluorescence (simulated NDI tracker, oral-cavity phantom)",
                  classes="text-subtitle-2 mt-4")
@@ -158,8 +154,8 @@ class NavPanel:
                      density="compact", hide_details=True, id="nav-seconds")
         with v.VRow(dense=True, classes="mt-1"):
             with v.VCol(cols=8):
-                v.VBtn("Stream", click=self._click("nav_stream"), block=True, color="primary",
-                       disabled=("job.running",), id="nav-stream")
+                v.VBtn("Stream", click=self.app.submit("nav_stream", self.FORM),
+                       block=True, color="primary", disabled=("job.running",), id="nav-stream")
             with v.VCol(cols=4):
                 v.VBtn("Stop", click=self.app.ctrl.fluo_cancel_job, block=True,
                        disabled=("!job.running",), id="nav-stop")

@@ -608,10 +608,6 @@ class TomoPanel:
             self._show_yield()
 
     # -- UI ------------------------------------------------------------------
-    def _click(self, action):
-        """A button's click: the controller ``action`` with the panel's inputs."""
-        return self.app.submit(getattr(self.app.ctrl, action), self.FORM)
-
     def build_ui(self):
         """The panel's steps, top to bottom: the CBCT (a phantom or the user's,
         or a scene of one's own), planning, segmenting, the mesh, the
@@ -639,16 +635,16 @@ class TomoPanel:
         v.VTextField(v_model_number=("tomo_depth_mm",), type="number", label="Tube depth [mm]",
                      density="compact", hide_details=True, classes="mt-2",
                      v_if="tomo_phantom === 'cylinder-tube'", id="tomo-depth")
-        v.VBtn("Load phantom", click=self._click("tomo_load"), block=True, classes="mt-2",
-               color="primary", disabled=(busy,), id="tomo-load")
+        v.VBtn("Load phantom", click=self.app.submit("tomo_load", self.FORM),
+               block=True, classes="mt-2", color="primary", disabled=(busy,), id="tomo-load")
         # the workspace's CBCT: a DICOM series folder, a volume file or a scene
         v.VTextField(v_model=("tomo_cbct_path",), label="Or your CBCT: DICOM folder or file",
                      density="compact", hide_details=True, classes="mt-2", id="tomo-cbct-path")
         v.VTextField(v_model=("tomo_cbct_series",), label="DICOM series UID (if several)",
                      density="compact", hide_details=True, classes="mt-1",
                      id="tomo-cbct-series")
-        v.VBtn("Load CBCT", click=self._click("tomo_load_cbct"), block=True, classes="mt-2",
-               disabled=(busy,), id="tomo-load-cbct")
+        v.VBtn("Load CBCT", click=self.app.submit("tomo_load_cbct", self.FORM),
+               block=True, classes="mt-2", disabled=(busy,), id="tomo-load-cbct")
 
     def _ui_own_scene(self):
         """1b: the user's label map, optics.json and acquisition or recording."""
@@ -667,8 +663,8 @@ class TomoPanel:
                      label="Acquisition or recording folder in the workspace",
                      density="compact", hide_details=True, classes="mt-1",
                      id="tomo-own-acquisition")
-        v.VBtn("Load my scene", click=self._click("tomo_load_own"), block=True, classes="mt-2",
-               disabled=(busy,), id="tomo-own-load")
+        v.VBtn("Load my scene", click=self.app.submit("tomo_load_own", self.FORM),
+               block=True, classes="mt-2", disabled=(busy,), id="tomo-own-load")
         html.Div("{{ tomo_own_info }}", classes="text-caption", id="tomo-own-info")
 
     def _ui_plan(self):
@@ -687,8 +683,8 @@ class TomoPanel:
                 v.VTextField(v_model_number=("tomo_plan_positions",), type="number",
                              label="Laser positions", density="compact", hide_details=True,
                              id="tomo-plan-positions")
-        v.VBtn("Plan the scan", click=self._click("tomo_plan"), block=True, classes="mt-2",
-               disabled=("!tomo_own || " + busy,), id="tomo-plan")
+        v.VBtn("Plan the scan", click=self.app.submit("tomo_plan", self.FORM),
+               block=True, classes="mt-2", disabled=("!tomo_own || " + busy,), id="tomo-plan")
         with html.Div(v_if="tomo_plan_result", classes="text-caption mt-1", id="tomo-plan-result"):
             html.Div("{{ tomo_plan_result.positions }} laser positions (violet in 3D), "
                      "{{ tomo_plan_result.pairs }} pairs; predicted HP 95 % interval, noise "
@@ -715,14 +711,15 @@ class TomoPanel:
             with v.VCol(cols=4):
                 v.VTextField(v_model_number=("tomo_seg_max",), type="number", label="max HU",
                              density="compact", hide_details=True, id="tomo-seg-max")
-        v.VBtn("Add segment by threshold", click=self._click("tomo_threshold_segment"), block=True,
+        v.VBtn("Add segment by threshold",
+               click=self.app.submit("tomo_threshold_segment", self.FORM), block=True,
                classes="mt-2", disabled=("!tomo_loaded || " + busy,), id="tomo-threshold")
         html.Div("Segments: {{ tomo_segments.join(', ') || 'none' }}. Paint, erase, islands and "
                  "smoothing: the brush tool on the left.", classes="text-caption mt-1",
                  id="tomo-segments")
-        v.VBtn("Use segmentation as label map", click=self._click("tomo_use_segmentation"),
-               block=True, classes="mt-2", disabled=("!tomo_segments.length || " + busy,),
-               id="tomo-labels")
+        v.VBtn("Use segmentation as label map",
+               click=self.app.submit("tomo_use_segmentation", self.FORM), block=True,
+               classes="mt-2", disabled=("!tomo_segments.length || " + busy,), id="tomo-labels")
         html.Div("{{ tomo_regions.map(r => r.label + ': ' + r.name + ' ' + r.volume_mm3 + "
                  "' mm³').join(', ') }}", classes="text-caption", id="tomo-regions")
         with v.VRow(dense=True, classes="mt-1"):
@@ -730,8 +727,8 @@ class TomoPanel:
                 v.VTextField(v_model=("tomo_labels_out",), label="Save as (.nrrd, workspace)",
                              density="compact", hide_details=True, id="tomo-labels-out")
             with v.VCol(cols=5):
-                v.VBtn("Save label map", click=self._click("tomo_save_labels"), block=True,
-                       disabled=("!tomo_has_labels || tomo_own || " + busy,),
+                v.VBtn("Save label map", click=self.app.submit("tomo_save_labels", self.FORM),
+                       block=True, disabled=("!tomo_has_labels || tomo_own || " + busy,),
                        id="tomo-save-labels")
 
     def _ui_mesh(self):
@@ -744,7 +741,8 @@ class TomoPanel:
         v.VTextField(v_model_number=("tomo_mesh_size_mm",), type="number",
                      label="Element size [mm] (structured, region-preserving)", density="compact",
                      hide_details=True, id="tomo-mesh-size")
-        v.VBtn("Build mesh", click=self._click("tomo_build_mesh"), block=True, classes="mt-2",
+        v.VBtn("Build mesh", click=self.app.submit("tomo_build_mesh", self.FORM),
+               block=True, classes="mt-2",
                disabled=("!tomo_has_labels || " + busy,), id="tomo-mesh")
         v.VSelect(v_model=("tomo_mesh_method",),
                   items=(["fast (structured)", "quality (fTetWild, slower)"],), label="Mesher",
@@ -771,7 +769,8 @@ class TomoPanel:
                              density="compact", hide_details=True, id="tomo-lambda")
         with v.VRow(dense=True, classes="mt-1"):
             with v.VCol(cols=8):
-                v.VBtn("Reconstruct", click=self._click("tomo_reconstruct"), block=True,
+                v.VBtn("Reconstruct", click=self.app.submit("tomo_reconstruct", self.FORM),
+                       block=True,
                        color="primary", disabled=("!tomo_has_labels || " + busy,), id="tomo-recon")
             with v.VCol(cols=4):
                 v.VBtn("Cancel", click=self.app.ctrl.fluo_cancel_job, block=True,
