@@ -10,9 +10,9 @@ pixels are cast onto the tissue-air surface (the cavity walls can hide parts
 of it).
 
 Simulation (:func:`simulate_oral_truth`): the whole tissue on a mesh of its
-own, fine at the laser line and the tongue, the analytic tongue's optics at its
-nodes, the FEM emission fields on its surface, rendered into tracked camera
-frames.  Reconstruction: the tube's and ``fluo tomo reconstruct``'s path
+own, fine at the laser line and the tongue, the analytic tongue's optics by
+its nodes' shares of it, the FEM emission fields on its surface, rendered into
+tracked camera frames.  Reconstruction: the tube's and ``fluo tomo reconstruct``'s path
 (``steps.reconstruct_from_frames``), so the oral case's numbers come with the
 label-map path's intervals and warnings.
 
@@ -34,8 +34,9 @@ from fluoguide.progress import check_cancel, report, scaled
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.optics import robin_A
-from FluoTomoLib.pipelines.steps import (case_record, method_result, nodal_optics,
-                                         phantom_simulation_mesh, reconstruct_from_frames,
+from FluoTomoLib.pipelines.steps import (analytic_fractions, case_record, method_result,
+                                         nodal_optics, phantom_simulation_mesh,
+                                         reconstruct_from_frames,
                                          render_frames, surface_of, true_emission_fields)
 
 
@@ -81,7 +82,8 @@ def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=
     laser line and the tongue (capped at the sources' burial depth) and
     ``simulate_coarse_mm`` elsewhere (the largest power-of-two multiple of the
     fine size at most that), the tissue-air nodes on the label map's smooth
-    surface (not a voxel staircase); the analytic tongue's optics at the nodes;
+    surface (not a voxel staircase); the analytic tongue's optics by the nodes' shares
+    of it (``steps.analytic_fractions``);
     the FEM emission fields from each beam of :func:`line_targets` (no tracking
     error: where the true beams land).  ``lm``: the phantom's LabelMap where
     the caller has one (its surface is extracted once).
@@ -110,8 +112,9 @@ def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=
     fine = phantom_simulation_mesh(phantom, aimed, 2, fine_mm, simulate_coarse_mm, cancel, lm)
     check_cancel(cancel)
     report(progress, 0.15, "forward simulation (true tissue)")
-    in_tongue = _ellipsoid(fine.nodes_mm, geo["tongue_centre_mm"], geo["tongue_semi_axes_mm"])
-    true_props = nodal_optics(np.where(in_tongue, 2, 1), optics)
+    # the nodes' shares of the analytic tongue: its true volume of dye
+    true_props = nodal_optics(None, optics, analytic_fractions(
+        fine, lambda p: _ellipsoid(p, geo["tongue_centre_mm"], geo["tongue_semi_axes_mm"])))
     vertices, facets, nodes = surface_of(fine)
     src_true = raster_scan(targets, BEAM_ORIGIN, BEAM_DIR, vertices, facets)["true_points_mm"]
     fields = true_emission_fields(fine, true_props, optics[1]["n"], src_true,

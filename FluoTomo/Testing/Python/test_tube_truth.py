@@ -2,6 +2,7 @@
 demo depth is stored, whole and consistent; other options simulate; a damaged
 set is refused with its name; and a regeneration matches what is stored."""
 
+import itertools
 import json
 
 import numpy as np
@@ -136,3 +137,53 @@ def test_the_stored_truth_matches_a_regeneration():
     np.testing.assert_allclose(made.sources_mm, stored.sources_mm, rtol=0, atol=1e-9)
     # float32 storage: 6e-8 relative; the solver's own rounding is far smaller
     np.testing.assert_allclose(made.fields_per_w, stored.fields_per_w, rtol=1e-5)
+
+
+def test_the_truths_dye_is_the_analytic_targets_wherever_it_sits_on_the_mesh():
+    """The simulated phantoms carry their analytic targets' optics by each node's
+    share of the target (pipelines.steps.analytic_fractions): the P1 field of
+    the shares integrates to the target's true volume on a mesh as coarse as
+    the stored truths' (0.8 mm) wherever the target sits on it; sampling the
+    indicator at the nodes (what the stored sets of format 1 did) misses by
+    up to 13 %.  Checked for a 2.4 mm tube and an ellipsoid against their
+    exact volumes."""
+    from FluoTomoLib.meshing.structured import box_mesh
+    from FluoTomoLib.pipelines.steps import analytic_fractions, nodal_optics
+
+    ax = np.arange(-6.0, 6.0 + 1e-9, 0.8)
+    mesh = box_mesh(ax, ax, ax)
+    vol, el = mesh.measures, mesh.elements
+
+    def p1_integral(f):
+        return float(vol @ f[el].mean(axis=1))
+
+    r = 1.2
+
+    def tube(p, offset):            # along x, through the whole box
+        return (p[:, 1] - offset) ** 2 + (p[:, 2] + 0.5 * offset) ** 2 <= r * r
+
+    semi = np.array([3.1, 2.2, 1.7])
+
+    def ellipsoid(p, offset):
+        q = (p - np.array([offset, -offset, 0.5 * offset])) / semi
+        return np.einsum("ij,ij->i", q, q) <= 1.0
+
+    errors_at_nodes = []
+    for offset, (inside, exact) in itertools.product(
+            (0.0, 0.23, 0.41, 0.6), ((tube, np.pi * r * r * np.ptp(ax)),
+                                     (ellipsoid, 4.0 / 3.0 * np.pi * semi.prod()))):
+        share = analytic_fractions(mesh, lambda p: inside(p, offset))
+        assert share.min() >= 0.0 and share.max() <= 1.0
+        assert p1_integral(share) == pytest.approx(exact, rel=5e-3)
+        sampled = inside(mesh.nodes_mm, offset).astype(float)
+        errors_at_nodes.append(abs(p1_integral(sampled) / exact - 1))
+        # the shares mix the two regions' optics linearly
+        optics = {1: {k: 1.0 for k in ("mua_x_per_mm", "musp_x_per_mm", "mua_m_per_mm",
+                                      "musp_m_per_mm", "yield_per_mm")},
+                  2: {k: 3.0 for k in ("mua_x_per_mm", "musp_x_per_mm", "mua_m_per_mm",
+                                      "musp_m_per_mm", "yield_per_mm")}}
+        mixed = nodal_optics(None, optics, share)
+        np.testing.assert_allclose(mixed["yield_per_mm"], 1.0 + 2.0 * share)
+    # the check can fail: sampling at the nodes is measurably off on this mesh
+    print("sampled at the nodes: volume off by", np.round(errors_at_nodes, 3))
+    assert max(errors_at_nodes) > 0.03
