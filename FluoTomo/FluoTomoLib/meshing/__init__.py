@@ -5,6 +5,7 @@ Modules
 -------
 - ``mesh``: The simplex mesh shared by meshing, FEM and reconstruction.
 - ``nirfast_io``: NIRFAST mesh files: ``.node``, ``.elem``, ``.region``, ``.param``.
+- ``shares``: Analytic shapes on a mesh: each node's share of a target given as a function.
 - ``report``: Quality report of a tetrahedral mesh: counts, region volumes, angles, bad elements.
 - ``structured``: Structured simplex meshes: rectangles into triangles, boxes into tetrahedra.
 - ``to_file``: A label map to a tetrahedral mesh file with its quality report.
@@ -19,6 +20,7 @@ __getattr__, __dir__, __all__ = attach(__name__, {
     "mesh": ["Mesh"],
     "nirfast_io": ["write_nirfast", "read_nirfast", "write_optodes", "read_optodes"],
     "report": ["dihedral_angles_deg", "aspect_ratio", "quality_report"],
+    "shares": ["analytic_fractions", "simplex_points"],
     "structured": ["graded_axis", "optode_axis", "rectangle_mesh", "kuhn_paths", "box_mesh", "slab_mesh"],
     "to_file": ["optode_edges", "mesh_to_file"],
     "tetwild": ["labelmap_volumes", "labelmap_surface", "decimate_surface", "mesh_labelmap_quality"],

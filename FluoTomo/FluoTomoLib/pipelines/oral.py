@@ -34,9 +34,9 @@ from fluoguide.progress import check_cancel, report, scaled
 from FluoTomoLib.acquisition.tracked_scan import TrackingError, raster_scan
 from FluoTomoLib.fem.kernels import prepare_kernels
 from FluoTomoLib.optics import robin_A
-from FluoTomoLib.pipelines.steps import (analytic_fractions, case_record, method_result,
-                                         nodal_optics, phantom_simulation_mesh,
-                                         reconstruct_from_frames,
+from FluoTomoLib.meshing.shares import analytic_fractions
+from FluoTomoLib.pipelines.steps import (case_record, method_result, nodal_optics,
+                                         phantom_simulation_mesh, reconstruct_from_frames,
                                          render_frames, surface_of, true_emission_fields)
 
 
@@ -83,7 +83,7 @@ def simulate_oral_truth(phantom, fine_mm=1.0, simulate_coarse_mm=2.0, n_sources=
     ``simulate_coarse_mm`` elsewhere (the largest power-of-two multiple of the
     fine size at most that), the tissue-air nodes on the label map's smooth
     surface (not a voxel staircase); the analytic tongue's optics by the nodes' shares
-    of it (``steps.analytic_fractions``);
+    of it (``meshing.shares.analytic_fractions``);
     the FEM emission fields from each beam of :func:`line_targets` (no tracking
     error: where the true beams land).  ``lm``: the phantom's LabelMap where
     the caller has one (its surface is extracted once).

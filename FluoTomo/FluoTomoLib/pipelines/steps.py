@@ -28,17 +28,13 @@ from FluoTomoLib.fem.forward import FluorescenceModel
 
 
 OPTICS_KEYS = ("mua_x_per_mm", "musp_x_per_mm", "mua_m_per_mm", "musp_m_per_mm", "yield_per_mm")
-#: quadrature points per tetrahedron that an analytic target's boundary cuts
-#: (:func:`analytic_fractions`): the integral's sampling error falls as 1/sqrt
-#: of the cut elements times this, far below 0.1 % on the phantoms' targets
-FRACTION_POINTS = 256
 
 
 def nodal_optics(node_region, optics, fraction=None, inside=2, outside=1):
     """Nodal property arrays from per-region optics dicts (labels as keys).
 
     ``fraction`` (N,) in [0, 1]: each node's share of the ``inside`` region
-    (:func:`analytic_fractions`); the properties are then the share-weighted
+    (``meshing.shares.analytic_fractions``); the properties are then the share-weighted
     mix of ``inside``'s and ``outside``'s (all five are linear in the dye's
     concentration), and ``node_region`` is not read."""
     if fraction is not None:
@@ -46,66 +42,6 @@ def nodal_optics(node_region, optics, fraction=None, inside=2, outside=1):
         return {key: f * float(optics[int(inside)][key])
                 + (1.0 - f) * float(optics[int(outside)][key]) for key in OPTICS_KEYS}
     return {key: np.array([optics[int(r)][key] for r in node_region]) for key in OPTICS_KEYS}
-
-
-def _simplex_points(n):
-    """(n, 4) barycentric coordinates of n points spread evenly over a
-    tetrahedron (a scrambled Sobol set, fixed seed, mapped by sorted spacings)."""
-    from scipy.stats import qmc
-
-    u = np.sort(qmc.Sobol(3, scramble=True, seed=20261129).random(n), axis=1)
-    return np.diff(np.hstack([np.zeros((n, 1)), u, np.ones((n, 1))]), axis=1)
-
-
-def analytic_fractions(mesh, inside, points_per_element=FRACTION_POINTS):
-    """Each node's share of an analytic target (``inside``: points (M, 3) ->
-    bool), such that the P1 field of the shares integrates to the target's
-    true volume.
-
-    Sampling the indicator at the nodes does not: on a 0.8 mm mesh it gave the
-    2.4 mm tube 13 % more cross-section than it has (the interpolant's ramp
-    reaches one element past the wall on the inside nodes' side), and so the
-    simulated phantom 13 % more dye than its truth.  Here each share is the
-    lumped L2 projection of the indicator, ``int(phi_i chi) / int(phi_i)``, the
-    integrals over the elements the wall cuts sampled at
-    ``points_per_element`` points (all other elements are wholly inside or
-    outside).  Since the shape functions sum to one, ``sum_i share_i
-    int(phi_i)`` is the target's volume to the sampling error.
-
-    Parameters
-    ----------
-    mesh : Mesh (nodes_mm, elements, measures)
-    inside : callable, points (M, 3) [mm] -> (M,) bool
-    points_per_element : int
-
-    Returns
-    -------
-    (N,) float in [0, 1]
-    """
-    nodes, el = mesh.nodes_mm, mesh.elements
-    at_nodes = np.asarray(inside(nodes), bool)
-    vol = np.asarray(mesh.measures, float)
-    # the cut elements (nodes on both sides) and one ring around them: an element
-    # whose four nodes lie outside can still be crossed by a curved wall
-    mixed = at_nodes[el].any(axis=1) & ~at_nodes[el].all(axis=1)
-    near = np.zeros(len(nodes), bool)
-    near[el[mixed].ravel()] = True
-    cut = near[el].any(axis=1)
-    integral = np.zeros(len(nodes))
-    whole = ~cut
-    np.add.at(integral, el[whole].ravel(),
-              np.repeat(0.25 * vol[whole] * at_nodes[el[whole]].all(axis=1), 4))
-    bary = _simplex_points(int(points_per_element))
-    idx = np.flatnonzero(cut)
-    for chunk in np.array_split(idx, max(1, len(idx) // 20000 + 1)):
-        corners = nodes[el[chunk]]                                     # (C, 4, 3)
-        pts = np.einsum("pk,ckd->cpd", bary, corners).reshape(-1, 3)
-        chi = np.asarray(inside(pts), float).reshape(len(chunk), -1)   # (C, P)
-        share = chi @ bary / len(bary) * vol[chunk, None]              # (C, 4)
-        np.add.at(integral, el[chunk].ravel(), share.ravel())
-    lumped = np.zeros(len(nodes))
-    np.add.at(lumped, el.ravel(), np.repeat(0.25 * vol, 4))
-    return np.clip(integral / np.where(lumped > 0, lumped, 1.0), 0.0, 1.0)
 
 
 def true_emission_fields(fine, true_props, n, src_true, detectors_mm=None, progress=None,

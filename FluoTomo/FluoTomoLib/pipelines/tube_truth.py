@@ -111,7 +111,7 @@ def simulate_truth(phantom, fine_mm=0.8, simulate_coarse_mm=1.5, n_sources=16,
     The whole phantom is meshed on its own (``fine_mm`` [mm] at the raster and
     the tube, capped at the burial depth; ``simulate_coarse_mm`` elsewhere);
     the nodes take the analytic tube's optics (not its voxels) by their share of
-    the tube (:func:`.steps.analytic_fractions`: the true dye, not the 13 % more
+    the tube (``meshing.shares.analytic_fractions``: the true dye, not the 13 % more
     that sampling the tube at the nodes gave at 4.7 mm); the FEM
     emission fields from each laser position (:func:`raster_targets`, where
     the true beam meets the top surface) are kept on the top surface only.
@@ -130,8 +130,8 @@ def simulate_truth(phantom, fine_mm=0.8, simulate_coarse_mm=1.5, n_sources=16,
     SurfaceTruth
     """
     from FluoTomoLib.acquisition.tracked_scan import raster_scan
-    from FluoTomoLib.pipelines.steps import (analytic_fractions, nodal_optics,
-                                             phantom_simulation_mesh, surface_of,
+    from FluoTomoLib.meshing.shares import analytic_fractions
+    from FluoTomoLib.pipelines.steps import (nodal_optics, phantom_simulation_mesh, surface_of,
                                              true_emission_fields)
 
     t0 = time.perf_counter()

@@ -9,20 +9,17 @@ studies' targets), ``spec`` (a study as data, expanded into tasks), ``plots``
 
 from __future__ import annotations
 
-import numpy as np
-
 from fluoguide.runs.engine import run_tasks
 from fluoguide.runs.store import RunStore
 
 from FluoTomoLib.studies.spec import StudySpec, study_spec, study_tasks, sweep_spec
 from FluoTomoLib.studies.thesis import (
     N_SOURCES,
-    YIELD_BG,
-    YIELD_TARGET,
     disc,
     domain_mesh,
     full_depth_mm,
     study_meshes,
+    true_yield,
 )
 
 
@@ -54,7 +51,7 @@ def case_fields(records, arrays=None):
     dim = int(first["dim"])
     data_mesh = domain_mesh(dim, first["data_mm"], full_depth_mm(dim))
     inside, _ = disc(first["diameter_mm"], first["top_depth_mm"], first["inner_diameter_mm"])
-    fields = {"truth": (data_mesh, np.where(inside(data_mesh.nodes_mm), YIELD_TARGET, YIELD_BG))}
+    fields = {"truth": (data_mesh, true_yield(data_mesh, inside))}
     for rec in records:
         a = arrays(rec) if arrays is not None else (rec.get("_arrays") or {})
         if rec["status"] == "ok" and "yield_per_mm" in a:

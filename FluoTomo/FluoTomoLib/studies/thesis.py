@@ -110,6 +110,17 @@ def disc(diameter_mm, top_depth_mm, inner_diameter_mm=0.0):
     return inside, -cy
 
 
+def true_yield(mesh, inside):
+    """The true yield [1/mm] at the nodes of ``mesh``: the background's plus the
+    target's excess by each node's share of the shape (``meshing.shares``), so
+    that the interpolated truth holds the shape's true area (volume in 3D).
+    Sampling the shape at the 0.25 mm data mesh's nodes missed a disc's area by
+    -3.3 to +2.6 % (diameters 2-10 mm, depending on where the nodes fell)."""
+    from FluoTomoLib.meshing.shares import analytic_fractions
+
+    return YIELD_BG + (YIELD_TARGET - YIELD_BG) * analytic_fractions(mesh, inside)
+
+
 def node_regions_from_shape(mesh, inside, supersample=8):
     """Volume-preserving node regions (2 = target, 1 = background) from an
     analytic shape: nodes ranked by the fraction of their h x h cell inside the
@@ -235,7 +246,7 @@ def reconstruction_task(params, data, forward, recon):
     fine = domain_mesh(dim, p["forward_mm"], roi)
     coarse = domain_mesh(dim, p["recon_mm"], roi)
     inside, centre_depth = disc(p["diameter_mm"], p["top_depth_mm"], p["inner_diameter_mm"])
-    truth = np.where(inside(data_mesh.nodes_mm), YIELD_TARGET, YIELD_BG)
+    truth = true_yield(data_mesh, inside)
     y_clean = data["J"] @ truth
     rng = np.random.default_rng(int(p["seed"]))
     y = y_clean * (1.0 + rng.normal(0.0, p["noise_pct"] / 300.0, y_clean.shape))

@@ -96,8 +96,8 @@ def _by(rows, method):
 
 def test_study_b_matches_the_thesis_bounds():
     """Thesis: HP < 1 %, SP < 9 % at every depth 2.5-6.5 mm; NP falls with depth.
-    Here HP's forward-mesh basis leaves -1.8 % (the simulated disc is nodally sampled,
-    2.4 % less area than the volume-preserving prior)."""
+    Here HP's forward-mesh basis leaves +0.8 to +1.1 % (its 0/1 node regions on the
+    0.5 mm forward mesh against the round disc, whose truth holds its true area)."""
     rows = run_study("B")["rows"]
     assert all(abs(r["peak_error_pct"]) < 2.0 for r in _by(rows, "HP"))
     assert all(abs(r["peak_error_pct"]) < 9.0 for r in _by(rows, "SP"))
@@ -120,8 +120,9 @@ def test_hp_basis_and_scheme_options():
     kw = dict(diameter_mm=6, top_depth_mm=3.5, methods=("HP",), meshes=meshes)
     fwd, _ = run_case("x", **kw)
     rec, _ = run_case("x", hp_basis="reconstruction", **kw)
-    # the coarse basis interpolated to the forward mesh misses the disc by ~10 %
-    assert abs(fwd[0]["peak_error_pct"]) < 2 < abs(rec[0]["peak_error_pct"])
+    # the coarse basis interpolated to the forward mesh misses the disc by more
+    # (2026-11-29, the truth's shares: +0.9 % against -1.7 %)
+    assert abs(fwd[0]["peak_error_pct"]) < 1.5 < abs(rec[0]["peak_error_pct"])
     with pytest.raises(FluoInputError, match="scheme"):
         run_case("x", scheme="matlab", **kw)
     with pytest.raises(FluoInputError, match="HP basis"):

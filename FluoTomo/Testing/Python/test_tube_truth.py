@@ -141,14 +141,15 @@ def test_the_stored_truth_matches_a_regeneration():
 
 def test_the_truths_dye_is_the_analytic_targets_wherever_it_sits_on_the_mesh():
     """The simulated phantoms carry their analytic targets' optics by each node's
-    share of the target (pipelines.steps.analytic_fractions): the P1 field of
+    share of the target (meshing.shares.analytic_fractions): the P1 field of
     the shares integrates to the target's true volume on a mesh as coarse as
     the stored truths' (0.8 mm) wherever the target sits on it; sampling the
     indicator at the nodes (what the stored sets of format 1 did) misses by
     up to 13 %.  Checked for a 2.4 mm tube and an ellipsoid against their
     exact volumes."""
     from FluoTomoLib.meshing.structured import box_mesh
-    from FluoTomoLib.pipelines.steps import analytic_fractions, nodal_optics
+    from FluoTomoLib.meshing.shares import analytic_fractions
+    from FluoTomoLib.pipelines.steps import nodal_optics
 
     ax = np.arange(-6.0, 6.0 + 1e-9, 0.8)
     mesh = box_mesh(ax, ax, ax)
