@@ -38,6 +38,7 @@ from FluoTomoLib.meshing.shares import analytic_fractions
 from FluoTomoLib.pipelines.steps import (case_record, method_result, nodal_optics,
                                          phantom_simulation_mesh, reconstruct_from_frames,
                                          render_frames, surface_of, true_emission_fields)
+from FluoTomoLib.recon.self_absorption import SELF_ABSORPTION
 
 
 def _ellipsoid(points_mm, centre, semi_axes):
@@ -151,9 +152,9 @@ def region_results(solved, phantom_optics, names):
 def simulate_and_reconstruct_oral(phantom, fine_mm=1.0, coarse_mm=None, n_sources=16,
                                   source_spacing_mm=1.5, detector_factor=2, exclude_mm=3.0,
                                   methods=("NP", "SP", "HP"), lam=10.0, laser_power_w=0.01,
-                                  tracking=TrackingError(), seed=0, self_absorption=("HP",),
-                                  roi=None, accuracy="balanced", grading=None,
-                                  simulate_coarse_mm=2.0, camera_gain=None,
+                                  tracking=TrackingError(), seed=0,
+                                  self_absorption=SELF_ABSORPTION, roi=None, accuracy="balanced",
+                                  grading=None, simulate_coarse_mm=2.0, camera_gain=None,
                                   camera_offset_adu=100.0, camera_read_noise_adu=2.0,
                                   camera_binning=4, camera_distance_mm=150.0, progress=None,
                                   cancel=None):

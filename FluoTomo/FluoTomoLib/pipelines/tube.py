@@ -40,6 +40,7 @@ from FluoTomoLib.pipelines.steps import (case_record, method_result, reconstruct
 from FluoTomoLib.pipelines.tube_truth import (raster_targets, simulate_truth, stored_truth,
                                               true_yield_at)
 from FluoTomoLib.recon.metrics import depth_profile, peak_and_centroid
+from FluoTomoLib.recon.self_absorption import SELF_ABSORPTION
 
 
 def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
@@ -49,7 +50,7 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
                              camera_binning=4, camera_distance_mm=150.0,
                              camera_read_noise_adu=2.0, tracking=TrackingError(), seed=0,
                              progress=None, cancel=None, recon_labels=None, accuracy="balanced",
-                             simulate_coarse_mm=1.5, self_absorption=("HP",), grading=False,
+                             simulate_coarse_mm=1.5, self_absorption=SELF_ABSORPTION, grading=False,
                              truth="stored"):
     """Run one tube depth through acquisition simulation and NP/SP/HP reconstruction.
 
@@ -67,10 +68,10 @@ def simulate_and_reconstruct(phantom, fine_mm=0.8, coarse_mm=None, n_sources=16,
     priors come from (e.g. the user's segmentation of the CBCT in the app); by
     default the phantom's own labels.  The measurement is always simulated on
     the phantom's truth.  ``self_absorption``: the methods that feed the
-    reconstructed ICG's absorption back (HP only: it took HP's mean absolute
-    yield error over the five depths from 23 % to 5 %, while SP went from 10.5 %
-    to 13.7 %).  ``truth``: ``"stored"`` reads the depth's stored true fields
-    when the simulation options are the stored ones
+    reconstructed ICG's absorption back (``fluo tomo reconstruct``'s default, HP
+    and SP: ``recon.self_absorption.SELF_ABSORPTION``).  ``truth``: ``"stored"``
+    reads the depth's stored true fields when the simulation options are the
+    stored ones
     (:func:`.tube_truth.stored_truth`) and simulates them otherwise;
     ``"simulate"`` always simulates (how the stored sets are made).  Returns a
     dict of numbers, profiles, the reconstruction mesh and fields (RAS) for

@@ -37,6 +37,14 @@ import numpy as np
 from FluoTomoLib.recon.partial_volume import region_unknowns
 from FluoTomoLib.recon.solver import reconstruct
 
+#: the methods that feed the reconstructed dye's absorption back, by default on
+#: every path (``fluo tomo reconstruct``, the logic, the demo's tube and oral
+#: cases): HP and SP. The demo's cases fed back HP only until 2026-11-29, chosen
+#: against a tube truth that held 13 % too much dye; on the honest truth SP
+#: without its feedback read the 4.7 mm tube 24 % low, with it within 1 %
+#: (docs/tomography.md, "SP feeds back its absorption in the demo too")
+SELF_ABSORPTION = ("HP", "SP")
+
 
 def absorbing_mua(mua_bg, yield_nodes, yield_bg, mua_per_yield):
     """Nodal absorption [1/mm]: background plus what the dye in excess of the
@@ -171,9 +179,13 @@ def _soft_prior_feedback(method, J, y, mask, prior, make_model, mua_bg, yield_bg
         report(first, 0.0, "model with HP's dye absorption, its Jacobian")
         model = absorbing_model(make_model, start[0], mua_bg, yield_bg, mua_per_yield, first,
                                 cancel)
-        J0, before = model.jacobian_yield()[mask.ravel()], start[1]
+        J0, before = model.jacobian_yield(mask), start[1]
+        del model           # its fields, before the solve's workspace
     res = reconstruct(J0, y, method, lam=lam, prior=prior, progress=first,
                       region_weights=region_weights, noise_rel=noise_rel)
+    # a pass's M x N Jacobian is not held while the next one is built (the caller
+    # keeps the blind one, J, where it passed it)
+    del J0
     history = [float(np.max(res.yield_per_mm))]
     for k in range(passes):
         check_cancel(cancel)
@@ -182,9 +194,12 @@ def _soft_prior_feedback(method, J, y, mask, prior, make_model, mua_bg, yield_bg
         before = {int(lab): c["mean_yield_per_mm"] for lab, c in res.region_confidence.items()}
         model = absorbing_model(make_model, res.yield_per_mm, mua_bg, yield_bg,
                                 mua_per_yield, step, cancel)
-        res = reconstruct(model.jacobian_yield()[mask.ravel()], y, method, lam=lam,
+        J_k = model.jacobian_yield(mask)
+        del model           # its fields, before the solve's workspace
+        res = reconstruct(J_k, y, method, lam=lam,
                           prior=prior, progress=step, region_weights=region_weights,
                           noise_rel=noise_rel)
+        del J_k
         history.append(float(np.max(res.yield_per_mm)))
     # what the feedback still owes: its last step moved each region by delta (from
     # the blind solve, or from HP's values whose absorption the first solve took);

@@ -699,7 +699,7 @@ class TissueModel:
         HP-only reconstruction never holds these M x N doubles)."""
         if self._J is None:
             t0 = time.perf_counter()
-            self._J = self.model.jacobian_yield()[self.mask.ravel()]
+            self._J = self.model.jacobian_yield(self.mask)
             self.timings["jacobian"] = self.timings.get("jacobian", 0.0) + (
                 time.perf_counter() - t0)
         return self._J

@@ -27,7 +27,7 @@ import numpy as np
 from fluoguide.errors import FluoInputError
 from fluoguide.progress import check_cancel, report, scaled
 
-from FluoTomoLib.recon.self_absorption import converged
+from FluoTomoLib.recon.self_absorption import SELF_ABSORPTION, converged
 from FluoTomoLib.recon.solver import SP_CORRECTION_MAX
 from FluoTomoLib.tomography.labelmap import MAX_OFFSET_MM, place_on_surface
 from FluoTomoLib.tomography.model import move_text
@@ -180,7 +180,7 @@ def _mesh_on(lm, optics, src, det, target, settings, grading, roi, anchor, progr
 
 def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=None,
                          accuracy="balanced", size_mm=None, refine_factor=None, roi_ras=None,
-                         truncation_pct=None, data_model="linear", self_absorption=("HP", "SP"),
+                         truncation_pct=None, data_model="linear", self_absorption=SELF_ABSORPTION,
                          mesh=None, max_offset_mm=MAX_OFFSET_MM, grading=DEFAULT_GRADING,
                          progress=None,
                          cancel=None, noise_pct=None, segmentation_mm=None):
@@ -242,7 +242,7 @@ def reconstruct_labelmap(lm, optics, acquisition, method="HP", lam=None, target=
 def reconstruct_labelmap_methods(lm, optics, acquisition, methods=("NP", "SP", "HP"), lam=None,
                                  target=None, accuracy="balanced", size_mm=None,
                                  refine_factor=None, roi_ras=None, truncation_pct=None,
-                                 data_model="linear", self_absorption=("HP", "SP"), mesh=None,
+                                 data_model="linear", self_absorption=SELF_ABSORPTION, mesh=None,
                                  max_offset_mm=MAX_OFFSET_MM, grading=DEFAULT_GRADING,
                                  progress=None,
                                  cancel=None, noise_pct=None, segmentation_mm=None):

@@ -40,7 +40,7 @@ def _arrays_equal(a, b):
 
 
 @pytest.mark.slow
-@pytest.mark.heavy(gb=4.5)     # two tube cases side by side on Dask workers: 3.3 GB in CI
+@pytest.mark.heavy(gb=4.5)     # two tube cases side by side on Dask workers: 3.6 GB (SP fed back)
 def test_tube_cases_serial_two_workers_and_resume(tmp_path):
     from fluoguide.runs import RunStore, read_table, run_tasks, stable_columns
     from fluoguide.runs.cluster import dask_executor
@@ -103,7 +103,7 @@ def _fluo(*args):
 
 
 @pytest.mark.slow      # three oral cases, two computed (one on a Dask worker): about 2.5 min
-@pytest.mark.heavy(gb=3)     # one oral case at a time, 2.1 GB (/usr/bin/time -v)
+@pytest.mark.heavy(gb=3)     # one oral case at a time: grew 2.4 GB (SP fed back)
 def test_demo_cli_oral_case_on_workers_and_resumed(tmp_path):
     """``fluo demo --workers``: the oral-cavity case on a local Dask cluster gives
     the serial demo's numbers; ``--resume`` reuses the finished case."""

@@ -132,3 +132,24 @@ def test_cli_forward_bad_input(tmp_path, capsys):
     (tmp_path / "s.csv").write_text("3,5\n")
     assert main(args) == 2
     assert "2D but the mesh is 3D" in capsys.readouterr().err
+
+
+def test_the_used_pairs_jacobian_is_the_whole_ones_rows():
+    """``jacobian_yield(mask)`` computes only the used pairs' rows, source by source
+    (the self-absorption passes and the tissue model never hold the unused ones):
+    the same numbers as the whole block's rows, for a ragged mask."""
+    from FluoTomoLib.fem.forward import FluorescenceModel
+    from FluoTomoLib.meshing.structured import slab_mesh
+
+    mesh = slab_mesh(20.0, 10.0, 1.0)
+    src = np.array([[x, 0.0, 0.0] for x in (-6.0, -2.0, 3.0)])
+    det = np.array([[x, 2.0, 0.0] for x in (-7.0, -4.0, 0.0, 4.0, 7.0)])
+    p = {"mua_per_mm": 0.01, "musp_per_mm": 1.0, "n": 1.4}
+    fm = FluorescenceModel(mesh, p, p, src, det)
+    mask = np.zeros((3, 5), bool)
+    mask[0, [0, 3]] = True
+    mask[2, :] = True                   # source 1: no pair used
+    whole = fm.jacobian_yield()
+    used = fm.jacobian_yield(mask)
+    assert used.shape == (int(mask.sum()), mesh.n_nodes) and used.flags.c_contiguous
+    np.testing.assert_allclose(used, whole[mask.ravel()], rtol=1e-12, atol=0)

@@ -125,8 +125,9 @@ class _FakeModel:
     def emission_data(self, basis):
         return self.B1 * float(np.sum(basis[:3])) + self.B2 * float(np.sum(basis[3:])) * self.g
 
-    def jacobian_yield(self):
-        return np.stack([self.emission_data(e).ravel() for e in np.eye(6)], axis=1)
+    def jacobian_yield(self, mask=None):
+        J = np.stack([self.emission_data(e).ravel() for e in np.eye(6)], axis=1)
+        return J if mask is None else J[np.asarray(mask, bool).ravel()]
 
 
 def _two_regions():
