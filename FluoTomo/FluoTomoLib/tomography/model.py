@@ -1072,9 +1072,9 @@ class TissueModel:
     def solve(self, y, method="HP", lam=10.0, self_absorption=("HP",), log_data=False,
               cancel=None, progress=None, noise_rel=None, start=None):
         """NP / SP / HP of the used data ``y``; the methods in ``self_absorption``
-        (HP by default: it took the tube's HP from 23 % to 5 % mean error, SP from
-        10.5 % to 13.7 %) feed the fluorophore's absorption back when the optics
-        give its slopes. ``noise_rel``: the data's relative noise (a fraction; None:
+        (HP by default here; the reconstructions pass
+        ``recon.self_absorption.SELF_ABSORPTION``, HP and SP) feed the fluorophore's
+        absorption back when the optics give its slopes. ``noise_rel``: the data's relative noise (a fraction; None:
         unknown), against which the solver tests its fit. ``start``: SP's feedback
         starts from this converged HP result's absorption (``reconstruct_self_absorbing``).
         Returns (ReconResult, per-pass peaks)."""

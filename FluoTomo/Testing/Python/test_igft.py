@@ -69,10 +69,14 @@ def test_oral_truth_and_line():
 @pytest.mark.parametrize("depth_mm", [5.7])
 def test_tracked_tube_intervals_hold_the_truth_without_a_noise_statement(depth_mm):
     """`fluo demo`'s tube case (balanced, stored truth, tracked frames: no noise
-    statement). At 5.7 mm SP's value is -16 %, HP's +20 %; SP's interval used to
-    end at -8 % with no warning: the misfit was counted as noise only (no bound
+    statement). At 5.7 mm SP's value was -16 %, HP's +20 % (the truth then held 13 %
+    too much dye and SP ran blind; now HP +7 %, SP's value +5 %); SP's interval used
+    to end at -8 % with no warning: the misfit was counted as noise only (no bound
     for the model's error without a noise statement) and SP's interval did not
-    reach the regions-as-constants fit (HP) that its corrected value estimates."""
+    reach the regions-as-constants fit (HP) that its corrected value estimates.
+    That part is HP's value in the segmentation test's unmoved solve less SP's,
+    within 3 % of the truth of the quoted HP's (the two HP solves differ by the
+    coupling and the quoted boundary; the difference itself is now small)."""
     from FluoTomoLib.pipelines.cases import tube_case
 
     rec = tube_case({"depth_mm": depth_mm, "seed": 0, "accuracy": "balanced",
@@ -86,4 +90,4 @@ def test_tracked_tube_intervals_hold_the_truth_without_a_noise_statement(depth_m
         assert r["interval_parts"]["model_error_bound_per_mm"] > 0
     sp = res["SP"]["regions"]["2"]
     assert sp["interval_parts"]["region_fit_difference_per_mm"] == pytest.approx(
-        res["HP"]["regions"]["2"]["yield_per_mm"] - sp["yield_per_mm"], rel=0.3)
+        res["HP"]["regions"]["2"]["yield_per_mm"] - sp["yield_per_mm"], abs=0.03 * truth)
