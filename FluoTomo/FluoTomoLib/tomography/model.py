@@ -1074,9 +1074,10 @@ class TissueModel:
         """NP / SP / HP of the used data ``y``; the methods in ``self_absorption``
         (HP by default here; the reconstructions pass
         ``recon.self_absorption.SELF_ABSORPTION``, HP and SP) feed the fluorophore's
-        absorption back when the optics give its slopes. ``noise_rel``: the data's relative noise (a fraction; None:
-        unknown), against which the solver tests its fit. ``start``: SP's feedback
-        starts from this converged HP result's absorption (``reconstruct_self_absorbing``).
+        absorption back when the optics give its slopes. ``noise_rel``: the data's
+        relative noise (a fraction; None: unknown), against which the solver tests
+        its fit. ``start``: SP's feedback starts from this converged HP result's
+        absorption (``reconstruct_self_absorbing``).
         Returns (ReconResult, per-pass peaks)."""
         from FluoTomoLib.recon.self_absorption import reconstruct_self_absorbing
         from FluoTomoLib.recon.solver import reconstruct

@@ -135,8 +135,8 @@ def test_cli_forward_bad_input(tmp_path, capsys):
 
 
 def test_the_used_pairs_jacobian_is_the_whole_ones_rows():
-    """``jacobian_yield(mask)`` computes only the used pairs' rows, source by source
-    (the self-absorption passes and the tissue model never hold the unused ones):
+    """``jacobian_yield(mask)`` computes only the used pairs' rows, a group of sources
+    at a time (the self-absorption passes and the tissue model never hold the unused ones):
     the same numbers as the whole block's rows, for a ragged mask."""
     from FluoTomoLib.fem.forward import FluorescenceModel
     from FluoTomoLib.meshing.structured import slab_mesh

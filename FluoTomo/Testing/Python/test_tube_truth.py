@@ -149,7 +149,7 @@ def test_the_truths_dye_is_the_analytic_targets_wherever_it_sits_on_the_mesh():
     exact volumes."""
     from FluoTomoLib.meshing.structured import box_mesh
     from FluoTomoLib.meshing.shares import analytic_fractions
-    from FluoTomoLib.pipelines.steps import nodal_optics
+    from FluoTomoLib.pipelines.steps import OPTICS_KEYS, nodal_optics
 
     ax = np.arange(-6.0, 6.0 + 1e-9, 0.8)
     mesh = box_mesh(ax, ax, ax)
@@ -179,10 +179,7 @@ def test_the_truths_dye_is_the_analytic_targets_wherever_it_sits_on_the_mesh():
         sampled = inside(mesh.nodes_mm, offset).astype(float)
         errors_at_nodes.append(abs(p1_integral(sampled) / exact - 1))
         # the shares mix the two regions' optics linearly
-        optics = {1: {k: 1.0 for k in ("mua_x_per_mm", "musp_x_per_mm", "mua_m_per_mm",
-                                      "musp_m_per_mm", "yield_per_mm")},
-                  2: {k: 3.0 for k in ("mua_x_per_mm", "musp_x_per_mm", "mua_m_per_mm",
-                                      "musp_m_per_mm", "yield_per_mm")}}
+        optics = {1: dict.fromkeys(OPTICS_KEYS, 1.0), 2: dict.fromkeys(OPTICS_KEYS, 3.0)}
         mixed = nodal_optics(None, optics, share)
         np.testing.assert_allclose(mixed["yield_per_mm"], 1.0 + 2.0 * share)
     # the check can fail: sampling at the nodes is measurably off on this mesh
