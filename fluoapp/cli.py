@@ -127,9 +127,11 @@ MEMORY_REPORTED = ("demo", "study", "forward", "mesh", "tomo", "validate", "phan
 
 
 def main(argv=None):
+    from fluoguide.memory import hand_back_large_blocks
     from fluoguide.progress import mark_command_start
 
     mark_command_start()
+    hand_back_large_blocks()       # before the work's first large arrays
     parser = build_parser()
     _quiet_vtk()
     args = parser.parse_args(argv)

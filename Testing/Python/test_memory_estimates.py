@@ -93,3 +93,33 @@ def test_available_memory_counts_the_data_segment_limit():
 
     if resource.getrlimit(resource.RLIMIT_DATA)[0] == resource.RLIM_INFINITY:
         assert available_bytes() > 2 << 30
+
+
+_FREED = """
+import sys
+import numpy as np
+from fluoguide.memory import hand_back_large_blocks
+def rss():
+    return int(open("/proc/self/status").read().split("VmRSS:")[1].split()[0]) * 1024
+set_ = hand_back_large_blocks() if sys.argv[1] == "1" else None
+base, keep = rss(), []
+for _ in range(6):
+    a = np.ones(3 << 20)       # 24 MB, freed below
+    keep.append(np.ones(1024))  # a small block after it on the heap
+    del a
+print(set_, (rss() - base) / 1e6)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
+def test_freed_large_arrays_leave_the_process():
+    """The CLI's allocator setting (``memory.hand_back_large_blocks``): a 24 MB array
+    freed, with small blocks allocated after it, gives its pages back; glibc's default
+    (its threshold raised by the first such array freed) keeps one on the heap, where
+    the peak resident memory counts it after it is gone."""
+    runs = {flag: subprocess.run([sys.executable, "-c", _FREED, flag], capture_output=True,
+                                 text=True, check=True).stdout.split()
+            for flag in ("0", "1")}
+    assert runs["1"][0] == "True"
+    assert float(runs["1"][1]) < 5.0, runs
+    assert float(runs["0"][1]) > 20.0, runs          # the default: what this changes

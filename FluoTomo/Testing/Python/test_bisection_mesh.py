@@ -343,27 +343,51 @@ def test_a_section_image_is_the_point_interpolation_at_its_pixels():
         "HP"]).sum() > 100
 
 
-def test_cell_shares_are_the_trilinear_indicators_mean():
-    """The compiled quadrature of a node cell's region shares is the mean, over
-    the midpoint grid, of each region's indicator interpolated trilinearly with
-    the edge held (scipy's map_coordinates, order 1, mode "nearest"), labels
-    outside the asked ones (air) counting for none."""
+def _shares_against_reference(lab, spacing, origin, lo, hi, samples):
+    """The compiled shares of labels 1 and 3 (others, air among them, count for
+    none) checked against scipy's trilinear indicators (map_coordinates, order 1,
+    mode "nearest") averaged over each cell's midpoint grid; returns them."""
     from scipy import ndimage
 
     from FluoTomoLib.meshing.voxel import cell_region_shares
 
-    rng = np.random.default_rng(9)
-    lab = rng.integers(0, 4, (9, 11, 7))
-    col = {1: 0, 3: 1}
     sub_col = np.where(lab == 1, 0, np.where(lab == 3, 1, -1)).astype(np.int32)
-    spacing, origin = np.array([0.8, 0.5, 0.6]), np.array([1.0, -2.0, 0.5])     # k, j, i
-    lo = origin + rng.uniform(-1.0, 4.0, (50, 3))
-    hi = lo + rng.uniform(0.2, 2.5, (50, 3))
-    got = cell_region_shares(sub_col, origin, spacing, lo, hi, 4, 2)
-    t = (np.arange(4) + 0.5) / 4
+    got = cell_region_shares(sub_col, origin, spacing, lo, hi, samples, 2)
+    t = (np.arange(samples) + 0.5) / samples
     g = np.stack(np.meshgrid(t, t, t, indexing="ij"), axis=-1).reshape(-1, 3)
     pts = (lo[:, None, :] + g[None] * (hi - lo)[:, None, :]).reshape(-1, 3)
-    for v, c in col.items():
+    for v, c in ((1, 0), (3, 1)):
         ref = ndimage.map_coordinates((lab == v).astype(float), ((pts - origin) / spacing).T,
-                                      order=1, mode="nearest").reshape(50, -1).mean(axis=1)
+                                      order=1, mode="nearest").reshape(len(lo), -1).mean(axis=1)
         np.testing.assert_allclose(got[:, c], ref, atol=1e-12)
+    return got
+
+
+def test_cell_shares_are_the_trilinear_indicators_mean():
+    """The compiled quadrature of a node cell's region shares is the mean, over
+    the midpoint grid, of each region's indicator interpolated trilinearly with
+    the edge held, labels outside the asked ones (air) counting for none."""
+    rng = np.random.default_rng(9)
+    lab = rng.integers(0, 4, (9, 11, 7))
+    spacing, origin = np.array([0.8, 0.5, 0.6]), np.array([1.0, -2.0, 0.5])     # k, j, i
+    lo = origin + rng.uniform(-1.0, 4.0, (50, 3))
+    _shares_against_reference(lab, spacing, origin, lo, lo + rng.uniform(0.2, 2.5, (50, 3)), 4)
+
+
+def test_cell_shares_of_pure_cells_take_the_short_way():
+    """Cells whose samples' trilinear stencils see one label only (most of those the
+    partial volumes pass to the kernel near a target) are that label's alone, or
+    nobody's in air: the same shares as the full quadrature, to rounding, on a map of
+    blocks where cells fall inside, across and beyond (edge held) each block."""
+    lab = np.zeros((20, 24, 18), int)
+    lab[2:12, 3:20, 2:16] = 1
+    lab[12:18, 3:20, 2:16] = 3
+    spacing, origin = np.array([0.5, 0.4, 0.6]), np.array([0.0, 1.0, -1.0])     # k, j, i
+    rng = np.random.default_rng(4)
+    lo = origin + rng.uniform(-1.0, 9.0, (400, 3))
+    got = _shares_against_reference(lab, spacing, origin, lo,
+                                     lo + rng.uniform(0.2, 1.2, (400, 3)), 5)
+    whole = np.isclose(got, 1.0, atol=1e-12).any(axis=1)
+    empty = (got == 0).all(axis=1)
+    mixed = ~whole & ~empty
+    assert whole.sum() > 60 and empty.sum() > 20 and mixed.sum() > 50
