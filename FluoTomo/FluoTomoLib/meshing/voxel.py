@@ -679,7 +679,8 @@ def nodal_volumes(mesh):
                        minlength=mesh.n_nodes)
 
 
-def node_regions_volume_preserving(mesh, labels_kji, spacing_mm, origin_mm, background=1):
+def node_regions_volume_preserving(mesh, labels_kji, spacing_mm, origin_mm, background=1,
+                                   cover=None):
     """Region of each node of a (coarse) mesh such that every region's nodes carry
     its label-map volume.
 
@@ -690,6 +691,14 @@ def node_regions_volume_preserving(mesh, labels_kji, spacing_mm, origin_mm, back
     ranked by how much of their cell the region covers, and the best-covered
     ones are taken until their volumes add up to the region's volume inside
     the mesh.  The remaining nodes get ``background``.
+
+    ``cover``: (labels, F) each node's share of each region over its own cell
+    (``tomography.model.membership``) to rank the nodes by, instead of the label
+    map averaged over a box of the mesh's nominal size at the node. On a mesh
+    graded by bisection that box is not the node's cell: near a target the
+    nodes are finer than the nominal size, and ranked by the one voxel under
+    each (a box of 1.0 mm on 0.8 mm voxels) the candidates ran out at 86 % of a
+    2.4 mm tube's volume (the demo's tube cases: -13 to -15 %).
     """
     from scipy import ndimage
 
@@ -714,8 +723,11 @@ def node_regions_volume_preserving(mesh, labels_kji, spacing_mm, origin_mm, back
     for r in sorted(labs, key=lambda k: targets[k]):
         if targets[r] == 0:
             continue
-        cover = ndimage.uniform_filter((labels == r).astype(np.float32), size=size)
-        c = cover[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+        if cover is None:
+            c = ndimage.uniform_filter((labels == r).astype(np.float32),
+                                       size=size)[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+        else:
+            c = np.asarray(cover[1], float)[:, list(cover[0]).index(r)].copy()
         c[taken] = -1
         order = np.argsort(-c, kind="stable")
         order = order[c[order] > 0]

@@ -774,8 +774,11 @@ class TissueModel:
         if basis_only:
             return PartialVolumePrior(self.prior.node_region, self.region_labels,
                                       fractions), None
-        node_region = node_regions_volume_preserving(self.mesh, labels_kji, sp, org,
-                                                     background=self.background)
+        # ranked by the partial volumes where the mesh is graded by bisection (the
+        # nominal element size is not its nodes' cells there)
+        node_region = node_regions_volume_preserving(
+            self.mesh, labels_kji, sp, org, background=self.background,
+            cover=(labs, fractions) if graded_node_cells(self.mesh) is not None else None)
         return (PartialVolumePrior(node_region, self.region_labels, fractions),
                 label_mean_weights(self.mesh, labels_kji, sp, org, self.region_labels))
 
