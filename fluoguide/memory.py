@@ -162,11 +162,10 @@ def hand_back_large_blocks(threshold=LARGE_BLOCK_BYTES):
     glibc's default raises its mapping threshold to the size of each mapped block
     freed (up to 32 MiB), so after the first 20-30 MB arrays come and go (fields,
     factor workspaces) later ones are carved from the heap and its pages stay with
-    the process: the peak resident memory then counts arrays long freed. Fixed at
-    16 MiB (the heap trimmed above 32 MiB free), ``fluo tomo reconstruct`` on the
-    70 x 60 x 40 mm label map of docs/tomography-own-scene.md peaked 30-40 MB lower
-    in the same time; a lower threshold (1-4 MiB) saved more and cost 5-7 % of the
-    time in page faults (docs/changelog.md, 2026-11-30)."""
+    the process: the peak resident memory then counts arrays long freed. The CLI
+    fixes it at 16 MiB: lower thresholds saved a little more and paid for it in page
+    faults (docs/changelog.md, 2026-11-30, measures both). Dask workers take 64 MiB
+    (``runs.engine.prepare_worker``)."""
     import ctypes
     import sys
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import os
 import socket
-import sys
 import time
 import traceback
 
@@ -54,20 +53,13 @@ def prepare_worker(names):
     allocations up to 64 MiB and trimming above 128 MiB restore the plain
     process's speed. glibc only; elsewhere nothing is changed.
     """
-    import ctypes
     import importlib
+
+    from fluoguide.memory import hand_back_large_blocks
 
     for name in names:
         importlib.import_module(name)
-    relaxed = False
-    if os.environ.get("MALLOC_TRIM_THRESHOLD_") and sys.platform.startswith("linux"):
-        try:
-            libc = ctypes.CDLL("libc.so.6")
-            m_trim_threshold, m_mmap_threshold = -1, -3          # glibc malloc.h
-            relaxed = bool(libc.mallopt(m_mmap_threshold, 64 << 20)
-                           and libc.mallopt(m_trim_threshold, 128 << 20))
-        except (OSError, AttributeError):
-            relaxed = False
+    relaxed = bool(os.environ.get("MALLOC_TRIM_THRESHOLD_")) and hand_back_large_blocks(64 << 20)
     return {"modules": len(names), "malloc_relaxed": relaxed}
 
 

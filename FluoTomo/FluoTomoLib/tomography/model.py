@@ -331,7 +331,7 @@ def _node_spacing(mesh):
     size = np.cbrt(6.0 * vol)
     el = mesh.elements.ravel()
     corners = mesh.elements.shape[1]
-    # bincount, not np.add.at: the same sums in a twentieth of the time
+    # bincount, not np.add.at: the same sums, an order of magnitude faster
     num = np.bincount(el, weights=np.repeat(vol * size, corners), minlength=mesh.n_nodes)
     den = np.bincount(el, weights=np.repeat(vol, corners), minlength=mesh.n_nodes)
     out = num / np.maximum(den, 1e-300)
