@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from dask_processes import DaskProcesses, stop_process
@@ -190,3 +191,26 @@ def test_a_sweep_on_a_dask_scheduler_and_workers_started_as_processes(tmp_path):
     rows = [[[x[c] for c in keep] for x in t[1]] for t in tables]
     assert rows[0] == rows[1] == rows[2]
     assert dask.scheduler.poll() is not None and dask.workers.poll() is not None
+
+
+def _with_arrays(params):
+    rng = np.random.default_rng(params["seed"])
+    return {"n": 3, "arrays": {"field": rng.normal(size=(40, 3)),
+                               "mask": rng.random(7) > 0.5,
+                               "index": np.arange(5, dtype="int32")}}
+
+
+def test_task_arrays_round_trip_in_an_npz_numpy_reads(tmp_path):
+    """A task's arrays are stored as a deflated .npz (a lighter level than numpy's own
+    savez_compressed) and come back equal, dtypes kept, through the store and np.load."""
+    store = RunStore(tmp_path)
+    out = run_tasks([Task(_with_arrays, {"seed": 4})], store=store)
+    rec = out["records"][0]
+    got = store.arrays(rec)
+    want = _with_arrays({"seed": 4})["arrays"]
+    assert set(got) == set(want)
+    for k, v in want.items():
+        assert got[k].dtype == v.dtype
+        np.testing.assert_array_equal(got[k], v)
+    with np.load(tmp_path / "tasks" / rec["arrays"]) as z:
+        np.testing.assert_array_equal(z["field"], want["field"])

@@ -78,6 +78,23 @@ def row_of(record):
     return row
 
 
+
+#: deflate level of a task's arrays: 1 writes the demo's float fields 7x faster
+#: than numpy's savez_compressed (level 6) for a 9 % larger file (the oral case's
+#: 27.5 MB: 0.19 s and 6.0 MB against 1.28 s and 5.5 MB)
+ARRAY_COMPRESSION = 1
+
+
+def _save_arrays(fh, arrays):
+    """``arrays`` ({name: array}) into the open binary file ``fh`` as numpy's .npz
+    (a zip of .npy members, read back by np.load) at ARRAY_COMPRESSION."""
+    import zipfile
+
+    with zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, compresslevel=ARRAY_COMPRESSION) as zf:
+        for name, value in arrays.items():
+            with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+
 class RunStore:
     """One run's folder (see the module docstring).
 
@@ -135,7 +152,7 @@ class RunStore:
             name = f"{task.id}.npz"
             with atomic_path(self.tasks_dir / name) as tmp:
                 with open(tmp, "wb") as fh:
-                    np.savez_compressed(fh, **{k: np.asarray(v) for k, v in arrays.items()})
+                    _save_arrays(fh, arrays)
             rec["arrays"] = name
         rec = to_jsonable(rec)
         with atomic_path(self.record_path(task.id)) as tmp:

@@ -411,9 +411,12 @@ def reconstruct(J, y, method="NP", lam=10.0, prior=None, x0=None, max_iter=40, r
     # noise cannot explain (the model's own error, in the data's units)
     resolution = None if relinearise else _resolution(
         run, method, prior, K, x_start, lam, lambda_decay, progress, max_iter, cancel)
+    gain = None if relinearise or run.system[4] is None else _iterated_gain(
+        method, prior, run.Jm, len(run.history) - 1, lam, lambda_decay,
+        {run.lam: run.system[3:]})
     s_fit, excess = _model_excess(run.resid, y, sigma, log_data, b_exp, diag["residual_dof"])
     res = _result(run, method, lam, prior, K, x_exp, b_exp, diag, warn, resolution, excess,
-                  s_fit, region_weights, t0)
+                  s_fit, region_weights, t0, gain)
     if optodes is not None and method == "HP" and not log_data:
         from FluoTomoLib.recon.coupling import optode_coupling
 
@@ -431,14 +434,25 @@ def _unknowns_matrix(J, K, region_jacobian, prior):
     return A
 
 
+#: the solver works on the caller's matrix A as it is where its largest entry lies
+#: within 2^-this .. 2^this (J^T J and the damping then stay far from under- and
+#: overflow); beyond, on a scaled copy (:func:`_exact_scaling`)
+SCALE_FREE_EXP = 100
+
+
 def _exact_scaling(A, y, log_data):
     """Work with A / 2^a and y / 2^b (x scaled by 2^(a-b)): exact in floating
     point, so results are bit for bit those of the unscaled problem, but a
     Jacobian in units that make J^T J underflow (1e-160) or overflow still
     works; log data are fitted as they are (a scale is a shift of ln y).
+    A is scaled only where its largest entry is beyond 2^+-SCALE_FREE_EXP
+    (a = 0 and A itself otherwise, never written to): the scaled copy of an SP
+    Jacobian is an M x N array beside the caller's at the solver's peak.
     Returns (A_s, y_s, x_exp, b_exp): x_scaled = x * 2^x_exp, y_s = y / 2^b_exp."""
     a_exp = int(np.frexp(np.max(np.abs(A)))[1])
     b_exp = 0 if log_data else int(np.frexp(np.max(np.abs(y)))[1])
+    if abs(a_exp) <= SCALE_FREE_EXP:
+        return A, np.ldexp(y, -b_exp), -b_exp, b_exp
     return np.ldexp(A, -a_exp), np.ldexp(y, -b_exp), a_exp - b_exp, b_exp
 
 
@@ -612,10 +626,10 @@ def _model_excess(resid, y, sigma, log_data, b_exp, dof):
 
 
 def _result(run, method, lam, prior, K, x_exp, b_exp, diag, warn, resolution, excess, s_fit,
-            region_weights, t0):
+            region_weights, t0, gain=None):
     """The :class:`ReconResult` in the caller's units: the nodal yield [1/mm], each
-    region's confidence (:func:`_region_confidence`) and the residual history in
-    the data's units."""
+    region's confidence (:func:`_region_confidence`, with the iterations' ``gain``)
+    and the residual history in the data's units."""
     col, Jc, Rinv, _, ds = run.system
     x = np.ldexp(run.x, -x_exp)
     x_nodes = K @ x if K is not None else x
@@ -625,7 +639,7 @@ def _result(run, method, lam, prior, K, x_exp, b_exp, diag, warn, resolution, ex
                               x_scale=2.0 ** (-x_exp), region_weights=region_weights,
                               region_values=x if K is not None else None,
                               resolution=resolution, x_scaled=np.ldexp(x, x_exp),
-                              model_excess=excess, noise_sd=s_fit)
+                              model_excess=excess, noise_sd=s_fit, gain=gain)
     diag.pop("noise_variance_fit", None)
     history = [float(np.ldexp(h, 2 * b_exp)) for h in run.history]    # in the data's units
     return ReconResult(method, float(lam), x_nodes, run.it, history, time.perf_counter() - t0,
@@ -683,6 +697,42 @@ def _unresolved_fixed(method, prior, Jm, V, n, lam, cache, progress, cancel):
         z = ds.solve(z)
         acc += z
     return V - RJt @ acc
+
+
+def _iterated_gain(method, prior, Jm, iterations, lam, decay, cache):
+    """w -> g (M,): the weights of the data in w^T x_k, x_k the result of the damped
+    iterations (linear data, ``iterations`` steps from a start that does not depend
+    on the data; damping lambda / decay^(j-1) at step j): the estimator's gain, for
+    its noise SD under the stated noise and its model error bound.
+
+    Step j is x_j = x_{j-1} + M_j (y - J x_{j-1}), M_j = R_j^-1 J^T S_j^-1, so
+    w^T x_k = ... + sum_j a_j^T y with a_j = S_j^-1 J R_j^-1 u_j, u_k = w and
+    u_{j-1} = u_j - J^T a_j. With one damping (NP, SP) J R^-1 u_{j-1} = a_j, so
+    g = sum_{j=1..k} S^-j J R^-1 w: k data-space solves. One step's gain
+    S^-1 J R^-1 w (the damped estimator at the last damping) understated HP's
+    spread over 200 noise draws by 1.33x (docs/reconstruction.md, "Intervals")."""
+    n = max(int(iterations), 1)
+    if float(decay) == 1.0:
+        RJt, ds, _ = _replay_system(method, prior, Jm, float(lam), cache)
+
+        def fixed(w):
+            z, g = RJt.T @ w, 0.0
+            for _ in range(n):
+                z = ds.solve(z)
+                g = g + z
+            return g
+        return fixed
+    lams = [float(lam) / float(decay) ** j for j in range(n)]
+
+    def decaying(w):
+        u, g, c = np.array(w, float), 0.0, dict(cache)
+        for lam_j in reversed(lams):
+            RJt, ds, c = _replay_system(method, prior, Jm, lam_j, c)
+            a = ds.solve(RJt.T @ u)
+            g = g + a
+            u = u - Jm.T @ a
+        return g
+    return decaying
 
 
 #: two-sided 95 % point of the normal distribution: the intervals' noise part
@@ -1282,7 +1332,7 @@ def _sp_value(row, corrected):
 def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof=None,
                        noise_var=None, undetermined=False, x_scale=1.0, region_weights=None,
                        region_values=None, resolution=None, x_scaled=None,
-                       model_excess=None, noise_sd=None):
+                       model_excess=None, noise_sd=None, gain=None):
     """Per-region mean yield and its standard deviation from the regularised
     Hessian H = J^T J + R:  var(w^T x) = sigma^2 w^T H^-1 w, w = region-averaging
     weights, sigma^2 the residual variance rss / (M - p) with p the effective
@@ -1348,12 +1398,15 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
             Rinv_w = Rinv(w)
             JRw = A @ Rinv_w
             SJRw = ds.solve(JRw)
+            # the estimator's gain: the whole run's (:func:`_iterated_gain`), else its
+            # last step's, g = J H^-1 w = S^-1 J R^-1 w
+            g = SJRw if gain is None else gain(w)
             if noise_sd is not None:
                 # the stated noise, measurement by measurement: the solver fits
                 # unweighted, so the largest data (and their largest noise) carry
-                # the estimate; var = sum (sigma_i g_i)^2, g = J H^-1 w = S^-1 J R^-1 w
+                # the estimate; var = sum (sigma_i g_i)^2
                 # (a single mean variance understated HP's SD 2.5x: 57 % coverage)
-                var = float(np.sum((noise_sd * SJRw) ** 2))
+                var = float(np.sum((noise_sd * g) ** 2))
             else:
                 var = float(w @ Rinv_w - JRw @ SJRw) * sigma2
             sd = float(np.sqrt(max(var, 0.0))) * x_scale
@@ -1362,7 +1415,7 @@ def _region_confidence(A, Rinv, ds, resid, prior, x_nodes, method, col=None, dof
         c = None if corrected is None else float(corrected[r])
         if np.isfinite(sd):
             bound = None if model_excess is None else \
-                float(np.linalg.norm(SJRw)) * model_excess * x_scale
+                float(np.linalg.norm(g)) * model_excess * x_scale
             row.update({"ci95_yield_per_mm": _interval(mean, sd, c, bound),
                         "resolution_corrected_per_mm": c, "model_error_bound_per_mm": bound})
         else:

@@ -624,8 +624,9 @@ class TissueModel:
         label map, where the tissue goes on (``LabelMap.cut_facets``); default none
     progress : progress(fraction, message) of building the Jacobian (each step:
         factorisation and solves of either wavelength, the kernel)
-    nodal_jacobian : build the (M, N) Jacobian now (NP, SP); False: on first use
-        of ``J`` only (HP alone needs the fields and :meth:`region_matrix`)
+    nodal_jacobian : build the (M, N) Jacobian now (NP); False: on first use of
+        ``J`` only (:meth:`nodal_J`: HP alone needs the fields and
+        :meth:`region_matrix`, SP fed back from HP's absorption its own Jacobians)
     fields : solve the fields now (False: a caller that builds its own models
         with the dye's absorption first)
     soft_prior : build the soft prior's volume-preserving node regions and the
@@ -711,6 +712,20 @@ class TissueModel:
             self.timings["jacobian"] = self.timings.get("jacobian", 0.0) + (
                 time.perf_counter() - t0)
         return self._J
+
+    def nodal_J(self, progress=None):
+        """:attr:`J`, built now if it was not (SP's feedback started from HP's
+        absorption never needs it: only NP, SP without that start, and a diverged
+        HP's SP do), its kernel reported at the start of ``progress``'s bar."""
+        from fluoguide.progress import scaled
+
+        if self._J is not None or progress is None:
+            return self.J
+        self.model.progress = scaled(progress, 0.0, 0.0, "the Jacobian without the dye")
+        try:
+            return self.J
+        finally:
+            self.model.progress = None
 
     def region_matrix(self, prior, model=None):
         """(M, R) the used data's sensitivity to each region's yield for HP's basis
@@ -877,9 +892,9 @@ class TissueModel:
                 res = self._solve_hp(prior, y, lam, log_data, noise_rel, cancel, part, model,
                                      coupled=SEGMENTATION_COUPLING)
             else:
-                res = reconstruct(self.J, y, method, lam=lam, prior=prior, log_data=log_data,
-                                  region_weights=weights, noise_rel=noise_rel, cancel=cancel,
-                                  progress=part)
+                res = reconstruct(self.nodal_J(part), y, method, lam=lam, prior=prior,
+                                  log_data=log_data, region_weights=weights,
+                                  noise_rel=noise_rel, cancel=cancel, progress=part)
             return res, region_values(res)
 
         res0, base = solve((0.0, first / parts), "as segmented", self.prior,
@@ -1104,7 +1119,10 @@ class TissueModel:
         if feed:
             hp = method == "HP"
             res, passes = reconstruct_self_absorbing(
-                method, None if hp else self.J, y, self.mask, self.prior, self.make_model,
+                # SP started from HP's absorption builds its own Jacobians: the blind
+                # one (0.2 GB and 3 s on the 70 x 60 x 40 mm scene) only without that start
+                method, None if hp or start is not None else self.nodal_J(progress), y,
+                self.mask, self.prior, self.make_model,
                 (0.0, 0.0), 0.0, slopes, lam=lam, cancel=cancel, progress=progress,
                 region_weights=self.region_weights, noise_rel=noise_rel,
                 region_matrix=self.region_matrix(self.prior) if hp else None,
@@ -1114,7 +1132,8 @@ class TissueModel:
             res = self._solve_hp(self.prior, y, lam, log_data, noise_rel, cancel, progress)
             passes = []
         else:
-            res = reconstruct(self.J, y, method=method, lam=lam, prior=self.prior,
+            res = reconstruct(self.nodal_J(progress), y, method=method, lam=lam,
+                              prior=self.prior,
                               log_data=log_data, cancel=cancel, progress=progress,
                               region_weights=self.region_weights, noise_rel=noise_rel)
             passes = []

@@ -60,6 +60,8 @@ def grade_scene(scene, methods=("HP", "SP"), accuracy="balanced", engine="fem",
                    "error_pct": None if val is None else 100.0 * (val - truth) / truth,
                    "resolution_corrected_error_pct": None if corr is None else
                    100.0 * (corr - truth) / truth,
+                   # SP: its image's mean over the label, beside the value it quotes
+                   "image_mean_per_mm": r.get("image_mean_per_mm"),
                    "sd_pct": None if not r.get("sd_per_mm") or not np.isfinite(
                        r["sd_per_mm"]) else 100.0 * r["sd_per_mm"] / truth,
                    "ci95_per_mm": ci,

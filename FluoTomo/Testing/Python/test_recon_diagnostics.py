@@ -148,6 +148,26 @@ def test_exact_rescaling_extreme_jacobian_units(independent):
                                ref.residual_history, rtol=1e-6)
 
 
+def test_a_jacobian_in_ordinary_units_is_not_copied(independent):
+    """The rescaling copies J only where its units need it: an SP Jacobian (M x N)
+    in ordinary units is used as the caller gave it (a copy was one more M x N
+    array at the solver's peak), never written to, and the result is bit for bit
+    that of units 2^-500 smaller (which are rescaled)."""
+    from FluoTomoLib.recon.solver import SCALE_FREE_EXP, _exact_scaling
+
+    J, y, prior = independent
+    for units in (1.0, 2.0 ** -90, 2.0 ** 90):
+        Ju = J * units
+        assert _exact_scaling(Ju, y, False)[0] is Ju
+    assert _exact_scaling(J * 2.0 ** -(SCALE_FREE_EXP + 2), y, False)[0] is not J
+    before = J.copy()
+    res = reconstruct(J, y, "SP", prior=prior)
+    np.testing.assert_array_equal(J, before)
+    s = 2.0 ** -500
+    np.testing.assert_array_equal(reconstruct(J * s, y, "SP", prior=prior).yield_per_mm,
+                                  res.yield_per_mm / s)
+
+
 def test_goodness_of_fit_against_the_noise_model(independent):
     """chi^2 per degree of freedom ~ 1 when the stated noise is the real one plus
     the small model error; > 4 (warned) when the noise is understated 20x."""
