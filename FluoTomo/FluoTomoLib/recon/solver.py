@@ -722,12 +722,20 @@ def _iterated_gain(method, prior, Jm, iterations, lam, decay, cache):
                 g = g + z
             return g
         return fixed
+    if LOW_RANK_SHARE * Jm.shape[1] > Jm.shape[0]:
+        # a decaying damping on many unknowns (no path asks for it: HP's few regions
+        # decay, NP and SP do not) would hold one (N, M) system per step: the last
+        # step's gain is kept there
+        return None
     lams = [float(lam) / float(decay) ** j for j in range(n)]
+    systems = dict(cache)        # (R^-1 J^T, data-space system) per damping, R x M each
 
     def decaying(w):
-        u, g, c = np.array(w, float), 0.0, dict(cache)
+        u, g = np.array(w, float), 0.0
         for lam_j in reversed(lams):
-            RJt, ds, c = _replay_system(method, prior, Jm, lam_j, c)
+            if lam_j not in systems:
+                systems[lam_j] = _replay_system(method, prior, Jm, lam_j, {})[:2]
+            RJt, ds = systems[lam_j]
             a = ds.solve(RJt.T @ u)
             g = g + a
             u = u - Jm.T @ a

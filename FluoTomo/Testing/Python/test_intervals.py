@@ -204,3 +204,19 @@ def test_the_noise_sd_is_the_spread_over_noise_draws(problem, method):
     spread, sd = _spread_and_sd(problem, method, 200, noise=0.01)
     print(f"{method}: SD {sd:.4g}, spread {spread:.4g}, ratio {sd / spread:.3f}")
     assert 0.85 < sd / spread < 1.2, (method, sd, spread)
+
+
+def test_a_decaying_damping_on_many_unknowns_keeps_the_last_step_s_gain(problem):
+    """The whole gain replays one step system per damping: (N, M) each where the
+    unknowns are many, so a decaying damping there (no path asks for it) keeps the
+    last step's gain rather than holding a system per step; HP's few regions and a
+    fixed damping get the whole gain."""
+    from FluoTomoLib.recon.partial_volume import region_unknowns
+    from FluoTomoLib.recon.solver import _iterated_gain
+
+    J, prior, _, _ = problem
+    assert _iterated_gain("NP", prior, J, 5, 10.0, 10 ** 0.25, {}) is None
+    assert _iterated_gain("NP", prior, J, 5, 10.0, 1.0, {}) is not None
+    hp = J @ np.stack([(prior.node_region == lab).astype(float) for lab in prior.labels], 1)
+    assert _iterated_gain("HP", region_unknowns([1, 2]), hp, 5, 10.0, 10 ** 0.25,
+                          {}) is not None
