@@ -78,7 +78,6 @@ def row_of(record):
     return row
 
 
-
 #: deflate level of a task's arrays: 1 writes the demo's float fields 7x faster
 #: than numpy's savez_compressed (level 6) for a 9 % larger file (the oral case's
 #: 27.5 MB: 0.19 s and 6.0 MB against 1.28 s and 5.5 MB)
@@ -94,6 +93,7 @@ def _save_arrays(fh, arrays):
         for name, value in arrays.items():
             with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
                 np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+
 
 class RunStore:
     """One run's folder (see the module docstring).

@@ -1133,9 +1133,9 @@ class TissueModel:
             passes = []
         else:
             res = reconstruct(self.nodal_J(progress), y, method=method, lam=lam,
-                              prior=self.prior,
-                              log_data=log_data, cancel=cancel, progress=progress,
-                              region_weights=self.region_weights, noise_rel=noise_rel)
+                              prior=self.prior, log_data=log_data, cancel=cancel,
+                              progress=progress, region_weights=self.region_weights,
+                              noise_rel=noise_rel)
             passes = []
         res.seconds = time.perf_counter() - t0
         return res, passes
